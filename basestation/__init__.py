@@ -1,0 +1,1 @@
+"""collabslam basestation package."""

@@ -1,0 +1,1 @@
+"""collabslam benchmarks package."""

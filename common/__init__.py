@@ -1,0 +1,1 @@
+"""collabslam common package."""

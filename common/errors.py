@@ -1,0 +1,25 @@
+"""One exception hierarchy for collabslam (evo's EvoException pattern).
+
+At the CLI, a `CollabSlamError` becomes one log line and exit code 1; anything
+else is logged with a traceback.
+"""
+
+
+class CollabSlamError(Exception):
+    """Base of every error collabslam raises on purpose."""
+
+
+class ConfigError(CollabSlamError):
+    """A configuration value is missing, of the wrong type or out of range."""
+
+
+class ProtocolError(CollabSlamError):
+    """A message could not be decoded or failed validation."""
+
+
+class FileFormatError(CollabSlamError):
+    """A file (map, trajectory, log) does not have the expected format."""
+
+
+class ProcessError(CollabSlamError):
+    """A supervised child process failed."""

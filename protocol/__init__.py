@@ -1,0 +1,1 @@
+"""collabslam protocol package."""

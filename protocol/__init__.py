@@ -1,1 +1,25 @@
-"""collabslam protocol package."""
+"""Messages between collabslam processes, their msgpack codec and the key layout."""
+
+from protocol.codec import DEFAULT_MAX_BYTES, SCHEMA_VERSION, decode, encode
+from protocol.keys import Keys
+from protocol.messages import (
+    Altimeter,
+    Cloud3D,
+    Goal,
+    Imu,
+    Keyframe,
+    KeyframeAck,
+    LaserScan,
+    Odometry,
+    Path,
+    PoseCorrection,
+    RobotState,
+    Scan2D,
+    VehicleCommand,
+)
+
+__all__ = [
+    "DEFAULT_MAX_BYTES", "SCHEMA_VERSION", "decode", "encode", "Keys",
+    "Altimeter", "Cloud3D", "Goal", "Imu", "Keyframe", "KeyframeAck", "LaserScan", "Odometry",
+    "Path", "PoseCorrection", "RobotState", "Scan2D", "VehicleCommand",
+]

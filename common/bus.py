@@ -1,0 +1,168 @@
+"""The one class in front of Zenoh: sessions, typed publishers and subscribers.
+
+Every process talks through a `Bus`. Publishers encode protocol messages;
+subscribers decode and validate them, and a payload that fails (malformed,
+oversized, wrong version, NaN, a robot id that does not match its key) is
+logged once per reason and dropped: the callback never sees it and the process
+keeps running. Reliable data (keyframes, acks, corrections, commands) uses
+`Reliability.RELIABLE` + `CongestionControl.BLOCK`.
+
+Callbacks run on Zenoh's threads: handlers must be quick and thread-safe
+(typically they put the message on a queue).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import threading
+from collections import Counter
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any, TypeVar
+
+import zenoh
+
+from common.config import ZenohConfig
+from common.errors import ConfigError, ProtocolError
+from protocol.codec import DEFAULT_MAX_BYTES, decode, encode
+from protocol.keys import Keys
+
+log = logging.getLogger(__name__)
+M = TypeVar("M")
+
+
+def zenoh_config(zc: ZenohConfig) -> zenoh.Config:
+    """Build a Zenoh session config: mode, endpoints, scouting (zenoh examples/common)."""
+    try:
+        conf = zenoh.Config.from_file(zc.config_file) if zc.config_file else zenoh.Config()
+    except Exception as exc:
+        raise ConfigError(f"zenoh.config_file {zc.config_file!r}: {exc}") from None
+    settings = {
+        "mode": zc.mode,
+        "scouting/multicast/enabled": zc.multicast_scouting,
+    }
+    if zc.listen:
+        settings["listen/endpoints"] = zc.listen
+    if zc.connect:
+        settings["connect/endpoints"] = zc.connect
+    for key, value in settings.items():
+        try:
+            conf.insert_json5(key, json.dumps(value))
+        except Exception as exc:
+            raise ConfigError(f"zenoh.{key.split('/')[0]}: {exc}") from None
+    return conf
+
+
+class Bus:
+    """A Zenoh session plus the fleet's key layout and typed pub/sub helpers."""
+
+    def __init__(self, zc: ZenohConfig, fleet: str, max_message_bytes: int = DEFAULT_MAX_BYTES):
+        self.keys = Keys(fleet)
+        self.max_message_bytes = max_message_bytes
+        self.rejected: Counter[str] = Counter()
+        self._lock = threading.Lock()
+        self._publishers: dict[str, zenoh.Publisher] = {}
+        self._handles: list[Any] = []
+        try:
+            self.session = zenoh.open(zenoh_config(zc))
+        except ConfigError:
+            raise
+        except Exception as exc:
+            raise ConfigError(f"cannot open a Zenoh session: {exc}") from None
+
+    # --- publishing ---------------------------------------------------------------------
+    def publish(self, key: str, msg: Any, reliable: bool = True) -> None:
+        """Encode and put `msg` on `key` (publisher declared once per key)."""
+        self.put_raw(key, encode(msg), reliable)
+
+    def put_raw(self, key: str, payload: bytes, reliable: bool = True) -> None:
+        with self._lock:
+            pub = self._publishers.get(key)
+            if pub is None:
+                pub = self.session.declare_publisher(
+                    key,
+                    reliability=zenoh.Reliability.RELIABLE if reliable
+                    else zenoh.Reliability.BEST_EFFORT,
+                    congestion_control=zenoh.CongestionControl.BLOCK if reliable
+                    else zenoh.CongestionControl.DROP,
+                )
+                self._publishers[key] = pub
+        pub.put(payload)
+
+    # --- subscribing --------------------------------------------------------------------
+    def subscribe(self, key_expr: str, msg_type: type[M],
+                  handler: Callable[[M, str], None]) -> None:
+        """Decode each sample as `msg_type` and call handler(msg, key).
+
+        Samples on a robot key must carry that robot's id; bad samples are dropped.
+        """
+
+        def on_sample(sample: zenoh.Sample) -> None:
+            key = str(sample.key_expr)
+            try:
+                msg = decode(sample.payload.to_bytes(), msg_type, self.max_message_bytes)
+                robot = self.keys.robot_id_of(key)
+                if robot is not None and getattr(msg, "robot_id", robot) != robot:
+                    raise ProtocolError(
+                        f"robot_id {msg.robot_id!r} does not match key robot {robot!r}"
+                    )
+            except ProtocolError as exc:
+                self._reject(key, str(exc))
+                return
+            try:
+                handler(msg, key)
+            except Exception:  # a handler bug must not kill Zenoh's thread silently
+                log.exception("handler for %s failed", key)
+
+        self._handles.append(self.session.declare_subscriber(key_expr, on_sample))
+
+    def _reject(self, key: str, reason: str) -> None:
+        with self._lock:
+            self.rejected[reason.split(":")[0]] += 1
+            n = sum(self.rejected.values())
+        # Log the first few in full, then every 1000th, so a flood cannot drown the log.
+        if n <= 20 or n % 1000 == 0:
+            log.error("dropped bad message on %s: %s (%d rejected so far)", key, reason, n)
+
+    # --- liveliness ---------------------------------------------------------------------
+    def declare_alive(self, role: str, name: str) -> None:
+        self._handles.append(self.session.liveliness().declare_token(self.keys.alive(role, name)))
+
+    def watch_alive(self, role: str, on_change: Callable[[str, bool], None]) -> None:
+        """on_change(name, alive) for every token of `role`, including those already there."""
+
+        def on_sample(sample: zenoh.Sample) -> None:
+            name = str(sample.key_expr).rsplit("/", 1)[-1]
+            on_change(name, sample.kind == zenoh.SampleKind.PUT)
+
+        self._handles.append(
+            self.session.liveliness().declare_subscriber(
+                self.keys.alive_all(role), on_sample, history=True
+            )
+        )
+
+    def close(self) -> None:
+        for h in self._handles:
+            try:
+                h.undeclare()
+            except Exception:  # already closed
+                pass
+        self._handles.clear()
+        self.session.close()
+
+    def __enter__(self) -> Bus:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+def endpoint(port: int, host: str = "127.0.0.1") -> str:
+    return f"tcp/{host}:{port}"
+
+
+def ensure_dir(path: str | Path) -> Path:
+    p = Path(path)
+    p.mkdir(parents=True, exist_ok=True)
+    return p

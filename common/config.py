@@ -1,0 +1,289 @@
+"""The one typed configuration tree, loaded from TOML and validated in one place.
+
+Every parameter has a name, a unit in its comment and a default (from the papers
+where they give one). `load_config()` reads a TOML file and/or dotted overrides,
+rejects unknown keys and wrong types with a `ConfigError` that names the key,
+checks ranges, and fills derived defaults. `dump_config()` writes the config
+actually used (so every run's output folder holds it).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import tomllib
+import typing
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import tomli_w
+
+from common.errors import ConfigError
+
+
+@dataclass
+class ZenohConfig:
+    mode: str = "peer"  # peer | client | router
+    listen: list[str] = field(default_factory=list)  # e.g. ["tcp/127.0.0.1:7447"]
+    connect: list[str] = field(default_factory=list)
+    multicast_scouting: bool = False  # off by default: explicit endpoints only
+    config_file: str = ""  # optional Zenoh JSON5 config (deploy/); its settings come first
+
+
+@dataclass
+class LaserConfig:
+    """Hokuyo UTM-30LX defaults (seed 002)."""
+
+    beams: int = 1081
+    fov_deg: float = 270.0  # deg
+    range_min_m: float = 0.1  # m
+    range_max_m: float = 30.0  # m
+    rate_hz: float = 40.0  # Hz
+    range_noise_std_m: float = 0.01  # m, Gaussian
+
+
+@dataclass
+class OdometryNoiseConfig:
+    speed_noise_frac: float = 0.01  # fraction of speed, 1-sigma
+    yaw_rate_noise_std: float = 0.002  # rad/s, 1-sigma white noise
+    yaw_rate_bias: float = 0.0005  # rad/s, constant gyro-like bias
+
+
+@dataclass
+class ImuConfig:
+    gyro_noise_std: float = 0.002  # rad/s
+    gyro_bias: float = 0.0005  # rad/s
+    accel_noise_std: float = 0.05  # m/s^2
+    accel_bias: float = 0.02  # m/s^2
+
+
+@dataclass
+class AltimeterConfig:
+    noise_std_m: float = 0.02  # m
+    bias_m: float = 0.0  # m
+
+
+@dataclass
+class QuadrotorConfig:
+    max_speed_mps: float = 1.0  # m/s
+    max_accel_mps2: float = 1.0  # m/s^2
+    max_vertical_speed_mps: float = 0.5  # m/s
+    max_yaw_rate_rps: float = 1.0  # rad/s
+    radius_m: float = 0.25  # m, collision disc
+    altitude_m: float = 1.0  # m, cruise height above ground
+
+
+@dataclass
+class SimConfig:
+    clock: str = "lockstep"  # lockstep | realtime (rate x real time)
+    rate: float = 1.0  # sim seconds per wall second when clock = realtime
+    seed: int = 0
+    lockstep_timeout_s: float = 2.0  # s wall: re-publish a tick if an agent has not answered
+    start_timeout_s: float = 60.0  # s wall: wait this long for every agent to come alive
+    tour_length_m: float = 80.0  # m, scripted tour per robot
+    start_spacing_m: float = 1.5  # m between start positions
+    ground_truth_rate_hz: float = 10.0  # Hz, ground-truth samples written
+    laser: LaserConfig = field(default_factory=LaserConfig)
+    odometry: OdometryNoiseConfig = field(default_factory=OdometryNoiseConfig)
+    imu: ImuConfig = field(default_factory=ImuConfig)
+    altimeter: AltimeterConfig = field(default_factory=AltimeterConfig)
+    quadrotor: QuadrotorConfig = field(default_factory=QuadrotorConfig)
+
+
+@dataclass
+class AgentConfig:
+    keyframe_distance_m: float = 0.2  # m, seed 002: new base-station keyframe every 0.2 m
+    keyframe_angle_rad: float = 0.1  # rad, ... or every 0.1 rad
+    local_keyframe_period_s: float = 0.25  # s, seed 002: local-map keyframes
+    odom_sigma_per_m: float = 0.02  # m of translation std per metre travelled
+    odom_sigma_yaw_per_rad: float = 0.02  # rad of yaw std per rad turned
+    odom_sigma_yaw_per_m: float = 0.005  # rad of yaw std per metre travelled
+    odom_sigma_min: float = 1e-3  # floor on every std (m or rad)
+    outbox_max: int = 20000  # keyframes kept until acknowledged
+    outbox_warn_fraction: float = 0.8  # warn when the outbox is this full
+    resend_timeout_s: float = 1.0  # s wall without ack before resending from the oldest
+    resend_batch: int = 50  # keyframes resent per timeout
+    waypoint_tolerance_m: float = 0.3  # m
+    cruise_speed_mps: float = 1.0  # m/s
+    yaw_gain: float = 1.5  # 1/s, heading controller gain
+    state_period_s: float = 0.5  # s sim time between RobotState messages
+    drain_timeout_s: float = 15.0  # s wall: on shutdown wait this long for acks
+
+
+@dataclass
+class MapConfig:
+    resolution_m: float = 0.05  # m per cell
+    p_hit: float = 0.7
+    p_miss: float = 0.4
+    p_min: float = 0.12
+    p_max: float = 0.97
+    occupied_thresh: float = 0.65  # map_server convention
+    free_thresh: float = 0.196  # map_server convention
+    max_free_range_m: float = 10.0  # m, no-return beams clear free space up to here
+
+
+@dataclass
+class BaseStationConfig:
+    relinearize_threshold: float = 0.1
+    relinearize_skip: int = 1
+    prior_sigma_xy_m: float = 0.01  # m, known start pose
+    prior_sigma_yaw_rad: float = 0.001  # rad
+    map_update_period_s: float = 2.0  # s wall between global map refreshes
+    batch_max: int = 200  # keyframes per processing batch
+    reorder_window: int = 1000  # out-of-order keyframes held per robot waiting for a gap
+
+
+@dataclass
+class ProtocolConfig:
+    max_message_bytes: int = 8 * 1024 * 1024  # bytes; larger payloads are dropped
+
+
+@dataclass
+class Config:
+    fleet: str = "default"
+    zenoh: ZenohConfig = field(default_factory=ZenohConfig)
+    sim: SimConfig = field(default_factory=SimConfig)
+    agent: AgentConfig = field(default_factory=AgentConfig)
+    map: MapConfig = field(default_factory=MapConfig)
+    basestation: BaseStationConfig = field(default_factory=BaseStationConfig)
+    protocol: ProtocolConfig = field(default_factory=ProtocolConfig)
+
+
+# --- loading -------------------------------------------------------------------------------
+
+
+def load_config(path: str | Path | None = None, overrides: dict[str, Any] | None = None) -> Config:
+    """Shipped defaults <- TOML file <- dotted overrides ({"sim.seed": 3}); validated."""
+    data: dict[str, Any] = {}
+    if path is not None:
+        try:
+            data = tomllib.loads(Path(path).read_text())
+        except FileNotFoundError:
+            raise ConfigError(f"config file not found: {path}") from None
+        except tomllib.TOMLDecodeError as exc:
+            raise ConfigError(f"{path}: invalid TOML: {exc}") from None
+    for dotted, value in (overrides or {}).items():
+        node = data
+        *parents, leaf = dotted.split(".")
+        for p in parents:
+            node = node.setdefault(p, {})
+            if not isinstance(node, dict):
+                raise ConfigError(f"{dotted}: {p} is not a table")
+        node[leaf] = value
+    cfg = _build(Config, data, "")
+    validate(cfg)
+    return cfg
+
+
+def _build(cls: type, data: Any, prefix: str) -> Any:
+    if not isinstance(data, dict):
+        raise ConfigError(f"{prefix.rstrip('.') or 'config'}: expected a table")
+    hints = typing.get_type_hints(cls)
+    names = {f.name for f in dataclasses.fields(cls)}
+    unknown = sorted(set(data) - names)
+    if unknown:
+        raise ConfigError(
+            f"unknown config key {prefix}{unknown[0]} (known keys here: {', '.join(sorted(names))})"
+        )
+    kwargs = {}
+    for name, value in data.items():
+        key = f"{prefix}{name}"
+        hint = hints[name]
+        if dataclasses.is_dataclass(hint):
+            kwargs[name] = _build(hint, value, key + ".")
+        else:
+            kwargs[name] = _coerce(hint, value, key)
+    return cls(**kwargs)
+
+
+def _coerce(hint: Any, value: Any, key: str) -> Any:
+    if hint is bool:
+        if not isinstance(value, bool):
+            raise ConfigError(f"{key}: expected true or false, got {value!r}")
+        return value
+    if hint is int:
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise ConfigError(f"{key}: expected an integer, got {value!r}")
+        return value
+    if hint is float:
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise ConfigError(f"{key}: expected a number, got {value!r}")
+        if not math.isfinite(value):
+            raise ConfigError(f"{key}: expected a finite number, got {value!r}")
+        return float(value)
+    if hint is str:
+        if not isinstance(value, str):
+            raise ConfigError(f"{key}: expected a string, got {value!r}")
+        return value
+    if typing.get_origin(hint) is list:
+        (item,) = typing.get_args(hint)
+        if not isinstance(value, list):
+            raise ConfigError(f"{key}: expected a list, got {value!r}")
+        return [_coerce(item, v, f"{key}[{i}]") for i, v in enumerate(value)]
+    raise ConfigError(f"{key}: unsupported type {hint}")  # pragma: no cover
+
+
+def _positive(key: str, value: float) -> None:
+    if not value > 0:
+        raise ConfigError(f"{key}: expected a value > 0, got {value}")
+
+
+def _prob(key: str, value: float) -> None:
+    if not 0.0 < value < 1.0:
+        raise ConfigError(f"{key}: expected a probability in (0, 1), got {value}")
+
+
+def validate(cfg: Config) -> None:
+    """Range checks across the tree; raises ConfigError naming the key."""
+    from protocol.keys import Keys  # local: protocol depends on common, not the reverse
+
+    try:
+        Keys(cfg.fleet)
+    except ConfigError as exc:
+        raise ConfigError(f"fleet: {exc}") from None
+    if cfg.zenoh.mode not in ("peer", "client", "router"):
+        raise ConfigError(f"zenoh.mode: expected peer, client or router, got {cfg.zenoh.mode!r}")
+    if cfg.sim.clock not in ("lockstep", "realtime"):
+        raise ConfigError(f"sim.clock: expected lockstep or realtime, got {cfg.sim.clock!r}")
+    las = cfg.sim.laser
+    for key, v in [
+        ("sim.rate", cfg.sim.rate), ("sim.laser.beams", las.beams),
+        ("sim.laser.fov_deg", las.fov_deg), ("sim.laser.range_max_m", las.range_max_m),
+        ("sim.laser.rate_hz", las.rate_hz), ("sim.lockstep_timeout_s", cfg.sim.lockstep_timeout_s),
+        ("sim.quadrotor.max_speed_mps", cfg.sim.quadrotor.max_speed_mps),
+        ("sim.quadrotor.max_accel_mps2", cfg.sim.quadrotor.max_accel_mps2),
+        ("sim.quadrotor.radius_m", cfg.sim.quadrotor.radius_m),
+        ("sim.ground_truth_rate_hz", cfg.sim.ground_truth_rate_hz),
+        ("agent.keyframe_distance_m", cfg.agent.keyframe_distance_m),
+        ("agent.keyframe_angle_rad", cfg.agent.keyframe_angle_rad),
+        ("agent.outbox_max", cfg.agent.outbox_max),
+        ("agent.resend_timeout_s", cfg.agent.resend_timeout_s),
+        ("agent.cruise_speed_mps", cfg.agent.cruise_speed_mps),
+        ("agent.odom_sigma_min", cfg.agent.odom_sigma_min),
+        ("map.resolution_m", cfg.map.resolution_m),
+        ("basestation.prior_sigma_xy_m", cfg.basestation.prior_sigma_xy_m),
+        ("basestation.prior_sigma_yaw_rad", cfg.basestation.prior_sigma_yaw_rad),
+        ("protocol.max_message_bytes", cfg.protocol.max_message_bytes),
+    ]:
+        _positive(key, v)
+    if las.fov_deg > 360.0:
+        raise ConfigError(f"sim.laser.fov_deg: expected <= 360, got {las.fov_deg}")
+    if not 0 <= las.range_min_m < las.range_max_m:
+        raise ConfigError("sim.laser.range_min_m: expected 0 <= range_min_m < range_max_m")
+    for key in ("p_hit", "p_miss", "p_min", "p_max", "occupied_thresh", "free_thresh"):
+        _prob(f"map.{key}", getattr(cfg.map, key))
+    if not cfg.map.p_miss < 0.5 < cfg.map.p_hit:
+        raise ConfigError("map.p_hit / map.p_miss: expected p_miss < 0.5 < p_hit")
+    if not 0.0 < cfg.agent.outbox_warn_fraction <= 1.0:
+        raise ConfigError("agent.outbox_warn_fraction: expected a value in (0, 1]")
+
+
+def config_to_dict(cfg: Config) -> dict[str, Any]:
+    return dataclasses.asdict(cfg)
+
+
+def dump_config(cfg: Config, path: str | Path) -> None:
+    """Write the config actually used as TOML."""
+    Path(path).parent.mkdir(parents=True, exist_ok=True)
+    Path(path).write_text(tomli_w.dumps(config_to_dict(cfg)))

@@ -1,0 +1,292 @@
+"""Every message that crosses a process boundary, as versioned dataclasses.
+
+Units: metres, radians, seconds. Stamps are sensor/sim time in seconds.
+Poses travel as "pose7" arrays `[x, y, z, qx, qy, qz, qw]` (float64).
+Frames (REP-105): each robot's local frame is `odom`; the global frame is
+`map`; `base` is the vehicle body. `T_a_b` maps points from b into a.
+"""
+
+from __future__ import annotations
+
+import re
+from typing import Any
+
+import numpy as np
+
+from common.errors import ProtocolError
+from protocol.codec import array_field, message
+
+ROBOT_ID_RE = re.compile(r"^[A-Za-z0-9_-]{1,32}$")
+ROBOT_STATUSES = ("starting", "flying", "hovering", "done", "landed")
+
+
+def _check_robot_id(robot_id: str) -> None:
+    if not ROBOT_ID_RE.match(robot_id):
+        raise ProtocolError(
+            f"robot_id {robot_id!r} is invalid: expected 1-32 letters, digits, '_' or '-'"
+        )
+
+
+def _check_pose7(name: str, pose: np.ndarray) -> None:
+    norm = float(np.linalg.norm(pose[3:7]))
+    if abs(norm - 1.0) > 1e-3:
+        raise ProtocolError(f"{name}: quaternion norm is {norm:.6f}, expected 1")
+
+
+class Message:
+    """Base of all messages: common validation hooks."""
+
+    robot_id: str
+
+    def validate(self) -> None:
+        _check_robot_id(self.robot_id)
+
+
+# --- simulator / driver sensor messages -------------------------------------------------
+
+
+@message
+class LaserScan(Message):
+    """A planar laser scan in the sensor frame (beam i at angle_min + i*angle_increment).
+
+    Ranges may hold NaN/inf (a driver's "no return"); the agent's preprocessing
+    drops them. Values >= range_max mean no return.
+    """
+
+    robot_id: str
+    stamp: float
+    angle_min: float
+    angle_increment: float
+    range_min: float
+    range_max: float
+    ranges: np.ndarray = array_field("f4", (None,), finite=False)
+
+    def validate(self) -> None:
+        super().validate()
+        if self.ranges.size == 0:
+            raise ProtocolError("LaserScan.ranges is empty")
+        if not (0.0 <= self.range_min < self.range_max):
+            raise ProtocolError("LaserScan: expected 0 <= range_min < range_max")
+        if self.angle_increment == 0.0:
+            raise ProtocolError("LaserScan.angle_increment is 0")
+
+
+@message
+class Odometry(Message):
+    """Dead-reckoned pose of the vehicle in the odometry source's own frame, plus twist.
+
+    twist: body-frame [vx, vy, vz, yaw_rate] (m/s, rad/s).
+    """
+
+    robot_id: str
+    stamp: float
+    pose: np.ndarray = array_field("f8", (7,))
+    twist: np.ndarray = array_field("f8", (4,))
+
+    def validate(self) -> None:
+        super().validate()
+        _check_pose7("Odometry.pose", self.pose)
+
+
+@message
+class Imu(Message):
+    """Body-frame angular velocity (rad/s), specific force (m/s^2), attitude quaternion."""
+
+    robot_id: str
+    stamp: float
+    angular_velocity: np.ndarray = array_field("f8", (3,))
+    linear_acceleration: np.ndarray = array_field("f8", (3,))
+    orientation: np.ndarray = array_field("f8", (4,))
+
+    def validate(self) -> None:
+        super().validate()
+        norm = float(np.linalg.norm(self.orientation))
+        if abs(norm - 1.0) > 1e-3:
+            raise ProtocolError(f"Imu.orientation norm is {norm:.6f}, expected 1")
+
+
+@message
+class Altimeter(Message):
+    """Height above ground (m)."""
+
+    robot_id: str
+    stamp: float
+    altitude: float
+
+
+@message
+class VehicleCommand(Message):
+    """Body-frame velocity set-point for the autopilot.
+
+    `stamp` is the sensor stamp the command answers: in lock-step simulation it
+    is the handshake that lets the simulator advance.
+    """
+
+    robot_id: str
+    stamp: float
+    vx: float
+    vy: float
+    vz: float
+    yaw_rate: float
+
+
+# --- agent <-> base station ---------------------------------------------------------------
+
+
+@message
+class Scan2D:
+    """A keyframe's planar scan, ranges quantized to millimetres (0 = no return)."""
+
+    angle_min: float
+    angle_increment: float
+    range_max: float
+    ranges_mm: np.ndarray = array_field("u2", (None,))
+
+    def ranges(self) -> np.ndarray:
+        """Ranges in metres as float32, NaN for no return."""
+        r = self.ranges_mm.astype(np.float32) * np.float32(1e-3)
+        r[self.ranges_mm == 0] = np.nan
+        return r
+
+    def angles(self) -> np.ndarray:
+        return (self.angle_min + self.angle_increment * np.arange(self.ranges_mm.size)).astype(
+            np.float32
+        )
+
+    @staticmethod
+    def from_ranges(angle_min: float, angle_increment: float, range_max: float,
+                    ranges: np.ndarray) -> Scan2D:
+        """Quantize metres to mm; NaN/inf/>= range_max/<= 0 become 0 (no return)."""
+        r = np.asarray(ranges, dtype=np.float64)
+        valid = np.isfinite(r) & (r > 0.0) & (r < min(range_max, 65.0))
+        mm = np.zeros(r.shape, dtype=np.uint16)
+        mm[valid] = np.clip(np.rint(r[valid] * 1000.0), 1, 65535).astype(np.uint16)
+        return Scan2D(float(angle_min), float(angle_increment), float(range_max), mm)
+
+
+@message
+class Cloud3D:
+    """A keyframe's downsampled 3-D cloud in the body frame (m)."""
+
+    points: np.ndarray = array_field("f4", (None, 3))
+
+
+@message
+class Keyframe(Message):
+    """One keyframe streamed from an agent to the base station.
+
+    pose_odom: T_odom_base at `stamp` (pose7). delta: motion since the previous
+    keyframe, expressed in the previous keyframe's body frame (pose7); identity
+    for seq 0. delta_cov: 6x6 covariance of delta, order [x, y, z, roll, pitch,
+    yaw]. Exactly one of scan2d / cloud3d is set.
+    """
+
+    robot_id: str
+    seq: int
+    stamp: float
+    pose_odom: np.ndarray = array_field("f8", (7,))
+    delta: np.ndarray = array_field("f8", (7,))
+    delta_cov: np.ndarray = array_field("f8", (6, 6))
+    scan2d: Scan2D | None = None
+    cloud3d: Cloud3D | None = None
+
+    def validate(self) -> None:
+        super().validate()
+        if self.seq < 0:
+            raise ProtocolError(f"Keyframe.seq must be >= 0, got {self.seq}")
+        _check_pose7("Keyframe.pose_odom", self.pose_odom)
+        _check_pose7("Keyframe.delta", self.delta)
+        if (self.scan2d is None) == (self.cloud3d is None):
+            raise ProtocolError("Keyframe: exactly one of scan2d / cloud3d must be set")
+        cov = self.delta_cov
+        if not np.allclose(cov, cov.T, atol=1e-9) or np.any(np.diag(cov) <= 0.0):
+            raise ProtocolError("Keyframe.delta_cov must be symmetric with a positive diagonal")
+
+
+@message
+class KeyframeAck(Message):
+    """Cumulative acknowledgement: every keyframe with seq <= acked_seq is safe."""
+
+    robot_id: str
+    acked_seq: int
+
+
+@message
+class PoseCorrection(Message):
+    """T_map_odom for one robot after a graph optimization; epoch increases."""
+
+    robot_id: str
+    epoch: int
+    stamp: float
+    T_map_odom: np.ndarray = array_field("f8", (7,))
+
+    def validate(self) -> None:
+        super().validate()
+        _check_pose7("PoseCorrection.T_map_odom", self.T_map_odom)
+
+
+@message
+class Goal(Message):
+    """A navigation goal; `frame` is 'odom' (already in the robot's frame) or 'map'."""
+
+    robot_id: str
+    goal_id: int
+    stamp: float
+    frame: str
+    epoch: int
+    pose: np.ndarray = array_field("f8", (7,))
+
+    def validate(self) -> None:
+        super().validate()
+        _check_frame(self.frame)
+        _check_pose7("Goal.pose", self.pose)
+
+
+@message
+class Path(Message):
+    """A path of [x, y, z, yaw] waypoints in `frame`; an empty path means stop."""
+
+    robot_id: str
+    path_id: int
+    stamp: float
+    frame: str
+    epoch: int
+    waypoints: np.ndarray = array_field("f4", (None, 4))
+
+    def validate(self) -> None:
+        super().validate()
+        _check_frame(self.frame)
+
+
+@message
+class RobotState(Message):
+    """Periodic status an agent publishes for the base station, simulator and viewers."""
+
+    robot_id: str
+    stamp: float
+    status: str
+    correction_epoch: int
+    keyframes_sent: int
+    keyframes_acked: int
+    outbox_len: int
+    pose_odom: np.ndarray = array_field("f8", (7,))
+    pose_map: np.ndarray = array_field("f8", (7,))
+
+    def validate(self) -> None:
+        super().validate()
+        if self.status not in ROBOT_STATUSES:
+            raise ProtocolError(f"RobotState.status {self.status!r} not in {ROBOT_STATUSES}")
+
+
+def _check_frame(frame: str) -> None:
+    if frame not in ("odom", "map"):
+        raise ProtocolError(f"frame must be 'odom' or 'map', got {frame!r}")
+
+
+def message_types() -> dict[str, Any]:
+    """All top-level messages (for tests and docs)."""
+    return {
+        c.__name__: c
+        for c in (LaserScan, Odometry, Imu, Altimeter, VehicleCommand, Keyframe, KeyframeAck,
+                  PoseCorrection, Goal, Path, RobotState)
+    }

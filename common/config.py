@@ -106,6 +106,8 @@ class AgentConfig:
     resend_batch: int = 50  # keyframes resent per timeout
     waypoint_tolerance_m: float = 0.3  # m
     cruise_speed_mps: float = 1.0  # m/s
+    cruise_altitude_m: float = 1.0  # m above ground
+    max_accel_mps2: float = 1.0  # m/s^2, used to slow down before the last waypoint
     yaw_gain: float = 1.5  # 1/s, heading controller gain
     state_period_s: float = 0.5  # s sim time between RobotState messages
     drain_timeout_s: float = 15.0  # s wall: on shutdown wait this long for acks
@@ -121,6 +123,8 @@ class MapConfig:
     occupied_thresh: float = 0.65  # map_server convention
     free_thresh: float = 0.196  # map_server convention
     max_free_range_m: float = 10.0  # m, no-return beams clear free space up to here
+    pose_moved_m: float = 0.02  # m: a keyframe that moved more than this forces a re-render
+    pose_moved_rad: float = 0.005  # rad: likewise for heading
 
 
 @dataclass

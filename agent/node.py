@@ -1,0 +1,209 @@
+"""The agent process: one per drone.
+
+Subscribes to its own drone's sensors, keeps the local pose (T_odom_base),
+cuts keyframes and streams them through the outbox, applies the base
+station's corrections (T_map_odom), flies its tour, and answers every laser
+scan with a VehicleCommand (the simulator's lock-step handshake).
+
+Threads: Zenoh callbacks only enqueue sensor messages or update the outbox /
+correction under locks; all SLAM and control runs on the thread calling `run()`.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import queue
+import threading
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from agent.keyframe_selector import KeyframeSelector
+from agent.odometry_tracker import OdometryTracker
+from agent.outbox import Outbox
+from agent.path_follower import PathFollower
+from common.bus import Bus
+from common.config import Config
+from common.geometry import pose4_compose, pose4_inverse, pose4_to_pose7, pose7_to_pose4
+from protocol import (
+    Altimeter,
+    Imu,
+    Keyframe,
+    KeyframeAck,
+    LaserScan,
+    Odometry,
+    PoseCorrection,
+    RobotState,
+    Scan2D,
+    VehicleCommand,
+    encode,
+)
+
+log = logging.getLogger(__name__)
+
+
+class AgentNode:
+    def __init__(self, cfg: Config, robot_id: str, bus: Bus, tour_map: np.ndarray,
+                 T_map_odom: np.ndarray | None = None) -> None:
+        """tour_map: (M, 2) waypoints in `map`; T_map_odom: [x, y, z, yaw] known at start."""
+        self.cfg = cfg
+        self.robot_id = robot_id
+        self.bus = bus
+        self.keys = bus.keys
+        a = cfg.agent
+        self.tracker = OdometryTracker()
+        self.selector = KeyframeSelector(a)
+        self.outbox = Outbox(a.outbox_max, a.outbox_warn_fraction, a.resend_timeout_s,
+                             a.resend_batch)
+        self.follower = PathFollower(a.cruise_speed_mps, a.waypoint_tolerance_m, a.yaw_gain,
+                                     a.max_accel_mps2, a.cruise_altitude_m)
+        self.tour_map = np.asarray(tour_map, dtype=np.float64).reshape(-1, 2)
+        self._corr_lock = threading.Lock()
+        self.T_map_odom = np.zeros(4) if T_map_odom is None else np.asarray(T_map_odom, float)
+        self.epoch = -1
+        self._new_correction = True
+        self.next_seq = 0
+        self.last_scan_stamp: float | None = None
+        self.last_state_stamp = -np.inf
+        self.scans = 0
+        self.inbox: queue.Queue[Any] = queue.Queue()
+
+    # --- wiring -------------------------------------------------------------------------
+    def start(self) -> None:
+        """Declare subscriptions, then the liveliness token (so the token implies routes)."""
+        rid = self.robot_id
+        for kind, typ in (("odom", Odometry), ("imu", Imu), ("altimeter", Altimeter),
+                          ("scan", LaserScan)):
+            self.bus.subscribe(self.keys.sensor(rid, kind), typ, self._enqueue)
+        self.bus.subscribe(self.keys.robot(rid, "ack"), KeyframeAck, self._on_ack)
+        self.bus.subscribe(self.keys.robot(rid, "correction"), PoseCorrection, self._on_correction)
+        self.bus.declare_alive("agent", rid)
+
+    def _enqueue(self, msg: Any, key: str) -> None:
+        self.inbox.put(msg)
+
+    def _on_ack(self, msg: KeyframeAck, key: str) -> None:
+        self.outbox.ack(msg.acked_seq)
+
+    def _on_correction(self, msg: PoseCorrection, key: str) -> None:
+        with self._corr_lock:
+            if msg.epoch <= self.epoch:
+                return
+            self.epoch = msg.epoch
+            self.T_map_odom = pose7_to_pose4(msg.T_map_odom)
+            self._new_correction = True
+
+    # --- main loop ----------------------------------------------------------------------
+    def run(self, stop: threading.Event) -> None:
+        while not stop.is_set():
+            try:
+                msg = self.inbox.get(timeout=0.05)
+            except queue.Empty:
+                msg = None
+            if msg is not None:
+                self.handle(msg)
+            self._resend()
+
+    def handle(self, msg: Any) -> None:
+        if isinstance(msg, Odometry):
+            self.tracker.on_odometry(msg.stamp, msg.pose)
+        elif isinstance(msg, Altimeter):
+            self.tracker.on_altitude(msg.altitude)
+        elif isinstance(msg, LaserScan):
+            self.on_scan(msg)
+        # Imu: attitude is used by the scan-matching front end; nothing to do here.
+
+    def on_scan(self, scan: LaserScan) -> None:
+        if self.last_scan_stamp is not None and scan.stamp <= self.last_scan_stamp:
+            if scan.stamp == self.last_scan_stamp:  # a re-sent lock-step tick: answer again
+                self._command(scan.stamp)
+            else:
+                log.error("scan stamp %.3f is before the previous %.3f: dropped", scan.stamp,
+                          self.last_scan_stamp)
+            return
+        self.last_scan_stamp = scan.stamp
+        self.scans += 1
+        pose = self.tracker.T_odom_base.copy()
+        if self.selector.is_due(pose) and self.outbox.has_room():
+            self._send_keyframe(scan, pose)
+        self._command(scan.stamp)
+        if scan.stamp - self.last_state_stamp >= self.cfg.agent.state_period_s:
+            self.last_state_stamp = scan.stamp
+            self.publish_state(scan.stamp)
+
+    def _send_keyframe(self, scan: LaserScan, pose: np.ndarray) -> None:
+        delta, cov = self.selector.cut(pose)
+        kf = Keyframe(
+            robot_id=self.robot_id, seq=self.next_seq, stamp=scan.stamp,
+            pose_odom=pose4_to_pose7(pose), delta=pose4_to_pose7(delta), delta_cov=cov,
+            scan2d=Scan2D.from_ranges(scan.angle_min, scan.angle_increment, scan.range_max,
+                                      scan.ranges),
+        )
+        payload = encode(kf)
+        self.outbox.add(self.next_seq, payload)
+        self.next_seq += 1
+        self.bus.put_raw(self.keys.robot(self.robot_id, "keyframe"), payload)
+
+    def _command(self, stamp: float) -> None:
+        with self._corr_lock:
+            if self._new_correction:
+                self._new_correction = False
+                T_odom_map = pose4_inverse(self.T_map_odom)
+                pts = np.column_stack([self.tour_map, np.zeros((len(self.tour_map), 2))])
+                tour_odom = pose4_compose(T_odom_map, pts) if len(pts) else pts
+                self.follower.set_path(tour_odom[:, :2], keep_progress=True)
+        vx, vy, vz, wz = self.follower.command(self.tracker.T_odom_base)
+        self.bus.publish(self.keys.robot(self.robot_id, "cmd"),
+                         VehicleCommand(self.robot_id, stamp, vx, vy, vz, wz))
+
+    def _resend(self) -> None:
+        key = self.keys.robot(self.robot_id, "keyframe")
+        for payload in self.outbox.due_for_resend():
+            self.bus.put_raw(key, payload)
+
+    def status(self) -> str:
+        if self.scans == 0:
+            return "starting"
+        return "done" if self.follower.done else "flying"
+
+    def publish_state(self, stamp: float) -> None:
+        with self._corr_lock:
+            T_map_odom, epoch = self.T_map_odom.copy(), self.epoch
+        pose = self.tracker.T_odom_base
+        self.bus.publish(self.keys.robot(self.robot_id, "state"), RobotState(
+            robot_id=self.robot_id, stamp=stamp, status=self.status(), correction_epoch=epoch,
+            keyframes_sent=self.next_seq, keyframes_acked=self.outbox.acked_seq + 1,
+            outbox_len=len(self.outbox), pose_odom=pose4_to_pose7(pose),
+            pose_map=pose4_to_pose7(pose4_compose(T_map_odom, pose)),
+        ))
+
+    # --- shutdown -----------------------------------------------------------------------
+    def drain(self, timeout_s: float) -> bool:
+        """Resend until every keyframe is acknowledged or the timeout passes."""
+        deadline = time.monotonic() + timeout_s
+        while len(self.outbox) and time.monotonic() < deadline:
+            self._resend()
+            time.sleep(0.05)
+        if len(self.outbox):
+            log.warning("%d keyframes still unacknowledged at shutdown", len(self.outbox))
+        return len(self.outbox) == 0
+
+    def stats(self) -> dict[str, Any]:
+        return {
+            "robot_id": self.robot_id,
+            "keyframes_sent": self.next_seq,
+            "keyframes_acked": self.outbox.acked_seq + 1,
+            "keyframes_resent": self.outbox.resent,
+            "outbox_high_water": self.outbox.high_water,
+            "scans": self.scans,
+            "odom_distance_m": self.tracker.distance_m,
+            "correction_epoch": self.epoch,
+            "rejected_messages": dict(self.bus.rejected),
+        }
+
+    def write_stats(self, path: str | Path) -> None:
+        Path(path).parent.mkdir(parents=True, exist_ok=True)
+        Path(path).write_text(json.dumps(self.stats(), indent=1))

@@ -1,0 +1,89 @@
+"""At-least-once keyframe uplink (modelled on Cartographer's local_trajectory_uploader).
+
+Keyframes stay in the outbox, in sequence order, until the base station's
+cumulative ack covers them. If no ack makes progress for `resend_timeout_s`
+(wall time), the oldest `resend_batch` are sent again, in order; the base
+station drops duplicates, so resending is harmless.
+
+Bound policy: the outbox holds at most `max_len` keyframes. It warns once when
+it passes `warn_fraction` of that; when full, `has_room()` is False and the
+agent does not cut new keyframes (it keeps flying on local SLAM and the next
+keyframe it cuts spans the gap), so the chain stays intact and nothing queued
+is ever dropped.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from collections import OrderedDict
+from collections.abc import Callable
+
+log = logging.getLogger(__name__)
+
+
+class Outbox:
+    def __init__(self, max_len: int, warn_fraction: float, resend_timeout_s: float,
+                 resend_batch: int, clock: Callable[[], float] = time.monotonic) -> None:
+        self.max_len = max_len
+        self.warn_len = max(1, int(max_len * warn_fraction))
+        self.resend_timeout_s = resend_timeout_s
+        self.resend_batch = resend_batch
+        self._clock = clock
+        self._pending: OrderedDict[int, bytes] = OrderedDict()
+        self._lock = threading.Lock()
+        self._last_progress = clock()
+        self._warned = False
+        self.acked_seq = -1  # highest seq the base station confirmed
+        self.resent = 0
+        self.high_water = 0
+
+    def has_room(self) -> bool:
+        with self._lock:
+            return len(self._pending) < self.max_len
+
+    def add(self, seq: int, payload: bytes) -> None:
+        """Queue a keyframe; seq must increase by one each call."""
+        with self._lock:
+            if self._pending and seq != next(reversed(self._pending)) + 1:
+                raise ValueError(f"outbox expects consecutive seqs, got {seq}")
+            self._pending[seq] = payload
+            n = len(self._pending)
+            self.high_water = max(self.high_water, n)
+            if n == 1:
+                self._last_progress = self._clock()
+        if n >= self.warn_len and not self._warned:
+            self._warned = True
+            log.warning("outbox is %d/%d full: the base station is not acknowledging", n,
+                        self.max_len)
+
+    def ack(self, acked_seq: int) -> int:
+        """Drop everything <= acked_seq; returns how many were released."""
+        released = 0
+        with self._lock:
+            if acked_seq <= self.acked_seq:
+                return 0
+            self.acked_seq = acked_seq
+            while self._pending and next(iter(self._pending)) <= acked_seq:
+                self._pending.popitem(last=False)
+                released += 1
+            self._last_progress = self._clock()
+            if len(self._pending) < self.warn_len:
+                self._warned = False
+        return released
+
+    def due_for_resend(self) -> list[bytes]:
+        """The oldest unacknowledged payloads if the ack has stalled, else []."""
+        with self._lock:
+            if not self._pending or self._clock() - self._last_progress < self.resend_timeout_s:
+                return []
+            self._last_progress = self._clock()
+            batch = [p for _, p in zip(range(self.resend_batch), self._pending.values(),
+                                       strict=False)]
+        self.resent += len(batch)
+        return batch
+
+    def __len__(self) -> int:
+        with self._lock:
+            return len(self._pending)

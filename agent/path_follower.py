@@ -1,0 +1,63 @@
+"""Follows a list of waypoints with body-frame velocity commands.
+
+Waypoints are [x, y] (or [x, y, z, yaw]) in the robot's `odom` frame. The
+follower flies straight at each waypoint at cruise speed, turning to face the
+direction of travel (the laser looks forward), slows down for the last one,
+and holds `altitude_m`. It only computes commands; the vehicle limits itself.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from common.geometry import wrap_angle
+
+
+class PathFollower:
+    def __init__(self, cruise_speed: float, tolerance: float, yaw_gain: float,
+                 max_accel: float, altitude_m: float) -> None:
+        self.cruise_speed = cruise_speed
+        self.tolerance = tolerance
+        self.yaw_gain = yaw_gain
+        self.max_accel = max_accel
+        self.altitude_m = altitude_m
+        self.waypoints = np.zeros((0, 2))
+        self.index = 0
+
+    def set_path(self, waypoints_odom: np.ndarray, keep_progress: bool = False) -> None:
+        self.waypoints = np.asarray(waypoints_odom, dtype=np.float64)[:, :2]
+        if not keep_progress:
+            self.index = 0
+        self.index = min(self.index, len(self.waypoints))
+
+    @property
+    def done(self) -> bool:
+        return self.index >= len(self.waypoints)
+
+    def command(self, T_odom_base: np.ndarray) -> tuple[float, float, float, float]:
+        """(vx, vy, vz, yaw_rate) body-frame command for the pose [x, y, z, yaw]."""
+        x, y, z, yaw = (float(v) for v in T_odom_base)
+        vz = float(np.clip(1.0 * (self.altitude_m - z), -0.5, 0.5))
+        while not self.done:
+            d = self.waypoints[self.index] - (x, y)
+            last = self.index == len(self.waypoints) - 1
+            if np.hypot(*d) > self.tolerance or (last and np.hypot(*d) > 0.5 * self.tolerance):
+                break
+            self.index += 1
+        if self.done:
+            return 0.0, 0.0, vz, 0.0
+        d = self.waypoints[self.index] - (x, y)
+        dist = float(np.hypot(*d))
+        remaining = dist + float(
+            np.sum(np.linalg.norm(np.diff(self.waypoints[self.index:], axis=0), axis=1))
+        )
+        heading_err = float(wrap_angle(np.arctan2(d[1], d[0]) - yaw))
+        speed = min(self.cruise_speed, np.sqrt(2.0 * self.max_accel * 0.5 * remaining))
+        # Turn first when the target is well off the nose, then fly.
+        speed *= max(0.0, np.cos(heading_err)) ** 2
+        c, s = np.cos(yaw), np.sin(yaw)
+        v_odom = speed * d / max(dist, 1e-9)
+        vx = c * v_odom[0] + s * v_odom[1]
+        vy = -s * v_odom[0] + c * v_odom[1]
+        yaw_rate = self.yaw_gain * heading_err if dist > 0.2 else 0.0
+        return float(vx), float(vy), vz, float(yaw_rate)

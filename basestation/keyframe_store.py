@@ -1,0 +1,74 @@
+"""Per-robot keyframe sequences: in-order admission, duplicates and gaps.
+
+Agents deliver at least once and may resend, so the store admits each robot's
+keyframes strictly in `seq` order: a seq already admitted is a harmless
+duplicate (counted, re-acknowledged, never added twice); a seq beyond a gap is
+held (up to `reorder_window` per robot) until the gap fills.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from common.geometry import pose7_to_pose4
+from protocol.messages import Keyframe
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class RobotKeyframes:
+    robot_id: str
+    stamps: list[float] = field(default_factory=list)
+    poses_odom: list[np.ndarray] = field(default_factory=list)  # T_odom_base [x, y, z, yaw]
+    keyframes: list[Keyframe] = field(default_factory=list)
+    held: dict[int, Keyframe] = field(default_factory=dict)
+    duplicates: int = 0
+
+    @property
+    def next_seq(self) -> int:
+        return len(self.keyframes)
+
+
+class KeyframeStore:
+    def __init__(self, reorder_window: int = 1000) -> None:
+        self.reorder_window = reorder_window
+        self.robots: dict[str, RobotKeyframes] = {}
+
+    def robot(self, robot_id: str) -> RobotKeyframes:
+        if robot_id not in self.robots:
+            self.robots[robot_id] = RobotKeyframes(robot_id)
+        return self.robots[robot_id]
+
+    def admit(self, kf: Keyframe) -> list[Keyframe]:
+        """Offer one keyframe; returns the keyframes now admitted, in order (maybe none)."""
+        r = self.robot(kf.robot_id)
+        if kf.seq < r.next_seq or kf.seq in r.held:
+            r.duplicates += 1
+            return []
+        if kf.seq > r.next_seq:
+            if len(r.held) >= self.reorder_window:
+                log.error("robot %s: reorder window full (%d held, waiting for seq %d); "
+                          "dropped seq %d (it will be resent)", kf.robot_id, len(r.held),
+                          r.next_seq, kf.seq)
+                return []
+            r.held[kf.seq] = kf
+            return []
+        ready = [kf]
+        while r.next_seq + len(ready) in r.held:
+            ready.append(r.held.pop(r.next_seq + len(ready)))
+        for k in ready:
+            if r.stamps and k.stamp < r.stamps[-1]:
+                log.warning("robot %s: keyframe %d stamp %.3f is before the previous one",
+                            k.robot_id, k.seq, k.stamp)
+            r.stamps.append(k.stamp)
+            r.poses_odom.append(pose7_to_pose4(k.pose_odom))
+            r.keyframes.append(k)
+        return ready
+
+    def acked_seq(self, robot_id: str) -> int:
+        """Highest seq such that every keyframe up to it is admitted (-1 if none)."""
+        return self.robot(robot_id).next_seq - 1

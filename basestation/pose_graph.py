@@ -1,0 +1,458 @@
+"""Multi-robot 2-D pose graph solved incrementally with gtsam iSAM2.
+
+The only class in collabslam that sees gtsam types for the 2-D back end; callers
+use robot-id strings, node indices and numpy arrays.
+
+Conventions:
+- Every pose is ``T_map_node = [x, y, yaw]`` (m, m, rad) in the base station's map
+  frame; a relative pose ``T_a_b`` is node b expressed in node a's frame.
+- Covariances are 3x3 over ``[x, y, yaw]`` in the local (body) frame of the node
+  (gtsam's Pose2 tangent space), in m^2 / rad^2.
+- Keys: robot number k (registration order) uses the character
+  ``ROBOT_KEY_ALPHABET[k]`` and node i is ``gtsam.symbol(char, i)``. Only lower-case
+  letters are used (26 robots); upper case stays free for non-robot variables.
+
+Gauge (how disjoint chains stay well-posed): the graph is split into connected
+components of robots (linked by inter-robot constraints). A component containing a
+robot with a known start is held by those start priors alone. A floating component
+gets exactly one *gauge prior* (``prior_sigmas``) on the first node of its
+earliest-registered robot, at that node's current estimate: it fixes the
+component's own frame and carries no information. When a constraint joins
+components, surplus gauge priors are removed in the same update (so the merge is
+not biased) and extra iterations let the moved chain settle; if removing a
+constraint splits a component again, a gauge prior is re-added.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections import Counter
+from dataclasses import dataclass, field
+from typing import NamedTuple
+
+import gtsam
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from common.errors import CollabSlamError
+from common.geometry import se2_compose, wrap_angle
+
+logger = logging.getLogger(__name__)
+
+FloatArray = NDArray[np.float64]
+ROBOT_KEY_ALPHABET = "abcdefghijklmnopqrstuvwxyz"
+ROBUST_KERNELS = ("huber", "cauchy")
+
+
+@dataclass(frozen=True)
+class UpdateStats:
+    """What one ``PoseGraph.update`` did."""
+
+    wall_ms: float  # whole call: iSAM2 iterations plus estimate extraction
+    solve_ms: float  # iSAM2 update() calls only
+    iterations: int  # iSAM2 update() calls (1 + extra relinearization iterations)
+    num_new_factors: int
+    num_removed_factors: int
+    num_new_nodes: int
+    changed_robots: frozenset[str]  # robots whose already-estimated nodes moved > epsilon
+    robots_with_new_nodes: frozenset[str]
+
+
+class _GtsamProblem(NamedTuple):
+    """Package-internal snapshot for batch_solver: active committed factors and values."""
+
+    graph: gtsam.NonlinearFactorGraph
+    values: gtsam.Values
+
+
+@dataclass
+class _Chain:
+    char: str
+    T_map_first: FloatArray | None  # known start, or None if the chain floats
+    num_committed: int = 0  # nodes already inside iSAM2
+    pending: list[FloatArray] = field(default_factory=list)  # initial guesses not yet inside
+    gauge_factor: int | None = None  # factor id of this chain's gauge prior, if any
+
+    @property
+    def size(self) -> int:
+        return self.num_committed + len(self.pending)
+
+
+@dataclass
+class _Factor:
+    factor: gtsam.NonlinearFactor
+    kind: str  # "odometry" | "start" (known-start prior) | "gauge" | "constraint"
+    robots: tuple[str, str] | None = None  # the two robots of an inter-robot constraint
+    isam_index: int | None = None  # slot inside iSAM2 once committed
+
+
+def _vec3(value: ArrayLike, name: str) -> FloatArray:
+    arr = np.asarray(value, dtype=np.float64)
+    if arr.shape != (3,) or not np.all(np.isfinite(arr)):
+        raise CollabSlamError(f"{name} must be a finite [x, y, yaw] array, got {value!r}")
+    return arr
+
+
+def _gaussian(covariance: ArrayLike) -> gtsam.noiseModel.Gaussian:
+    cov = np.asarray(covariance, dtype=np.float64)
+    if cov.shape != (3, 3) or not np.all(np.isfinite(cov)):
+        raise CollabSlamError(f"covariance must be a finite 3x3 matrix, got shape {cov.shape}")
+    if not np.allclose(cov, cov.T, rtol=1e-9, atol=1e-12 * max(1.0, float(np.abs(cov).max()))):
+        raise CollabSlamError("covariance must be symmetric")
+    try:
+        np.linalg.cholesky(cov)
+    except np.linalg.LinAlgError as exc:
+        raise CollabSlamError("covariance must be positive definite") from exc
+    return gtsam.noiseModel.Gaussian.Covariance(0.5 * (cov + cov.T))
+
+
+def _pose2(T: FloatArray) -> gtsam.Pose2:
+    return gtsam.Pose2(float(T[0]), float(T[1]), float(T[2]))
+
+
+class PoseGraph:
+    """Pose chains of several robots plus constraints between any two nodes, on iSAM2."""
+
+    def __init__(
+        self,
+        relinearize_threshold: float = 0.1,
+        relinearize_skip: int = 1,
+        prior_sigmas: tuple[float, float, float] = (0.01, 0.01, 0.001),  # m, m, rad
+        change_epsilon: float = 1e-4,  # m or rad: a robot "changed" beyond this
+        settle_iterations: int = 10,  # max extra iterations after components merge
+    ) -> None:
+        params = gtsam.ISAM2Params()
+        params.setFactorization("CHOLESKY")
+        params.setRelinearizeThreshold(relinearize_threshold)
+        params.relinearizeSkip = relinearize_skip
+        params.findUnusedFactorSlots = False  # factor slots stay stable for removal
+        self._isam = gtsam.ISAM2(params)
+        self._prior_noise = gtsam.noiseModel.Diagonal.Sigmas(np.asarray(prior_sigmas, float))
+        self._change_epsilon = change_epsilon
+        self._settle_iterations = settle_iterations
+        self._chains: dict[str, _Chain] = {}  # registration order = key-character order
+        self._factors: dict[int, _Factor] = {}  # active factors (committed or pending)
+        self._pending_ids: list[int] = []
+        self._pending_removals: list[int] = []  # iSAM2 slots
+        self._next_id = 0
+        self._pair_count: Counter[tuple[str, str]] = Counter()
+        self._topology_dirty = False
+        self._component_of: dict[str, int] = {}  # robot -> component label at last update
+        self._guesses = gtsam.Values()  # every initial guess handed to iSAM2 (for batch)
+        self._estimate = np.zeros((0, 3))  # committed poses, rows in key order
+
+    # ----- building the graph -------------------------------------------------------
+    def add_robot(self, robot_id: str, T_map_first: ArrayLike | None) -> None:
+        """Register a chain; ``T_map_first`` is its known start, or None if it floats."""
+        if robot_id in self._chains:
+            raise CollabSlamError(f"robot {robot_id!r} is already registered")
+        if len(self._chains) >= len(ROBOT_KEY_ALPHABET):
+            raise CollabSlamError(f"at most {len(ROBOT_KEY_ALPHABET)} robots are supported")
+        start = None if T_map_first is None else _vec3(T_map_first, "T_map_first")
+        self._chains[robot_id] = _Chain(ROBOT_KEY_ALPHABET[len(self._chains)], start)
+
+    def add_node(
+        self,
+        robot_id: str,
+        index: int,
+        delta: ArrayLike | None,
+        covariance: ArrayLike | None,
+        initial_guess: ArrayLike | None = None,
+    ) -> None:
+        """Append node ``index`` to a chain; ``delta`` is T_prev_node (None for index 0).
+
+        The initial guess defaults to the previous node's estimate composed with
+        ``delta`` (index 0: the known start, or the origin of a floating chain).
+        """
+        chain = self._chain(robot_id)
+        if index != chain.size:
+            raise CollabSlamError(f"robot {robot_id!r}: expected node {chain.size}, got {index}")
+        guess = None if initial_guess is None else _vec3(initial_guess, "initial_guess")
+        key = gtsam.symbol(chain.char, index)
+        if index == 0:
+            if delta is not None:
+                raise CollabSlamError("the first node of a chain takes no delta")
+            start = chain.T_map_first
+            if guess is None:
+                guess = np.zeros(3) if start is None else start
+            if start is not None:
+                prior = gtsam.PriorFactorPose2(key, _pose2(start), self._prior_noise)
+                self._add_factor(prior, "start")
+            self._topology_dirty = True
+        else:
+            if delta is None or covariance is None:
+                raise CollabSlamError("nodes after the first need delta and covariance")
+            d = _vec3(delta, "delta")
+            noise = _gaussian(covariance)
+            if guess is None:
+                guess = se2_compose(self.pose(robot_id, index - 1), d)
+            prev = gtsam.symbol(chain.char, index - 1)
+            self._add_factor(gtsam.BetweenFactorPose2(prev, key, _pose2(d), noise), "odometry")
+        chain.pending.append(guess)
+
+    def add_constraint(
+        self,
+        key_a: tuple[str, int],
+        key_b: tuple[str, int],
+        T_a_b: ArrayLike,
+        covariance: ArrayLike,
+        robust: str | None = "huber",
+        robust_k: float = 1.345,
+    ) -> int:
+        """Add a loop closure / inter-robot constraint; returns its id for removal.
+
+        ``robust`` is "huber", "cauchy" or None; ``robust_k`` is the kernel width in
+        units of the whitened (Mahalanobis) residual.
+        """
+        ka, kb = self._key(*key_a), self._key(*key_b)
+        if ka == kb:
+            raise CollabSlamError(f"constraint from node {key_a} to itself")
+        noise = _gaussian(covariance)
+        if robust is not None:
+            if robust not in ROBUST_KERNELS or not robust_k > 0:
+                raise CollabSlamError(f"robust must be one of {ROBUST_KERNELS} with k > 0")
+            kernel_cls = getattr(gtsam.noiseModel.mEstimator, robust.capitalize())
+            noise = gtsam.noiseModel.Robust.Create(kernel_cls.Create(robust_k), noise)
+        factor = gtsam.BetweenFactorPose2(ka, kb, _pose2(_vec3(T_a_b, "T_a_b")), noise)
+        robots = None
+        if key_a[0] != key_b[0]:
+            robots = (min(key_a[0], key_b[0]), max(key_a[0], key_b[0]))
+            self._pair_count[robots] += 1
+            self._topology_dirty = True
+        return self._add_factor(factor, "constraint", robots)
+
+    def remove_constraint(self, factor_id: int) -> None:
+        """Remove a constraint returned by ``add_constraint`` at the next update."""
+        record = self._factors.get(factor_id)
+        if record is None or record.kind != "constraint":
+            raise CollabSlamError(f"no active constraint with id {factor_id}")
+        if record.robots is not None:
+            self._pair_count[record.robots] -= 1
+            self._topology_dirty = True
+        self._drop_factor(factor_id)
+
+    # ----- solving ------------------------------------------------------------------
+    def update(self, extra_iterations: int = 0) -> UpdateStats:
+        """Run iSAM2 on everything pending (no-op if nothing is pending and no extras).
+
+        ``extra_iterations`` adds empty iSAM2 updates (relinearization steps); they stop
+        early once no variable is relinearized.
+        """
+        t_start = time.perf_counter()
+        merged = self._reconcile_gauges() if self._topology_dirty else False
+        new_ids = [fid for fid in self._pending_ids if fid in self._factors]
+        removals = self._pending_removals
+        if not new_ids and not removals and extra_iterations == 0:
+            return UpdateStats(0.0, 0.0, 0, 0, 0, 0, frozenset(), frozenset())
+        graph = gtsam.NonlinearFactorGraph()
+        for fid in new_ids:
+            graph.add(self._factors[fid].factor)
+        values = gtsam.Values()
+        new_nodes: dict[str, int] = {}
+        for robot_id, chain in self._chains.items():
+            for i, guess in enumerate(chain.pending, start=chain.num_committed):
+                values.insert(gtsam.symbol(chain.char, i), _pose2(guess))
+            if chain.pending:
+                new_nodes[robot_id] = len(chain.pending)
+
+        t_solve = time.perf_counter()
+        result = self._isam.update(graph, values, removals)
+        for fid, slot in zip(new_ids, result.getNewFactorsIndices(), strict=True):
+            self._factors[fid].isam_index = slot
+        iterations = 1
+        for _ in range(max(extra_iterations, self._settle_iterations if merged else 0)):
+            iterations += 1
+            if self._isam.update().getVariablesRelinearized() == 0:
+                break
+        solve_ms = (time.perf_counter() - t_solve) * 1e3
+
+        self._guesses.insert(values)
+        self._pending_ids, self._pending_removals = [], []
+        old_estimate, old_counts = self._estimate, [c.num_committed for c in self._chains.values()]
+        for chain in self._chains.values():
+            chain.num_committed, chain.pending = chain.size, []
+        self._estimate = self._extract(self._isam.calculateEstimate())
+        changed = self._changed_robots(old_estimate, old_counts)
+        stats = UpdateStats(
+            wall_ms=(time.perf_counter() - t_start) * 1e3,
+            solve_ms=solve_ms,
+            iterations=iterations,
+            num_new_factors=len(new_ids),
+            num_removed_factors=len(removals),
+            num_new_nodes=sum(new_nodes.values()),
+            changed_robots=changed,
+            robots_with_new_nodes=frozenset(new_nodes),
+        )
+        logger.debug(
+            "iSAM2 update: %d factors, %d removed, %d nodes, %d iterations, %.2f ms (solve %.2f)",
+            stats.num_new_factors,
+            stats.num_removed_factors,
+            stats.num_new_nodes,
+            iterations,
+            stats.wall_ms,
+            solve_ms,
+        )
+        return stats
+
+    # ----- queries ------------------------------------------------------------------
+    def pose(self, robot_id: str, index: int) -> FloatArray:
+        """T_map_node of one node (its initial guess while it waits for ``update``)."""
+        chain = self._chain(robot_id)
+        if not 0 <= index < chain.size:
+            raise CollabSlamError(f"robot {robot_id!r} has no node {index}")
+        if index >= chain.num_committed:
+            return chain.pending[index - chain.num_committed].copy()
+        return self._estimate[self._offset(robot_id) + index].copy()
+
+    def poses(self, robot_id: str) -> FloatArray:
+        """(N, 3) poses of a chain in index order (pending nodes: their initial guess)."""
+        chain = self._chain(robot_id)
+        offset = self._offset(robot_id)
+        committed = self._estimate[offset : offset + chain.num_committed]
+        return np.vstack([committed, *chain.pending]) if chain.pending else committed.copy()
+
+    def num_nodes(self, robot_id: str | None = None) -> int:
+        if robot_id is None:
+            return sum(c.size for c in self._chains.values())
+        return self._chain(robot_id).size
+
+    def robots(self) -> list[str]:
+        return list(self._chains)
+
+    def latest_index(self, robot_id: str) -> int | None:
+        size = self._chain(robot_id).size
+        return size - 1 if size else None
+
+    def marginal_covariance(self, robot_id: str, index: int) -> FloatArray:
+        """3x3 marginal covariance of a node (body frame, [x, y, yaw]); needs ``update``."""
+        key = self._key(robot_id, index)
+        if index >= self._chains[robot_id].num_committed:
+            raise CollabSlamError(f"node ({robot_id!r}, {index}) is not optimized yet")
+        return np.asarray(self._isam.marginalCovariance(key))
+
+    def chi2(self) -> float:
+        """Sum of squared whitened residuals of the current estimate (2x gtsam's error).
+
+        Robust factors contribute 2 * rho(residual). Pending changes are not included.
+        """
+        return 2.0 * self._isam.getFactorsUnsafe().error(self._isam.calculateEstimate())
+
+    # ----- package-internal (batch_solver) -----------------------------------------
+    def _gtsam_problem(self, start: str) -> _GtsamProblem:
+        """Active committed factors with the initial guesses ("guess") or estimate ("current")."""
+        graph = gtsam.NonlinearFactorGraph()
+        for record in self._factors.values():
+            if record.isam_index is not None:
+                graph.add(record.factor)
+        if start == "current":
+            return _GtsamProblem(graph, self._isam.calculateEstimate())
+        if start == "guess":
+            return _GtsamProblem(graph, gtsam.Values(self._guesses))
+        raise CollabSlamError(f"start must be 'guess' or 'current', got {start!r}")
+
+    def _split(self, values: gtsam.Values) -> dict[str, FloatArray]:
+        rows = self._extract(values)
+        out, offset = {}, 0
+        for robot_id, chain in self._chains.items():
+            out[robot_id] = rows[offset : offset + chain.num_committed]
+            offset += chain.num_committed
+        return out
+
+    # ----- internals ----------------------------------------------------------------
+    def _chain(self, robot_id: str) -> _Chain:
+        try:
+            return self._chains[robot_id]
+        except KeyError:
+            raise CollabSlamError(f"unknown robot {robot_id!r}") from None
+
+    def _key(self, robot_id: str, index: int) -> int:
+        chain = self._chain(robot_id)
+        if not 0 <= index < chain.size:
+            raise CollabSlamError(f"robot {robot_id!r} has no node {index}")
+        return gtsam.symbol(chain.char, index)
+
+    def _offset(self, robot_id: str) -> int:
+        offset = 0
+        for rid, chain in self._chains.items():
+            if rid == robot_id:
+                return offset
+            offset += chain.num_committed
+        raise CollabSlamError(f"unknown robot {robot_id!r}")
+
+    def _extract(self, values: gtsam.Values) -> FloatArray:
+        # Keys sort by (character, index), so rows come chain after chain in index order.
+        rows = np.asarray(gtsam.utilities.extractPose2(values), dtype=np.float64).reshape(-1, 3)
+        expected = sum(c.num_committed for c in self._chains.values())
+        if rows.shape[0] != expected:
+            raise CollabSlamError(f"estimate has {rows.shape[0]} poses, expected {expected}")
+        return rows
+
+    def _add_factor(
+        self, factor: gtsam.NonlinearFactor, kind: str, robots: tuple[str, str] | None = None
+    ) -> int:
+        fid = self._next_id
+        self._next_id += 1
+        self._factors[fid] = _Factor(factor, kind, robots)
+        self._pending_ids.append(fid)
+        return fid
+
+    def _drop_factor(self, factor_id: int) -> None:
+        record = self._factors.pop(factor_id)
+        if record.isam_index is not None:
+            self._pending_removals.append(record.isam_index)
+
+    def _components(self) -> list[list[str]]:
+        parent = {rid: rid for rid, c in self._chains.items() if c.size > 0}
+
+        def find(r: str) -> str:
+            while parent[r] != r:
+                parent[r] = parent[parent[r]]
+                r = parent[r]
+            return r
+
+        for (a, b), count in self._pair_count.items():
+            if count > 0:
+                parent[find(a)] = find(b)
+        groups: dict[str, list[str]] = {}
+        for rid in parent:  # registration order inside each group
+            groups.setdefault(find(rid), []).append(rid)
+        return list(groups.values())
+
+    def _reconcile_gauges(self) -> bool:
+        """Give each floating component exactly one gauge prior; True if components merged."""
+        components = self._components()
+        merged = any(
+            len({self._component_of.get(r, -1 - i) for i, r in enumerate(component)}) > 1
+            for component in components
+        )
+        self._component_of = {r: n for n, comp in enumerate(components) for r in comp}
+        for component in components:
+            anchored = any(self._chains[r].T_map_first is not None for r in component)
+            holders = [r for r in component if self._chains[r].gauge_factor is not None]
+            keep = None if anchored else (holders[0] if holders else component[0])
+            for rid in holders:
+                chain = self._chains[rid]
+                if rid != keep and chain.gauge_factor is not None:
+                    self._drop_factor(chain.gauge_factor)
+                    chain.gauge_factor = None
+            if keep is not None and self._chains[keep].gauge_factor is None:
+                chain = self._chains[keep]
+                prior = gtsam.PriorFactorPose2(
+                    gtsam.symbol(chain.char, 0), _pose2(self.pose(keep, 0)), self._prior_noise
+                )
+                chain.gauge_factor = self._add_factor(prior, "gauge")
+        self._topology_dirty = False
+        return merged
+
+    def _changed_robots(self, old: FloatArray, old_counts: list[int]) -> frozenset[str]:
+        changed, old_off, new_off = set(), 0, 0
+        for (robot_id, chain), n_old in zip(self._chains.items(), old_counts, strict=True):
+            if n_old:
+                diff = self._estimate[new_off : new_off + n_old] - old[old_off : old_off + n_old]
+                diff[:, 2] = wrap_angle(diff[:, 2])
+                if np.abs(diff).max() > self._change_epsilon:
+                    changed.add(robot_id)
+            old_off += n_old
+            new_off += chain.num_committed
+        return frozenset(changed)

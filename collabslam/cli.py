@@ -1,0 +1,215 @@
+"""The `collabslam` command line: sim, agent, basestation, run."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import sys
+import threading
+import tomllib
+from pathlib import Path
+from typing import Any
+
+from collabslam import __version__
+from common.errors import CollabSlamError, ConfigError
+
+log = logging.getLogger("collabslam")
+
+
+def _version() -> str:
+    import gtsam  # noqa: F401  (the check: every core library imports)
+    import ompl.base  # noqa: F401
+    import zenoh
+
+    from importlib.metadata import version
+
+    libs = {n: version(d) for n, d in (("gtsam", "gtsam"), ("ompl", "ompl"),
+                                        ("zenoh", "eclipse-zenoh"), ("numpy", "numpy"))}
+    del zenoh
+    return f"collabslam {__version__} (" + ", ".join(f"{k} {v}" for k, v in libs.items()) + ")"
+
+
+def _parse_set(items: list[str]) -> dict[str, Any]:
+    """--set key=value, value parsed as TOML (numbers, booleans, strings, lists)."""
+    out: dict[str, Any] = {}
+    for item in items:
+        key, sep, raw = item.partition("=")
+        if not sep or not key:
+            raise ConfigError(f"--set {item!r}: expected key=value")
+        try:
+            out[key.strip()] = tomllib.loads(f"v = {raw}")["v"]
+        except tomllib.TOMLDecodeError:
+            out[key.strip()] = raw  # bare word: a string
+    return out
+
+
+def _load_cfg(args: argparse.Namespace) -> Any:
+    from common.config import load_config
+
+    overrides = _parse_set(args.set)
+    if getattr(args, "listen", None):
+        overrides["zenoh.listen"] = args.listen
+    if getattr(args, "connect", None):
+        overrides["zenoh.connect"] = args.connect
+    return load_config(args.config, overrides)
+
+
+def _bus(cfg: Any) -> Any:
+    from common.bus import Bus
+
+    return Bus(cfg.zenoh, cfg.fleet, cfg.protocol.max_message_bytes)
+
+
+def cmd_sim(args: argparse.Namespace) -> int:
+    from common.scenario import read_scenario
+    from common.shutdown import install_signal_handlers
+    from simulation.simulator import Simulator
+    from simulation.world import World
+
+    cfg = _load_cfg(args)
+    scenario = read_scenario(args.scenario)
+    world = World.load(scenario.world)
+    stop = threading.Event()
+    install_signal_handlers(stop)
+    with _bus(cfg) as bus:
+        sim = Simulator(cfg, bus, scenario, world, args.max_sim_time)
+        sim.start()
+        try:
+            sim.run(stop)
+        finally:
+            sim.write_outputs(Path(args.out))
+    return 0
+
+
+def cmd_agent(args: argparse.Namespace) -> int:
+    import numpy as np
+
+    from agent.node import AgentNode
+    from common.scenario import read_scenario
+    from common.shutdown import install_signal_handlers
+
+    cfg = _load_cfg(args)
+    tour, T_map_odom = np.zeros((0, 2)), None
+    if args.scenario:
+        r = read_scenario(args.scenario).robot(args.robot_id)
+        tour = r.tour
+        x, y, yaw = r.start_pose
+        T_map_odom = np.array([x, y, 0.0, yaw])
+    stop = threading.Event()
+    install_signal_handlers(stop)
+    with _bus(cfg) as bus:
+        node = AgentNode(cfg, args.robot_id, bus, tour, T_map_odom)
+        node.start()
+        log.info("agent %s running", args.robot_id)
+        node.run(stop)
+        node.drain(cfg.agent.drain_timeout_s)
+        if args.out:
+            node.write_stats(Path(args.out) / "agents" / f"{args.robot_id}.json")
+    return 0
+
+
+def cmd_basestation(args: argparse.Namespace) -> int:
+    from basestation.node import BaseStationNode
+    from common.scenario import read_scenario
+    from common.shutdown import install_signal_handlers
+
+    cfg = _load_cfg(args)
+    scenario = read_scenario(args.scenario) if args.scenario else None
+    stop = threading.Event()
+    install_signal_handlers(stop)
+    with _bus(cfg) as bus:
+        node = BaseStationNode(cfg, bus, scenario)
+        node.start()
+        log.info("base station running (fleet %s)", cfg.fleet)
+        node.run(stop)
+        node.drain()
+        node.write_outputs(Path(args.out))
+    return 0
+
+
+def cmd_run(args: argparse.Namespace) -> int:
+    from collabslam.launcher import Launcher
+    from common.shutdown import install_signal_handlers
+
+    cfg = _load_cfg(args)
+    out = Path(args.out)
+    launcher = Launcher(cfg, args.world, args.robots, out, args.max_sim_time, args.log_level)
+    install_signal_handlers(launcher.stop)
+    summary = launcher.run()
+    print(json.dumps(summary, indent=1))
+    print(f"\nresults in {out.resolve()}: map.png, map.pgm/.yaml, trajectories/, "
+          f"ground_truth/, summary.json, config.toml, logs/")
+    return 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="collabslam", description=__doc__)
+    p.add_argument("--version", action="store_true", help="print versions and check imports")
+    p.add_argument("--log-level", default="INFO")
+    sub = p.add_subparsers(dest="command")
+
+    def common(sp: argparse.ArgumentParser, zenoh: bool = True) -> None:
+        sp.add_argument("--config", help="TOML config file (defaults are built in)")
+        sp.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                        help="override one config key, e.g. --set sim.seed=3")
+        if zenoh:
+            sp.add_argument("--listen", action="append", metavar="ENDPOINT",
+                            help="Zenoh endpoint to listen on, e.g. tcp/127.0.0.1:7447")
+            sp.add_argument("--connect", action="append", metavar="ENDPOINT",
+                            help="Zenoh endpoint to connect to")
+
+    sp = sub.add_parser("sim", help="run the simulator process")
+    common(sp)
+    sp.add_argument("--scenario", required=True)
+    sp.add_argument("--out", required=True)
+    sp.add_argument("--max-sim-time", type=float, default=300.0)
+    sp.set_defaults(func=cmd_sim)
+
+    sp = sub.add_parser("agent", help="run one drone's agent")
+    common(sp)
+    sp.add_argument("--robot-id", required=True)
+    sp.add_argument("--scenario", help="scenario JSON (tour and known start pose)")
+    sp.add_argument("--out", help="folder for the agent's statistics")
+    sp.set_defaults(func=cmd_agent)
+
+    sp = sub.add_parser("basestation", help="run the base-station daemon")
+    common(sp)
+    sp.add_argument("--scenario", help="scenario JSON (robot roster, known start poses)")
+    sp.add_argument("--out", required=True, help="folder for the map and trajectories")
+    sp.set_defaults(func=cmd_basestation)
+
+    sp = sub.add_parser("run", help="simulate a whole team on this machine")
+    common(sp, zenoh=False)
+    sp.add_argument("--world", default="bshape", help="shipped world name or a PGM+YAML path")
+    sp.add_argument("--robots", type=int, default=3)
+    sp.add_argument("--out", default="runs/latest")
+    sp.add_argument("--max-sim-time", type=float, default=300.0, help="seconds of sim time")
+    sp.set_defaults(func=cmd_run)
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    from common.logging_setup import setup_logging
+
+    setup_logging(args.log_level, getattr(args, "command", "") or "")
+    try:
+        if args.version:
+            print(_version())
+            return 0
+        if not args.command:
+            parser.print_help()
+            return 2
+        return int(args.func(args))
+    except CollabSlamError as exc:
+        log.error("%s", exc)
+        return 1
+    except Exception:
+        log.exception("unexpected error")
+        return 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())

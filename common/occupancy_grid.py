@@ -1,0 +1,349 @@
+"""Log-odds occupancy grid with laser-ray insertion (numba DDA kernel).
+
+Cell (ix, iy) covers [ox + ix * res, ox + (ix + 1) * res) x [oy + iy * res, ...) in
+the frame the grid lives in (usually `map` or a robot's `odom`); arrays are
+indexed [iy, ix] like `GridMap.data`.
+
+Update rule per scan (as cartographer's `CastRays` and octomap do): every cell is
+updated at most once per scan, and hits win over misses, so a wall cell hit by one
+beam is not cleared by a neighbouring grazing beam of the same scan.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+
+import numpy as np
+from numba import njit
+from numpy.typing import ArrayLike, NDArray
+
+from common.errors import CollabSlamError, ConfigError
+from common.map_io import FREE, OCCUPIED, UNKNOWN, GridMap
+
+logger = logging.getLogger(__name__)
+
+_STAMP_LIMIT = np.iinfo(np.int32).max - 1
+
+
+def logodds(p: float) -> float:
+    """log(p / (1 - p))."""
+    return math.log(p / (1.0 - p))
+
+
+@njit(cache=True)
+def _clip_segment(
+    u0: float, v0: float, du: float, dv: float, w: float, h: float
+) -> tuple[float, float]:
+    """Liang-Barsky: parameter interval [t0, t1] of u0 + t du inside [0, w] x [0, h]."""
+    t0 = 0.0
+    t1 = 1.0
+    for p, q in ((-du, u0), (du, w - u0), (-dv, v0), (dv, h - v0)):
+        if p == 0.0:
+            if q < 0.0:
+                return 1.0, 0.0
+        else:
+            r = q / p
+            if p < 0.0:
+                if r > t0:
+                    t0 = r
+            elif r < t1:
+                t1 = r
+    return t0, t1
+
+
+@njit(cache=True)
+def _cast_scan(
+    log_odds: np.ndarray,
+    stamp: np.ndarray,
+    scan_id: int,
+    u0: float,
+    v0: float,
+    yaw: float,
+    inv_res: float,
+    ranges: np.ndarray,
+    angles: np.ndarray,
+    range_min: float,
+    range_max: float,
+    free_range: float,
+    l_hit: float,
+    l_miss: float,
+    l_min: float,
+    l_max: float,
+) -> None:
+    """Apply one scan; sensor at (u0, v0) in cell units, ranges in metres.
+
+    `stamp[iy, ix]` is the id of the last scan that updated the cell (0: never);
+    `scan_id` must be > 0 and differ from every stamp of an earlier scan.
+    """
+    h, w = log_odds.shape
+    n = ranges.shape[0]
+    # Pass 1: hits (they take priority over misses of the same scan).
+    for i in range(n):
+        r = ranges[i]
+        if not np.isfinite(r) or r < range_min or r >= range_max:
+            continue
+        a = yaw + angles[i]
+        ix = int(math.floor(u0 + r * inv_res * math.cos(a)))
+        iy = int(math.floor(v0 + r * inv_res * math.sin(a)))
+        if 0 <= ix < w and 0 <= iy < h and stamp[iy, ix] != scan_id:
+            stamp[iy, ix] = scan_id
+            log_odds[iy, ix] = min(log_odds[iy, ix] + l_hit, l_max)
+    # Pass 2: free space along every beam, up to (excluding) its hit cell.
+    for i in range(n):
+        r = ranges[i]
+        if not np.isfinite(r) or r < range_min:
+            continue
+        is_hit = r < range_max
+        length = r if is_hit else free_range
+        if length <= 0.0:
+            continue
+        a = yaw + angles[i]
+        du = length * inv_res * math.cos(a)
+        dv = length * inv_res * math.sin(a)
+        t0, t1 = _clip_segment(u0, v0, du, dv, float(w), float(h))
+        if t0 > t1:
+            continue
+        skip_last = is_hit and t1 >= 1.0  # the endpoint is inside: it is the hit cell
+        su = u0 + t0 * du
+        sv = v0 + t0 * dv
+        eu = u0 + t1 * du
+        ev = v0 + t1 * dv
+        ix = min(max(int(math.floor(su)), 0), w - 1)
+        iy = min(max(int(math.floor(sv)), 0), h - 1)
+        ex = min(max(int(math.floor(eu)), 0), w - 1)
+        ey = min(max(int(math.floor(ev)), 0), h - 1)
+        # One cell per column (x-major) or row (y-major): the cell the ray crosses at
+        # the centre line of that column/row, 8-connected like Bresenham, branch-free.
+        nx = abs(ex - ix)
+        ny = abs(ey - iy)
+        if nx >= ny:
+            steps = nx
+            step = 1 if ex > ix else -1
+            slope = (ev - sv) / (eu - su) if steps > 0 else 0.0
+            for k in range(steps + 1):
+                if k == 0:
+                    cx = ix
+                    cy = iy
+                elif k == steps:
+                    cx = ex
+                    cy = ey
+                else:
+                    cx = ix + k * step
+                    cy = int(math.floor(sv + (cx + 0.5 - su) * slope))
+                    cy = min(max(cy, 0), h - 1)
+                if k == steps and skip_last:
+                    break
+                if stamp[cy, cx] != scan_id:
+                    stamp[cy, cx] = scan_id
+                    log_odds[cy, cx] = max(log_odds[cy, cx] + l_miss, l_min)
+        else:
+            steps = ny
+            step = 1 if ey > iy else -1
+            slope = (eu - su) / (ev - sv)
+            for k in range(steps + 1):
+                if k == 0:
+                    cx = ix
+                    cy = iy
+                elif k == steps:
+                    cx = ex
+                    cy = ey
+                else:
+                    cy = iy + k * step
+                    cx = int(math.floor(su + (cy + 0.5 - sv) * slope))
+                    cx = min(max(cx, 0), w - 1)
+                if k == steps and skip_last:
+                    break
+                if stamp[cy, cx] != scan_id:
+                    stamp[cy, cx] = scan_id
+                    log_odds[cy, cx] = max(log_odds[cy, cx] + l_miss, l_min)
+
+
+class OccupancyGrid:
+    """A growable log-odds occupancy grid (probabilities clamped to [p_min, p_max])."""
+
+    def __init__(
+        self,
+        resolution: float,
+        origin_xy: tuple[float, float],
+        shape: tuple[int, int],
+        p_hit: float = 0.7,
+        p_miss: float = 0.4,
+        p_min: float = 0.12,
+        p_max: float = 0.97,
+    ) -> None:
+        """`origin_xy`: lower-left corner of cell (0, 0) (m); `shape`: (H, W) cells."""
+        if not (math.isfinite(resolution) and resolution > 0.0):
+            raise ConfigError(f"resolution must be > 0 m, got {resolution}")
+        if not 0.0 < p_min < p_miss < 0.5 < p_hit < p_max < 1.0:
+            raise ConfigError(
+                "expected 0 < p_min < p_miss < 0.5 < p_hit < p_max < 1, got "
+                f"p_min={p_min}, p_miss={p_miss}, p_hit={p_hit}, p_max={p_max}"
+            )
+        h, w = (int(v) for v in shape)
+        if h <= 0 or w <= 0:
+            raise ConfigError(f"shape must be positive (H, W), got {shape}")
+        self._resolution = float(resolution)
+        self._origin = (float(origin_xy[0]), float(origin_xy[1]))
+        self._l_hit = logodds(p_hit)
+        self._l_miss = logodds(p_miss)
+        self._l_min = logodds(p_min)
+        self._l_max = logodds(p_max)
+        self._log_odds = np.zeros((h, w), dtype=np.float32)
+        self._stamp = np.zeros((h, w), dtype=np.int32)
+        self._scan_id = 0
+
+    @classmethod
+    def from_bounds(
+        cls,
+        min_xy: ArrayLike,
+        max_xy: ArrayLike,
+        resolution: float,
+        **kwargs: float,
+    ) -> OccupancyGrid:
+        """A grid whose origin is `min_xy` and that covers at least up to `max_xy` (m)."""
+        lo = np.asarray(min_xy, dtype=np.float64)
+        hi = np.asarray(max_xy, dtype=np.float64)
+        if lo.shape != (2,) or hi.shape != (2,) or not np.all(hi > lo):
+            raise ConfigError(f"expected min_xy < max_xy (2 values each), got {lo}, {hi}")
+        w, h = np.maximum(np.ceil((hi - lo) / resolution - 1e-9), 1).astype(int)
+        return cls(resolution, (float(lo[0]), float(lo[1])), (int(h), int(w)), **kwargs)
+
+    @property
+    def resolution(self) -> float:
+        """Cell size in metres."""
+        return self._resolution
+
+    @property
+    def origin_xy(self) -> tuple[float, float]:
+        """Lower-left corner of cell (0, 0) in metres."""
+        return self._origin
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        """(H, W) in cells."""
+        h, w = self._log_odds.shape
+        return int(h), int(w)
+
+    @property
+    def log_odds(self) -> NDArray[np.float32]:
+        """Read-only (H, W) view of the log-odds."""
+        view = self._log_odds.view()
+        view.flags.writeable = False
+        return view
+
+    @property
+    def observed(self) -> NDArray[np.bool_]:
+        """(H, W) mask (a copy) of the cells any scan has updated since the last clear."""
+        return self._stamp != 0
+
+    def insert_scan(
+        self,
+        T_map_sensor: ArrayLike,
+        ranges: ArrayLike,
+        angles: ArrayLike,
+        range_min: float,
+        range_max: float,
+        max_free_range: float | None = None,
+    ) -> None:
+        """Insert one planar scan taken at sensor pose `T_map_sensor` = [x, y, yaw].
+
+        `ranges` (m) and `angles` (rad, sensor frame) are (N,) arrays. Non-finite
+        ranges and ranges < range_min are ignored. Ranges >= range_max are "no
+        return": they clear free space up to min(range_max, max_free_range) and mark
+        no hit. Parts of rays outside the grid are dropped (see `grow_to_include`).
+        """
+        pose = np.asarray(T_map_sensor, dtype=np.float64)
+        r = np.ascontiguousarray(ranges, dtype=np.float32)
+        a = np.ascontiguousarray(angles, dtype=np.float32)
+        if pose.shape != (3,) or not np.all(np.isfinite(pose)):
+            raise CollabSlamError(f"T_map_sensor must be a finite [x, y, yaw], got {pose}")
+        if r.ndim != 1 or r.shape != a.shape:
+            raise CollabSlamError(
+                f"ranges and angles must be (N,) arrays of one length, got {r.shape}, {a.shape}"
+            )
+        if not 0.0 <= range_min < range_max:
+            raise CollabSlamError(f"expected 0 <= range_min < range_max, got {range_min}, {range_max}")
+        free_range = range_max if max_free_range is None else min(range_max, max_free_range)
+        if not math.isfinite(free_range):
+            raise CollabSlamError("range_max or max_free_range must be finite")
+        if self._scan_id >= _STAMP_LIMIT:  # keep "observed" (stamp != 0), restart the ids
+            self._stamp[self._stamp != 0] = 1
+            self._scan_id = 1
+        self._scan_id += 1
+        inv_res = 1.0 / self._resolution
+        _cast_scan(
+            self._log_odds,
+            self._stamp,
+            self._scan_id,
+            (pose[0] - self._origin[0]) * inv_res,
+            (pose[1] - self._origin[1]) * inv_res,
+            float(pose[2]),
+            inv_res,
+            r,
+            a,
+            float(range_min),
+            float(range_max),
+            float(free_range),
+            self._l_hit,
+            self._l_miss,
+            self._l_min,
+            self._l_max,
+        )
+
+    def grow_to_include(self, min_xy: ArrayLike, max_xy: ArrayLike, margin: float) -> None:
+        """Make the grid cover the box [min_xy, max_xy] (m), keeping its content.
+
+        No-op if the box is already covered. Otherwise each side that is too short is
+        extended to the box plus `margin` (m), so a robot driving towards the edge
+        triggers a reallocation only every `margin` metres. The cell lattice is kept.
+        """
+        lo = np.asarray(min_xy, dtype=np.float64)
+        hi = np.asarray(max_xy, dtype=np.float64)
+        if lo.shape != (2,) or hi.shape != (2,) or not (np.all(np.isfinite(lo)) and np.all(np.isfinite(hi))):
+            raise CollabSlamError(f"expected finite 2-D bounds, got {lo}, {hi}")
+        res = self._resolution
+        h, w = self.shape
+        ox, oy = self._origin
+        cur_lo = np.array([ox, oy])
+        cur_hi = cur_lo + res * np.array([w, h])
+        add_lo = np.where(lo < cur_lo, np.ceil((cur_lo - (lo - margin)) / res - 1e-9), 0)
+        add_hi = np.where(hi > cur_hi, np.ceil(((hi + margin) - cur_hi) / res - 1e-9), 0)
+        add_lo = np.maximum(add_lo, 0).astype(int)
+        add_hi = np.maximum(add_hi, 0).astype(int)
+        if not (add_lo.any() or add_hi.any()):
+            return
+        new_w = w + int(add_lo[0] + add_hi[0])
+        new_h = h + int(add_lo[1] + add_hi[1])
+        sx, sy = int(add_lo[0]), int(add_lo[1])
+        for name in ("_log_odds", "_stamp"):
+            old = getattr(self, name)
+            new = np.zeros((new_h, new_w), dtype=old.dtype)
+            new[sy : sy + h, sx : sx + w] = old
+            setattr(self, name, new)
+        self._origin = (ox - sx * res, oy - sy * res)
+        logger.debug("grid grown from %d x %d to %d x %d cells", w, h, new_w, new_h)
+
+    def clear(self) -> None:
+        """Forget everything (all cells back to unknown); the extent is kept."""
+        self._log_odds.fill(0.0)
+        self._stamp.fill(0)
+
+    def probability(self) -> NDArray[np.float32]:
+        """(H, W) occupancy probabilities (0.5 where nothing is known)."""
+        return (1.0 / (1.0 + np.exp(-self._log_odds))).astype(np.float32)
+
+    def to_gridmap(self, occupied_thresh: float = 0.65, free_thresh: float = 0.196) -> GridMap:
+        """Trinary map: p > occupied_thresh -> 100, p < free_thresh -> 0, else -1.
+
+        Cells never updated are -1 whatever the thresholds.
+        """
+        if not 0.0 < free_thresh < occupied_thresh < 1.0:
+            raise ConfigError(
+                f"expected 0 < free_thresh < occupied_thresh < 1, got {free_thresh}, {occupied_thresh}"
+            )
+        seen = self._stamp != 0
+        data = np.full(self._log_odds.shape, UNKNOWN, dtype=np.int8)
+        data[seen & (self._log_odds > logodds(occupied_thresh))] = OCCUPIED
+        data[seen & (self._log_odds < logodds(free_thresh))] = FREE
+        return GridMap(data=data, resolution=self._resolution, origin=(*self._origin, 0.0))

@@ -1,0 +1,78 @@
+"""A mission scenario: the world, the robots, their start poses and scripted tours.
+
+Written by `collabslam run` into the output folder and read by the simulator
+(where to spawn robots), the agents (which tour to fly) and the base station
+(known start poses, the robot roster). JSON, checked on read.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from common.errors import FileFormatError
+from protocol.messages import ROBOT_ID_RE
+
+
+@dataclass
+class RobotScenario:
+    robot_id: str
+    start_pose: np.ndarray  # T_map_base at start, [x, y, yaw]
+    tour: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))  # (M, 2) map frame
+
+
+@dataclass
+class Scenario:
+    world: str  # path of the world's map_server YAML
+    robots: list[RobotScenario]
+    seed: int = 0
+
+    def robot(self, robot_id: str) -> RobotScenario:
+        for r in self.robots:
+            if r.robot_id == robot_id:
+                return r
+        raise FileFormatError(f"robot {robot_id!r} is not in the scenario "
+                              f"({', '.join(r.robot_id for r in self.robots)})")
+
+    @property
+    def robot_ids(self) -> list[str]:
+        return [r.robot_id for r in self.robots]
+
+
+def write_scenario(path: str | Path, sc: Scenario) -> None:
+    doc = {
+        "world": sc.world,
+        "seed": sc.seed,
+        "robots": [
+            {"id": r.robot_id, "start_pose": [float(v) for v in r.start_pose],
+             "tour": np.asarray(r.tour, dtype=float).tolist()}
+            for r in sc.robots
+        ],
+    }
+    Path(path).parent.mkdir(parents=True, exist_ok=True)
+    Path(path).write_text(json.dumps(doc, indent=1))
+
+
+def read_scenario(path: str | Path) -> Scenario:
+    try:
+        doc = json.loads(Path(path).read_text())
+        robots = []
+        for r in doc["robots"]:
+            rid = str(r["id"])
+            if not ROBOT_ID_RE.match(rid):
+                raise ValueError(f"invalid robot id {rid!r}")
+            start = np.asarray(r["start_pose"], dtype=np.float64)
+            tour = np.asarray(r.get("tour", []), dtype=np.float64).reshape(-1, 2)
+            if start.shape != (3,) or not np.all(np.isfinite(start)):
+                raise ValueError(f"robot {rid}: start_pose must be 3 finite numbers")
+            robots.append(RobotScenario(rid, start, tour))
+        if len({r.robot_id for r in robots}) != len(robots):
+            raise ValueError("duplicate robot ids")
+        return Scenario(str(doc["world"]), robots, int(doc.get("seed", 0)))
+    except FileNotFoundError:
+        raise FileFormatError(f"scenario file not found: {path}") from None
+    except (KeyError, TypeError, ValueError, json.JSONDecodeError) as exc:
+        raise FileFormatError(f"{path}: invalid scenario: {exc}") from None

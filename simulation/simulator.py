@@ -1,0 +1,249 @@
+"""The simulator process: flies every drone of a scenario and publishes its sensors.
+
+Per tick (one laser period, 1/40 s for the UTM-30LX) each quadrotor follows the
+last VehicleCommand, and the simulator publishes odometry, IMU, altimeter and
+then the laser scan of each drone over Zenoh, exactly as a real drone driver
+would. The sim clock runs either
+- lock-step: the next tick starts only when every agent has answered this
+  tick's scan with a VehicleCommand of the same stamp (results do not depend
+  on how loaded the machine is), or
+- real time x `rate`: ticks are paced against the wall clock.
+Ground truth is recorded per robot and written as TUM at the end.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import threading
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from common.bus import Bus
+from common.config import Config
+from common.errors import ProcessError
+from common.geometry import pose4_to_pose7
+from common.scenario import Scenario
+from common.trajectory_io import Trajectory, write_tum
+from protocol import Altimeter, Imu, LaserScan, Odometry, RobotState, VehicleCommand
+from simulation.quadrotor import Quadrotor
+from simulation.sensors import AltimeterModel, ImuModel, LaserModel, OdometryModel
+from simulation.world import World
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class SimRobot:
+    robot_id: str
+    vehicle: Quadrotor
+    odometry: OdometryModel
+    imu: ImuModel
+    altimeter: AltimeterModel
+    rng: np.random.Generator
+    command: tuple[float, float, float, float] = (0.0, 0.0, 0.0, 0.0)
+    answered: float = -1.0  # stamp of the last tick this robot's agent answered
+    status: str = "starting"
+    collisions: int = 0
+    min_clearance: float = float("inf")
+    distance: float = 0.0
+    gt: list[list[float]] = field(default_factory=list)  # [t, x, y, z, yaw]
+
+
+class Simulator:
+    def __init__(self, cfg: Config, bus: Bus, scenario: Scenario, world: World,
+                 max_sim_time: float) -> None:
+        self.cfg = cfg
+        self.bus = bus
+        self.keys = bus.keys
+        self.world = world
+        self.max_sim_time = max_sim_time
+        s = cfg.sim
+        self.laser = LaserModel(beams=s.laser.beams, fov_rad=np.radians(s.laser.fov_deg),
+                                range_min=s.laser.range_min_m, range_max=s.laser.range_max_m,
+                                range_noise_std=s.laser.range_noise_std_m)
+        self.dt = 1.0 / s.laser.rate_hz
+        q = s.quadrotor
+        self.robots: dict[str, SimRobot] = {}
+        for i, r in enumerate(scenario.robots):
+            x, y, yaw = (float(v) for v in r.start_pose)
+            self.robots[r.robot_id] = SimRobot(
+                robot_id=r.robot_id,
+                vehicle=Quadrotor(np.array([x, y, q.altitude_m, yaw]), max_speed=q.max_speed_mps,
+                                  max_accel=q.max_accel_mps2,
+                                  max_vertical_speed=q.max_vertical_speed_mps,
+                                  max_yaw_rate=q.max_yaw_rate_rps, radius=q.radius_m),
+                odometry=OdometryModel(speed_noise_frac=s.odometry.speed_noise_frac,
+                                       yaw_rate_noise_std=s.odometry.yaw_rate_noise_std,
+                                       yaw_rate_bias=s.odometry.yaw_rate_bias),
+                imu=ImuModel(gyro_noise_std=s.imu.gyro_noise_std, gyro_bias=s.imu.gyro_bias,
+                             accel_noise_std=s.imu.accel_noise_std,
+                             accel_bias=s.imu.accel_bias),
+                altimeter=AltimeterModel(noise_std=s.altimeter.noise_std_m,
+                                         bias=s.altimeter.bias_m),
+                rng=np.random.default_rng([s.seed, i]),
+            )
+        self.t = 0.0
+        self.ticks = 0
+        self.republished = 0
+        self.wall_s = 0.0
+        self.end_reason = ""
+        self._cond = threading.Condition()
+        self._alive: set[str] = set()
+
+    # --- wiring -------------------------------------------------------------------------
+    def start(self) -> None:
+        for rid in self.robots:
+            self.bus.subscribe(self.keys.robot(rid, "cmd"), VehicleCommand, self._on_command)
+            self.bus.subscribe(self.keys.robot(rid, "state"), RobotState, self._on_state)
+        self.bus.watch_alive("agent", self._on_alive)
+        self.bus.declare_alive("sim", "sim")
+
+    def _on_alive(self, name: str, alive: bool) -> None:
+        with self._cond:
+            (self._alive.add if alive else self._alive.discard)(name)
+            self._cond.notify_all()
+
+    def _on_command(self, msg: VehicleCommand, key: str) -> None:
+        with self._cond:
+            r = self.robots[msg.robot_id]
+            if msg.stamp < r.answered:
+                return  # an old answer to a re-published tick
+            r.command = (msg.vx, msg.vy, msg.vz, msg.yaw_rate)
+            r.answered = msg.stamp
+            self._cond.notify_all()
+
+    def _on_state(self, msg: RobotState, key: str) -> None:
+        with self._cond:
+            self.robots[msg.robot_id].status = msg.status
+            self._cond.notify_all()
+
+    def wait_for_agents(self, stop: threading.Event) -> None:
+        deadline = time.monotonic() + self.cfg.sim.start_timeout_s
+        with self._cond:
+            while not set(self.robots) <= self._alive:
+                if stop.is_set():
+                    return
+                if time.monotonic() > deadline:
+                    missing = sorted(set(self.robots) - self._alive)
+                    raise ProcessError(f"agents never came alive: {', '.join(missing)}")
+                self._cond.wait(0.1)
+        log.info("all %d agents alive: starting the %s clock", len(self.robots),
+                 self.cfg.sim.clock)
+
+    # --- the clock ----------------------------------------------------------------------
+    def run(self, stop: threading.Event) -> None:
+        self.wait_for_agents(stop)
+        lockstep = self.cfg.sim.clock == "lockstep"
+        t_wall0 = time.monotonic()
+        gt_period = 1.0 / self.cfg.sim.ground_truth_rate_hz
+        next_gt = 0.0
+        self._publish_tick(0.0)
+        for r in self.robots.values():
+            self._record(r, 0.0)
+        while not stop.is_set():
+            if lockstep:
+                self._wait_answers(stop)
+            else:
+                delay = t_wall0 + self.t / self.cfg.sim.rate - time.monotonic()
+                if delay > 0:
+                    time.sleep(delay)
+            if self.t >= self.max_sim_time - 1e-9:
+                self.end_reason = "max_sim_time"
+                break
+            if all(r.status == "done" for r in self.robots.values()):
+                self.end_reason = "tours_done"
+                break
+            self.ticks += 1
+            self.t = self.ticks * self.dt
+            self._step_physics()
+            if self.t >= next_gt - 1e-9:
+                next_gt += gt_period
+                for r in self.robots.values():
+                    self._record(r, self.t)
+            self._publish_tick(self.t)
+        if stop.is_set():
+            self.end_reason = self.end_reason or "interrupted"
+        self.wall_s = time.monotonic() - t_wall0
+        log.info("simulation ended at t=%.1f s (%s) after %.1f s wall (%.1fx real time)",
+                 self.t, self.end_reason, self.wall_s, self.t / max(self.wall_s, 1e-9))
+
+    def _wait_answers(self, stop: threading.Event) -> None:
+        timeout = self.cfg.sim.lockstep_timeout_s
+        with self._cond:
+            while not stop.is_set():
+                late = [r for r in self.robots.values() if r.answered < self.t]
+                if not late:
+                    return
+                if not self._cond.wait(timeout):
+                    self.republished += 1
+                    log.warning("t=%.3f: no command yet from %s; re-publishing the tick",
+                                self.t, ", ".join(r.robot_id for r in late))
+                    for r in late:
+                        self._publish_sensors(r, self.t)
+
+    def _step_physics(self) -> None:
+        for r in self.robots.values():
+            with self._cond:
+                cmd = r.command
+            before = r.vehicle.pose.copy()
+            info = r.vehicle.step(np.asarray(cmd), self.dt, self.world)
+            r.collisions += int(info.collided)
+            r.min_clearance = min(r.min_clearance, float(info.clearance))
+            r.distance += float(np.hypot(*(r.vehicle.pose[:2] - before[:2])))
+            v = r.vehicle
+            r.odometry.step(v.body_velocity, v.yaw_rate, self.dt, r.rng)
+
+    def _record(self, r: SimRobot, t: float) -> None:
+        r.gt.append([t, *(float(x) for x in r.vehicle.pose)])
+
+    def _publish_tick(self, t: float) -> None:
+        for r in self.robots.values():
+            self._publish_sensors(r, t)
+
+    def _publish_sensors(self, r: SimRobot, t: float) -> None:
+        v, rid, keys = r.vehicle, r.robot_id, self.keys
+        odo = r.odometry
+        self.bus.publish(keys.sensor(rid, "odom"),
+                         Odometry(rid, t, pose4_to_pose7(odo.pose), np.asarray(odo.twist)))
+        w, a, q = r.imu.measure(np.array([0.0, 0.0, v.yaw_rate]), v.body_acceleration,
+                                v.roll, v.pitch, float(v.pose[3]), r.rng)
+        self.bus.publish(keys.sensor(rid, "imu"), Imu(rid, t, w, a, q))
+        self.bus.publish(keys.sensor(rid, "altimeter"),
+                         Altimeter(rid, t, float(r.altimeter.measure(float(v.pose[2]), r.rng))))
+        pose = v.pose
+        ranges = self.laser.measure(self.world, np.array([pose[0], pose[1], pose[3]]), r.rng)
+        self.bus.publish(keys.sensor(rid, "scan"), LaserScan(
+            rid, t, float(self.laser.angles[0]), float(self.laser.angles[1] - self.laser.angles[0]),
+            self.laser.range_min, self.laser.range_max, ranges))
+
+    # --- outputs ------------------------------------------------------------------------
+    def stats(self) -> dict[str, Any]:
+        return {
+            "sim_time_s": self.t,
+            "wall_time_s": self.wall_s,
+            "realtime_factor": self.t / max(self.wall_s, 1e-9),
+            "ticks": self.ticks,
+            "republished_ticks": self.republished,
+            "end_reason": self.end_reason,
+            "robots": {
+                rid: {"distance_m": r.distance, "collisions": r.collisions,
+                      "min_clearance_m": r.min_clearance, "status": r.status}
+                for rid, r in self.robots.items()
+            },
+        }
+
+    def write_outputs(self, out_dir: str | Path) -> None:
+        out = Path(out_dir)
+        for rid, r in self.robots.items():
+            gt = np.array(r.gt)
+            write_tum(out / "ground_truth" / f"{rid}.tum",
+                      Trajectory.from_pose4(gt[:, 0], gt[:, 1:5]))
+        (out / "simulator.json").write_text(json.dumps(self.stats(), indent=1))
+
+
+__all__ = ["Simulator"]

@@ -1,0 +1,196 @@
+"""A simulated 2.5-D world: a 2-D floor plan extruded upwards.
+
+The floor plan is a `common.map_io.GridMap` (map_server format). Occupied cells
+are walls of unlimited height; free cells are flyable; unknown cells (outside
+the building, solid blocks) are neither: the laser passes through them, the
+quadrotor may fly over them, but tours and start poses stay on free cells.
+The border of the grid counts as a wall for clearance.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from functools import cached_property
+from pathlib import Path
+
+import numpy as np
+from numba import njit
+from numpy.typing import ArrayLike, NDArray
+from scipy import ndimage
+
+from common.errors import ConfigError, FileFormatError
+from common.map_io import GridMap, read_map
+
+logger = logging.getLogger(__name__)
+
+__all__ = ["SHIPPED_WORLDS", "SHIPPED_WORLDS_DIR", "World", "resolve_world"]
+
+SHIPPED_WORLDS_DIR = Path(__file__).resolve().parent / "worlds"
+SHIPPED_WORLDS = ("bshape", "rooms15", "floor30x25")
+
+
+def resolve_world(name_or_path: str | Path) -> Path:
+    """Path of a world's map_server YAML: a shipped name (see `SHIPPED_WORLDS`) or a
+    path to an existing .yaml / .yml file.
+
+    Raises ConfigError for an unknown name or a missing file, FileFormatError for
+    an existing file that is not a YAML.
+    """
+    text = str(name_or_path)
+    shipped = ", ".join(SHIPPED_WORLDS)
+    if text in SHIPPED_WORLDS:
+        path = SHIPPED_WORLDS_DIR / f"{text}.yaml"
+        if not path.is_file():
+            raise ConfigError(
+                f"shipped world {text!r} is missing its file {path}; regenerate it with "
+                "`python -m simulation.world_generator --out simulation/worlds`"
+            )
+        return path
+    path = Path(text).expanduser()
+    if path.is_file():
+        if path.suffix.lower() not in (".yaml", ".yml"):
+            raise FileFormatError(
+                f"world {text!r}: expected a map_server .yaml file or a shipped world "
+                f"({shipped})"
+            )
+        return path
+    raise ConfigError(
+        f"unknown world {text!r}: not a shipped world ({shipped}) and no such file"
+    )
+
+
+@njit(cache=True)
+def bilinear_kernel(
+    field: NDArray[np.float64],
+    gx: NDArray[np.float64],
+    gy: NDArray[np.float64],
+    out: NDArray[np.float64],
+) -> None:
+    """Bilinear interpolation of a cell-centred field at continuous cell coordinates.
+
+    gx, gy are in cell units measured from the lower-left grid corner (cell centres at
+    i + 0.5). Points outside the grid read 0.
+    """
+    h, w = field.shape
+    for k in range(gx.shape[0]):
+        x = gx[k]
+        y = gy[k]
+        if not (x >= 0.0 and x <= w and y >= 0.0 and y <= h):
+            out[k] = 0.0
+            continue
+        u = min(max(x - 0.5, 0.0), w - 1.0)
+        v = min(max(y - 0.5, 0.0), h - 1.0)
+        i0 = min(int(u), w - 2) if w > 1 else 0
+        j0 = min(int(v), h - 2) if h > 1 else 0
+        i1 = min(i0 + 1, w - 1)
+        j1 = min(j0 + 1, h - 1)
+        fu = u - i0
+        fv = v - j0
+        out[k] = (1.0 - fv) * ((1.0 - fu) * field[j0, i0] + fu * field[j0, i1]) + fv * (
+            (1.0 - fu) * field[j1, i0] + fu * field[j1, i1]
+        )
+
+
+def _clearance_field(obstacle: NDArray[np.bool_], resolution: float) -> NDArray[np.float64]:
+    """Per cell: distance (m) from the cell centre to the nearest obstacle cell's boundary
+    (centre-to-centre distance minus half a cell, >= 0), the grid border counting as an
+    obstacle ring just outside the grid."""
+    padded = np.pad(obstacle, 1, constant_values=True)
+    edt = ndimage.distance_transform_edt(~padded)[1:-1, 1:-1]
+    return np.maximum(edt * resolution - 0.5 * resolution, 0.0)
+
+
+class World:
+    """A floor plan with precomputed occupancy masks and clearance fields.
+
+    clearance: distance from a point to the nearest occupied cell (or the grid
+    border), bilinearly interpolated from cell centres; exact for axis-aligned
+    walls, at most ~0.2 cell too large at outside corners.
+    """
+
+    def __init__(self, grid: GridMap) -> None:
+        self.grid = grid
+        self.occupied: NDArray[np.bool_] = grid.occupied_mask()
+        self.free: NDArray[np.bool_] = grid.free_mask()
+        self.resolution = float(grid.resolution)
+        self.origin_xy = np.array(grid.origin[:2], dtype=np.float64)
+        # (H, W) metres from each cell centre to the nearest occupied cell.
+        self.clearance_grid = _clearance_field(self.occupied, self.resolution)
+
+    @classmethod
+    def load(cls, name_or_path: str | Path) -> World:
+        """Load a shipped world by name or any map_server YAML by path."""
+        path = resolve_world(name_or_path)
+        world = cls(read_map(path))
+        logger.info(
+            "world %s: %d x %d cells at %.3f m, %.1f m^2 free",
+            path.name,
+            world.grid.width,
+            world.grid.height,
+            world.resolution,
+            world.free_area_m2,
+        )
+        return world
+
+    @cached_property
+    def free_clearance_grid(self) -> NDArray[np.float64]:
+        """(H, W) metres from each cell centre to the nearest NON-free cell (occupied,
+        unknown or beyond the grid); 0 on non-free cells. Used for planning."""
+        field = _clearance_field(~self.free, self.resolution)
+        field[~self.free] = 0.0
+        return field
+
+    @property
+    def free_area_m2(self) -> float:
+        """Area of the free cells (m^2)."""
+        return float(np.count_nonzero(self.free)) * self.resolution**2
+
+    @property
+    def bounds(self) -> tuple[float, float, float, float]:
+        """(x_min, y_min, x_max, y_max) of the grid in the map frame (m)."""
+        x0, x1, y0, y1 = self.grid.extent
+        return (x0, y0, x1, y1)
+
+    def to_grid_coords(self, xy: ArrayLike) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        """(N, 2) map-frame points -> continuous cell coordinates (gx, gy), each (N,)."""
+        p = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
+        g = (p - self.origin_xy) / self.resolution
+        return np.ascontiguousarray(g[:, 0]), np.ascontiguousarray(g[:, 1])
+
+    def _sample(self, field: NDArray[np.float64], xy: ArrayLike) -> NDArray[np.float64]:
+        gx, gy = self.to_grid_coords(xy)
+        out = np.empty(gx.shape[0], dtype=np.float64)
+        bilinear_kernel(field, gx, gy, out)
+        cells = np.stack([np.floor(gx), np.floor(gy)], axis=1).astype(np.int64)
+        inside = self.grid.in_bounds(cells)
+        solid = np.ones(len(cells), dtype=bool)
+        solid[inside] = self.occupied[cells[inside, 1], cells[inside, 0]]
+        out[solid] = 0.0
+        return out
+
+    def clearance(self, xy: ArrayLike) -> NDArray[np.float64]:
+        """(N,) metres from each (N, 2) point to the nearest occupied cell (or the grid
+        border); 0 inside occupied cells and outside the grid."""
+        return self._sample(self.clearance_grid, xy)
+
+    def free_clearance(self, xy: ArrayLike) -> NDArray[np.float64]:
+        """(N,) metres from each point to the nearest non-free cell; 0 on non-free cells."""
+        out = self._sample(self.free_clearance_grid, xy)
+        out[~self.in_free_cell(xy)] = 0.0
+        return out
+
+    def in_free_cell(self, xy: ArrayLike) -> NDArray[np.bool_]:
+        """(N,) whether each point lies in a free cell of the grid."""
+        cells = self.grid.world_to_cell(xy)
+        inside = self.grid.in_bounds(cells)
+        out = np.zeros(len(cells), dtype=bool)
+        out[inside] = self.free[cells[inside, 1], cells[inside, 0]]
+        return out
+
+    def is_free(self, xy: ArrayLike, radius: float = 0.0) -> NDArray[np.bool_]:
+        """(N,) whether a disc of `radius` (m) centred at each point lies in free space:
+        the centre is in a free cell and its clearance to occupied cells is >= radius."""
+        if not (radius >= 0.0 and math.isfinite(radius)):
+            raise ConfigError(f"radius must be a finite number >= 0, got {radius}")
+        return self.in_free_cell(xy) & (self.clearance(xy) >= radius)

@@ -1,0 +1,52 @@
+"""Config: shipped defaults, TOML round trip, errors naming the key."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from common.config import Config, dump_config, load_config
+from common.errors import ConfigError
+
+
+def test_defaults_are_the_papers() -> None:
+    c = load_config()
+    assert c.sim.laser.beams == 1081 and c.sim.laser.fov_deg == 270.0
+    assert c.sim.laser.rate_hz == 40.0 and c.sim.laser.range_max_m == 30.0
+    assert c.agent.keyframe_distance_m == 0.2 and c.agent.keyframe_angle_rad == 0.1
+    assert c.agent.local_keyframe_period_s == 0.25
+
+
+def test_round_trip(tmp_path: Path) -> None:
+    c = load_config(overrides={"sim.seed": 7, "zenoh.connect": ["tcp/127.0.0.1:1"]})
+    dump_config(c, tmp_path / "c.toml")
+    assert load_config(tmp_path / "c.toml") == c
+    assert isinstance(c, Config)
+
+
+@pytest.mark.parametrize(
+    "overrides, key",
+    [
+        ({"sim.laser.beamz": 3}, "sim.laser.beamz"),
+        ({"sim.laser.beams": -1}, "sim.laser.beams"),
+        ({"sim.laser.beams": "many"}, "sim.laser.beams"),
+        ({"sim.clock": "fast"}, "sim.clock"),
+        ({"map.p_hit": 1.5}, "map.p_hit"),
+        ({"fleet": "a/b"}, "fleet"),
+        ({"zenoh.listen": "tcp/x"}, "zenoh.listen"),
+        ({"agent.outbox_max": 1.5}, "agent.outbox_max"),
+    ],
+)
+def test_bad_values_name_the_key(overrides: dict, key: str) -> None:
+    with pytest.raises(ConfigError, match=key.replace(".", r"\.")):
+        load_config(overrides=overrides)
+
+
+def test_bad_toml(tmp_path: Path) -> None:
+    p = tmp_path / "bad.toml"
+    p.write_text("[sim\nseed = 1")
+    with pytest.raises(ConfigError, match="invalid TOML"):
+        load_config(p)
+    with pytest.raises(ConfigError, match="not found"):
+        load_config(tmp_path / "missing.toml")

@@ -1,0 +1,275 @@
+"""Tests for basestation.pose_graph (iSAM2 back end) and basestation.batch_solver."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+from numpy.typing import NDArray
+
+from basestation.batch_solver import batch_optimize
+from basestation.pose_graph import ROBOT_KEY_ALPHABET, PoseGraph
+from common.errors import CollabSlamError
+from common.g2o_io import read_g2o
+from common.geometry import se2_between, se2_compose, wrap_angle
+
+G2O_DIR = Path(__file__).parents[2] / "shared/data/g2o"
+ODO_COV = np.diag([0.05**2, 0.05**2, 0.01**2])  # m^2, m^2, rad^2
+LC_COV = np.diag([0.1**2, 0.1**2, 0.02**2])
+
+
+def assert_pose_close(got: NDArray, want: NDArray, tol_xy: float, tol_yaw: float) -> None:
+    got, want = np.atleast_2d(got), np.atleast_2d(want)
+    assert np.abs(got[:, :2] - want[:, :2]).max() <= tol_xy, (got, want)
+    assert np.abs(wrap_angle(got[:, 2] - want[:, 2])).max() <= tol_yaw, (got, want)
+
+
+def compose_chain(start: NDArray, deltas: list[NDArray]) -> NDArray:
+    poses = [np.asarray(start, dtype=float)]
+    for d in deltas:
+        poses.append(se2_compose(poses[-1], d))
+    return np.array(poses)
+
+
+def square_deltas(side: int = 5) -> list[NDArray]:
+    """A closed 4*side-step square of 1 m steps, turning left at each corner."""
+    return [
+        np.array([1.0, 0.0, np.pi / 2 if k % side == 0 else 0.0]) for k in range(1, 4 * side + 1)
+    ]
+
+
+def build_chain(graph: PoseGraph, robot: str, start: NDArray | None, deltas: list[NDArray]) -> None:
+    graph.add_robot(robot, start)
+    graph.add_node(robot, 0, None, None)
+    for k, d in enumerate(deltas, start=1):
+        graph.add_node(robot, k, d, ODO_COV)
+
+
+def test_odometry_chain_gives_composed_poses() -> None:
+    rng = np.random.default_rng(1)
+    deltas = [
+        np.array([rng.uniform(0, 1), rng.uniform(-0.2, 0.2), rng.uniform(-0.5, 0.5)])
+        for _ in range(30)
+    ]
+    start = np.array([2.0, -1.0, 0.3])
+    graph = PoseGraph()
+    build_chain(graph, "a", start, deltas)
+    assert_pose_close(graph.poses("a"), compose_chain(start, deltas), 1e-9, 1e-9)  # pending
+    stats = graph.update()
+    assert stats.num_new_nodes == 31 and stats.robots_with_new_nodes == {"a"}
+    assert_pose_close(graph.poses("a"), compose_chain(start, deltas), 1e-6, 1e-6)
+    assert graph.num_nodes() == graph.num_nodes("a") == 31
+    assert graph.latest_index("a") == 30 and graph.robots() == ["a"]
+    cov = graph.marginal_covariance("a", 30)
+    assert cov.shape == (3, 3) and np.all(np.linalg.eigvalsh(cov) > 0)
+    assert graph.marginal_covariance("a", 30)[0, 0] > graph.marginal_covariance("a", 1)[0, 0]
+
+
+def test_known_starts_keep_each_chain_at_its_prior() -> None:
+    starts = {"a": np.array([0.0, 0.0, 0.0]), "b": np.array([10.0, 5.0, np.pi / 2])}
+    deltas = square_deltas()
+    graph = PoseGraph()
+    for robot, start in starts.items():
+        build_chain(graph, robot, start, deltas)
+    graph.update()
+    for robot, start in starts.items():
+        assert_pose_close(graph.pose(robot, 0), start, 1e-6, 1e-6)
+        assert_pose_close(graph.poses(robot), compose_chain(start, deltas), 1e-6, 1e-6)
+
+
+def test_correct_loop_closure_reduces_drift() -> None:
+    deltas = square_deltas()
+    truth = compose_chain(np.zeros(3), deltas)
+    biased = [d + np.array([0.0, 0.0, 0.03]) for d in deltas]  # yaw drifts 0.03 rad/step
+    graph = PoseGraph()
+    build_chain(graph, "a", np.zeros(3), biased)
+    graph.update()
+    last = len(deltas)
+    yaw_before = abs(wrap_angle(graph.pose("a", last)[2] - truth[last, 2]))
+    err_before = np.linalg.norm(graph.poses("a")[:, :2] - truth[:, :2], axis=1).max()
+    tight = np.diag([0.02**2, 0.02**2, 0.002**2])  # a precise scan match
+    graph.add_constraint(("a", last), ("a", 0), np.zeros(3), tight, robust=None)
+    stats = graph.update(extra_iterations=5)
+    assert stats.changed_robots == {"a"}
+    yaw_after = abs(wrap_angle(graph.pose("a", last)[2] - truth[last, 2]))
+    err_after = np.linalg.norm(graph.poses("a")[:, :2] - truth[:, :2], axis=1).max()
+    assert yaw_before > 0.5
+    assert yaw_after < 0.1 * yaw_before
+    assert err_after < 0.25 * err_before
+
+
+@pytest.mark.parametrize("kernel", ["huber", "cauchy"])
+def test_robust_kernel_limits_a_wrong_loop_closure(kernel: str) -> None:
+    deltas = square_deltas()
+    truth = compose_chain(np.zeros(3), deltas)
+    wrong = np.array([3.0, 1.0, 0.5])  # node 10 is really at [5, 5, pi]
+    errors = {}
+    for robust in (None, kernel):
+        graph = PoseGraph()
+        build_chain(graph, "a", np.zeros(3), deltas)
+        graph.update()
+        graph.add_constraint(("a", 0), ("a", 10), wrong, LC_COV, robust=robust)
+        graph.update(extra_iterations=10)
+        errors[robust] = np.linalg.norm(graph.poses("a")[:, :2] - truth[:, :2], axis=1).max()
+    assert errors[None] > 1.0
+    assert errors[kernel] < 0.1 * errors[None]
+
+
+def test_removing_a_constraint_restores_the_estimate() -> None:
+    deltas = [d + np.array([0.0, 0.0, 0.02]) for d in square_deltas()]
+    graph = PoseGraph()
+    build_chain(graph, "a", np.zeros(3), deltas)
+    graph.update()
+    before = graph.poses("a")
+    fid = graph.add_constraint(("a", 20), ("a", 0), np.zeros(3), LC_COV, robust=None)
+    graph.update(extra_iterations=5)
+    assert np.abs(graph.poses("a") - before).max() > 0.5
+    graph.remove_constraint(fid)
+    stats = graph.update(extra_iterations=5)
+    assert stats.num_removed_factors == 1
+    assert_pose_close(graph.poses("a"), before, 1e-3, 1e-4)
+    with pytest.raises(CollabSlamError):
+        graph.remove_constraint(fid)
+    # a constraint removed before it ever reached iSAM2 is simply dropped
+    pending = graph.add_constraint(("a", 20), ("a", 0), np.zeros(3), LC_COV)
+    graph.remove_constraint(pending)
+    assert graph.update().num_new_factors == 0
+
+
+@pytest.mark.parametrize("first_start", [np.array([1.0, 2.0, 0.5]), None])
+@pytest.mark.parametrize("robust", ["huber", None])
+def test_floating_chain_merges_after_one_inter_robot_constraint(
+    first_start: NDArray | None, robust: str | None
+) -> None:
+    graph = PoseGraph()
+    build_chain(graph, "a", first_start, [np.array([1.0, 0.0, 0.2])] * 14)
+    build_chain(graph, "b", None, [np.array([1.0, 0.0, -0.15])] * 14)
+    graph.update()
+    chain_b = graph.poses("b")
+    assert_pose_close(chain_b[0], np.zeros(3), 1e-9, 1e-9)  # floating: its own frame
+    T_a_b = np.array([-20.0, 30.0, 2.5])
+    fid = graph.add_constraint(("a", 7), ("b", 3), T_a_b, LC_COV, robust=robust)
+    stats = graph.update()
+    assert "b" in stats.changed_robots
+    assert_pose_close(se2_between(graph.pose("a", 7), graph.pose("b", 3)), T_a_b, 1e-6, 1e-6)
+    if first_start is not None:
+        assert_pose_close(graph.pose("a", 0), first_start, 1e-6, 1e-6)
+    # chain b moved rigidly: its internal relative poses are unchanged
+    b = graph.poses("b")
+    assert_pose_close(
+        se2_between(b[:-1], b[1:]), se2_between(chain_b[:-1], chain_b[1:]), 1e-6, 1e-6
+    )
+    # removing the only link makes b float again (re-gauged, still solvable)
+    graph.remove_constraint(fid)
+    graph.update()
+    graph.add_node("b", 15, np.array([1.0, 0.0, 0.0]), ODO_COV)
+    graph.update()
+    assert_pose_close(graph.pose("b", 0), b[0], 1e-6, 1e-6)
+
+
+def test_new_floating_chain_joins_in_the_same_update() -> None:
+    graph = PoseGraph()
+    build_chain(graph, "a", np.zeros(3), [np.array([1.0, 0.0, 0.1])] * 5)
+    graph.update()
+    build_chain(graph, "b", None, [np.array([0.5, 0.0, -0.3])] * 5)
+    T_a_b = np.array([3.0, -4.0, -2.0])
+    graph.add_constraint(("a", 5), ("b", 2), T_a_b, LC_COV)
+    graph.update()
+    assert_pose_close(se2_between(graph.pose("a", 5), graph.pose("b", 2)), T_a_b, 1e-6, 1e-6)
+    assert_pose_close(graph.pose("a", 0), np.zeros(3), 1e-6, 1e-6)
+
+
+def test_invalid_input_raises() -> None:
+    graph = PoseGraph()
+    build_chain(graph, "a", np.zeros(3), [np.array([1.0, 0.0, 0.0])] * 3)
+    bad_covs = [
+        np.diag([1.0, 1.0, -1.0]),
+        np.array([[1.0, 0.5, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]]),
+        np.diag([1.0, np.nan, 1.0]),
+        np.eye(2),
+        np.zeros((3, 3)),
+    ]
+    for cov in bad_covs:
+        with pytest.raises(CollabSlamError):
+            graph.add_node("a", 4, np.array([1.0, 0.0, 0.0]), cov)
+        with pytest.raises(CollabSlamError):
+            graph.add_constraint(("a", 0), ("a", 3), np.zeros(3), cov)
+    with pytest.raises(CollabSlamError, match="expected node 4"):
+        graph.add_node("a", 5, np.array([1.0, 0.0, 0.0]), ODO_COV)
+    with pytest.raises(CollabSlamError):
+        graph.add_node("a", 4, np.array([1.0, np.inf, 0.0]), ODO_COV)
+    with pytest.raises(CollabSlamError):
+        graph.add_node("zz", 0, None, None)
+    with pytest.raises(CollabSlamError):
+        graph.add_constraint(("a", 0), ("a", 9), np.zeros(3), LC_COV)
+    with pytest.raises(CollabSlamError):
+        graph.add_constraint(("a", 0), ("a", 1), np.zeros(3), LC_COV, robust="tukey")
+    with pytest.raises(CollabSlamError):
+        graph.add_robot("a", None)
+    with pytest.raises(CollabSlamError):
+        graph.marginal_covariance("a", 0)  # not optimized yet
+    graph.add_node("a", 4, np.array([1.0, 0.0, 0.0]), ODO_COV)  # state is still usable
+    graph.update()
+    assert graph.num_nodes("a") == 5
+
+
+def test_robot_alphabet_is_bounded() -> None:
+    graph = PoseGraph()
+    for n in range(len(ROBOT_KEY_ALPHABET)):
+        graph.add_robot(f"r{n}", None)
+    with pytest.raises(CollabSlamError, match="at most"):
+        graph.add_robot("one_too_many", None)
+
+
+def _feed_m3500(graph: PoseGraph, n_nodes: int, n_robots: int) -> int:
+    """Feed an M3500 prefix node by node, split into interleaved chains of one robot each.
+
+    Robot 0 starts at the file's first vertex; the other chains float until an edge
+    links them. An edge is odometry if it links consecutive vertices of one chain,
+    otherwise a constraint, added as soon as both its nodes exist. Returns the
+    number of inter-robot constraints.
+    """
+    data = read_g2o(G2O_DIR / "M3500.g2o")
+    bounds = np.linspace(0, n_nodes, n_robots + 1).astype(int)
+    robot_of = np.searchsorted(bounds, np.arange(n_nodes), side="right") - 1
+    names = [f"r{k}" for k in range(n_robots)]
+    odometry: dict[int, tuple[NDArray, NDArray]] = {}
+    ready: dict[int, list] = {}  # step -> constraints whose nodes all exist from then on
+    for e in data.edges_se2:
+        if max(e.i, e.j) >= n_nodes:
+            continue
+        cov = np.linalg.inv(e.information)
+        if e.j == e.i + 1 and robot_of[e.i] == robot_of[e.j] and e.j not in odometry:
+            odometry[e.j] = (e.measurement, cov)
+            continue
+        ends = [(names[robot_of[u]], int(u - bounds[robot_of[u]])) for u in (e.i, e.j)]
+        ready.setdefault(max(ends[0][1], ends[1][1]), []).append((ends, e.measurement, cov))
+    for k, name in enumerate(names):
+        graph.add_robot(name, data.vertices_se2[0] if k == 0 else None)
+    inter_robot = 0
+    for step in range(int(np.diff(bounds).max())):
+        for k, name in enumerate(names):
+            vertex = bounds[k] + step
+            if vertex < bounds[k + 1]:
+                graph.add_node(name, step, *(odometry[vertex] if step else (None, None)))
+        for ends, measurement, cov in ready.get(step, []):
+            graph.add_constraint(ends[0], ends[1], measurement, cov, robust=None)
+            inter_robot += ends[0][0] != ends[1][0]
+        graph.update()
+    return inter_robot
+
+
+@pytest.mark.skipif(not G2O_DIR.is_dir(), reason=f"shared g2o data folder {G2O_DIR} is absent")
+@pytest.mark.parametrize("n_robots", [1, 3])
+def test_incremental_m3500_prefix_matches_batch(n_robots: int) -> None:
+    graph = PoseGraph()
+    inter_robot = _feed_m3500(graph, n_nodes=900, n_robots=n_robots)
+    assert graph.num_nodes() == 900
+    assert (inter_robot > 0) == (n_robots > 1)
+    batch = batch_optimize(graph, start="current")
+    assert batch.chi2 <= graph.chi2() <= 1.02 * batch.chi2 + 1e-6
+    for robot, poses in batch.poses.items():
+        assert_pose_close(graph.poses(robot), poses, 0.05, 0.01)
+    if n_robots == 1:  # from odometry, LM lands in the same minimum
+        assert batch_optimize(graph, start="guess").chi2 == pytest.approx(batch.chi2, rel=1e-3)

@@ -1,0 +1,159 @@
+"""Round trips for every message type; malformed input raises ProtocolError."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import msgpack
+import numpy as np
+import pytest
+
+from common.errors import ProtocolError
+from common.geometry import pose4_to_pose7
+from protocol import (
+    SCHEMA_VERSION,
+    Altimeter,
+    Cloud3D,
+    Goal,
+    Imu,
+    Keyframe,
+    KeyframeAck,
+    LaserScan,
+    Odometry,
+    Path,
+    PoseCorrection,
+    RobotState,
+    Scan2D,
+    VehicleCommand,
+    decode,
+    encode,
+)
+from protocol.keys import Keys
+from protocol.messages import message_types
+
+P7 = pose4_to_pose7([1.0, -2.0, 0.5, 0.3])
+
+
+def samples() -> list:
+    scan = Scan2D.from_ranges(-2.356, 0.00436, 30.0, np.linspace(0.5, 29.0, 1081))
+    return [
+        LaserScan("r0", 1.25, -2.356, 0.00436, 0.1, 30.0,
+                  np.array([1.0, np.nan, np.inf, 3.0], np.float32)),
+        Odometry("r0", 1.25, P7, np.array([0.5, 0.0, 0.0, 0.1])),
+        Imu("r0", 1.25, np.zeros(3), np.array([0, 0, 9.81]), np.array([0, 0, 0, 1.0])),
+        Altimeter("r0", 1.25, 1.02),
+        VehicleCommand("r0", 1.25, 0.5, 0.0, 0.1, -0.2),
+        Keyframe("r0", 7, 1.25, P7, pose4_to_pose7([0.2, 0, 0, 0.01]), np.eye(6) * 1e-4,
+                 scan, None),
+        Keyframe("uav-2", 0, 3.0, P7, pose4_to_pose7([0, 0, 0, 0]), np.eye(6) * 1e-4,
+                 None, Cloud3D(np.random.default_rng(0).normal(size=(100, 3)).astype("f4"))),
+        KeyframeAck("r0", 7),
+        PoseCorrection("r0", 3, 10.0, P7),
+        Goal("r0", 1, 2.0, "odom", 3, P7),
+        Path("r0", 2, 2.0, "odom", 3, np.zeros((5, 4), np.float32)),
+        RobotState("r0", 2.0, "flying", 3, 10, 9, 1, P7, P7),
+    ]
+
+
+def assert_same(a, b) -> None:
+    assert type(a) is type(b)
+    for f in dataclasses.fields(a):
+        x, y = getattr(a, f.name), getattr(b, f.name)
+        if dataclasses.is_dataclass(x):
+            assert_same(x, y)
+        elif isinstance(x, np.ndarray):
+            assert x.dtype == y.dtype or f.metadata["dtype"] == y.dtype.newbyteorder("<")
+            np.testing.assert_array_equal(x.astype(y.dtype), y)
+        else:
+            assert x == y, f.name
+
+
+@pytest.mark.parametrize("msg", samples(), ids=lambda m: type(m).__name__)
+def test_round_trip(msg) -> None:
+    out = decode(encode(msg), type(msg))
+    assert_same(msg, out)
+
+
+def test_every_message_type_has_a_round_trip() -> None:
+    assert {type(m).__name__ for m in samples()} == set(message_types())
+
+
+def test_arrays_travel_as_typed_binary() -> None:
+    kf = samples()[5]
+    env = msgpack.unpackb(encode(kf), raw=False)
+    shape, raw = env["d"]["scan2d"]["ranges_mm"]
+    assert shape == [1081] and isinstance(raw, bytes) and len(raw) == 2 * 1081
+    assert len(encode(kf)) < 3000  # 1081 beams as uint16 mm, not a list of floats
+
+
+def test_scan_quantization() -> None:
+    s = Scan2D.from_ranges(0.0, 0.1, 30.0, np.array([1.2345, np.nan, 30.0, -1.0, np.inf]))
+    r = s.ranges()
+    assert r[0] == pytest.approx(1.2345, abs=5e-4)
+    assert np.all(np.isnan(r[1:]))
+
+
+def _env(t: str, d: dict, v: int = SCHEMA_VERSION) -> bytes:
+    return msgpack.packb({"v": v, "t": t, "d": d}, use_bin_type=True)
+
+
+def _good_ack() -> dict:
+    return msgpack.unpackb(encode(KeyframeAck("r0", 3)), raw=False)["d"]
+
+
+@pytest.mark.parametrize(
+    "payload, reason",
+    [
+        (b"\xc1\x00\x01", "malformed"),
+        (encode(KeyframeAck("r0", 3))[:-2], "malformed"),
+        (b"", "malformed"),
+        (msgpack.packb([1, 2, 3]), "envelope"),
+        (_env("KeyframeAck", _good_ack(), v=99), "schema version"),
+        (_env("Nope", _good_ack()), "unknown message type"),
+        (_env("KeyframeAck", {"robot_id": "r0"}), "missing"),
+        (_env("KeyframeAck", {**_good_ack(), "x": 1}), "unknown fields"),
+        (_env("KeyframeAck", {"robot_id": "r0", "acked_seq": "7"}), "integer"),
+        (_env("KeyframeAck", {"robot_id": "../../x", "acked_seq": 7}), "robot_id"),
+    ],
+)
+def test_bad_payloads_raise_protocol_error(payload: bytes, reason: str) -> None:
+    with pytest.raises(ProtocolError, match=reason):
+        decode(payload)
+
+
+def test_nan_and_shape_and_size_rejected() -> None:
+    good = encode(Odometry("r0", 1.0, P7, np.zeros(4)))
+    d = msgpack.unpackb(good, raw=False)["d"]
+    bad = dict(d, twist=[[4], np.array([0, np.nan, 0, 0]).astype("<f8").tobytes()])
+    with pytest.raises(ProtocolError, match="NaN"):
+        decode(_env("Odometry", bad))
+    bad = dict(d, twist=[[3], np.zeros(3).astype("<f8").tobytes()])
+    with pytest.raises(ProtocolError, match="shape"):
+        decode(_env("Odometry", bad))
+    bad = dict(d, twist=[[4], b"\x00" * 5])
+    with pytest.raises(ProtocolError, match="bytes"):
+        decode(_env("Odometry", bad))
+    bad = dict(d, stamp=float("nan"))
+    with pytest.raises(ProtocolError, match="finite"):
+        decode(_env("Odometry", bad))
+    with pytest.raises(ProtocolError, match="exceeds"):
+        decode(good, max_bytes=10)
+
+
+def test_semantic_checks() -> None:
+    with pytest.raises(ProtocolError, match="quaternion"):
+        decode(encode(PoseCorrection("r0", 1, 0.0, np.array([0, 0, 0, 0, 0, 0, 2.0]))))
+    with pytest.raises(ProtocolError, match="exactly one"):
+        decode(encode(Keyframe("r0", 0, 0.0, P7, P7, np.eye(6), None, None)))
+    with pytest.raises(ProtocolError, match="expected a KeyframeAck"):
+        decode(encode(Altimeter("r0", 0.0, 1.0)), KeyframeAck)
+
+
+def test_keys_layout() -> None:
+    k = Keys("fleet1")
+    assert k.robot("r1", "keyframe") == "collabslam/fleet1/robot/r1/keyframe"
+    assert k.sensor("r1", "scan") == "collabslam/fleet1/robot/r1/sensor/scan"
+    assert k.robot_id_of("collabslam/fleet1/robot/r1/sensor/scan") == "r1"
+    assert k.robot_id_of("collabslam/other/robot/r1/keyframe") is None
+    with pytest.raises(Exception, match="invalid"):
+        k.robot("a/b", "keyframe")

@@ -1,0 +1,99 @@
+"""Agent outbox, keyframe selection and the base station's in-order admission."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from agent.keyframe_selector import KeyframeSelector
+from agent.outbox import Outbox
+from agent.path_follower import PathFollower
+from basestation.keyframe_store import KeyframeStore
+from common.geometry import pose4_to_pose7
+from protocol import Keyframe, Scan2D
+
+
+class FakeClock:
+    def __init__(self) -> None:
+        self.t = 0.0
+
+    def __call__(self) -> float:
+        return self.t
+
+
+def test_outbox_acks_and_resends_in_order() -> None:
+    clock = FakeClock()
+    ob = Outbox(max_len=10, warn_fraction=0.8, resend_timeout_s=1.0, resend_batch=3, clock=clock)
+    for s in range(5):
+        ob.add(s, bytes([s]))
+    assert ob.due_for_resend() == []
+    clock.t = 1.5
+    assert ob.due_for_resend() == [b"\x00", b"\x01", b"\x02"]
+    assert ob.due_for_resend() == []  # timer restarted
+    assert ob.ack(2) == 3 and len(ob) == 2 and ob.acked_seq == 2
+    assert ob.ack(1) == 0  # a stale ack changes nothing
+    clock.t = 3.0
+    assert ob.due_for_resend() == [b"\x03", b"\x04"]
+    with pytest.raises(ValueError):
+        ob.add(9, b"x")
+
+
+def test_outbox_bound() -> None:
+    ob = Outbox(max_len=3, warn_fraction=0.5, resend_timeout_s=1.0, resend_batch=3)
+    for s in range(3):
+        assert ob.has_room()
+        ob.add(s, b"x")
+    assert not ob.has_room() and ob.high_water == 3
+    ob.ack(0)
+    assert ob.has_room()
+
+
+def test_keyframe_selector_thresholds(cfg) -> None:
+    sel = KeyframeSelector(cfg.agent)
+    assert sel.is_due(np.zeros(4))
+    d, cov = sel.cut(np.zeros(4))
+    assert np.allclose(d, 0) and cov.shape == (6, 6)
+    assert not sel.is_due(np.array([0.15, 0.0, 0.0, 0.05]))
+    assert sel.is_due(np.array([0.21, 0.0, 0.0, 0.0]))
+    assert sel.is_due(np.array([0.0, 0.0, 0.0, 0.11]))
+    d, cov = sel.cut(np.array([0.3, 0.1, 1.0, 0.2]))
+    assert np.allclose(d, [0.3, 0.1, 1.0, 0.2])
+    assert np.all(np.linalg.eigvalsh(cov) > 0)
+
+
+def _kf(seq: int, robot: str = "r0") -> Keyframe:
+    p = pose4_to_pose7([0.2 * seq, 0, 1, 0])
+    scan = Scan2D.from_ranges(0.0, 0.1, 30.0, np.ones(3))
+    return Keyframe(robot, seq, 0.1 * seq, p, pose4_to_pose7([0.2, 0, 0, 0]), np.eye(6) * 1e-4,
+                    scan, None)
+
+
+def test_store_dedups_and_reorders() -> None:
+    st = KeyframeStore(reorder_window=2)
+    assert [k.seq for k in st.admit(_kf(0))] == [0]
+    assert st.admit(_kf(2)) == []  # gap: held
+    assert st.admit(_kf(0)) == []  # duplicate
+    assert st.admit(_kf(2)) == []  # duplicate of a held one
+    assert [k.seq for k in st.admit(_kf(1))] == [1, 2]
+    assert st.acked_seq("r0") == 2
+    assert st.robot("r0").duplicates == 2
+    st.admit(_kf(4)), st.admit(_kf(5))
+    assert st.admit(_kf(6)) == []  # window full: dropped, will be resent
+    assert [k.seq for k in st.admit(_kf(3))] == [3, 4, 5]
+    assert [k.seq for k in st.admit(_kf(6))] == [6]
+
+
+def test_path_follower_reaches_waypoints() -> None:
+    f = PathFollower(cruise_speed=1.0, tolerance=0.3, yaw_gain=1.5, max_accel=1.0, altitude_m=1.0)
+    f.set_path(np.array([[2.0, 0.0], [2.0, 2.0]]))
+    pose = np.array([0.0, 0.0, 1.0, 0.0])
+    dt = 0.05
+    for _ in range(2000):
+        vx, vy, vz, wz = f.command(pose)
+        c, s = np.cos(pose[3]), np.sin(pose[3])
+        pose = pose + dt * np.array([c * vx - s * vy, s * vx + c * vy, vz, wz])
+        if f.done:
+            break
+    assert f.done
+    assert np.hypot(pose[0] - 2.0, pose[1] - 2.0) < 0.3
+    assert f.command(pose)[:2] == (0.0, 0.0)

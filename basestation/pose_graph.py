@@ -29,7 +29,7 @@ import logging
 import time
 from collections import Counter
 from dataclasses import dataclass, field
-from typing import NamedTuple
+from typing import Literal, NamedTuple
 
 import gtsam
 import numpy as np
@@ -43,6 +43,7 @@ logger = logging.getLogger(__name__)
 FloatArray = NDArray[np.float64]
 ROBOT_KEY_ALPHABET = "abcdefghijklmnopqrstuvwxyz"
 ROBUST_KERNELS = ("huber", "cauchy")
+FactorKind = Literal["odometry", "start", "gauge", "constraint"]  # start: known-start prior
 
 
 @dataclass(frozen=True)
@@ -55,7 +56,8 @@ class UpdateStats:
     num_new_factors: int
     num_removed_factors: int
     num_new_nodes: int
-    changed_robots: frozenset[str]  # robots whose already-estimated nodes moved > epsilon
+    # robots whose already-estimated nodes moved > epsilon; None if track_changes is off
+    changed_robots: frozenset[str] | None
     robots_with_new_nodes: frozenset[str]
 
 
@@ -82,7 +84,7 @@ class _Chain:
 @dataclass
 class _Factor:
     factor: gtsam.NonlinearFactor
-    kind: str  # "odometry" | "start" (known-start prior) | "gauge" | "constraint"
+    kind: FactorKind
     robots: tuple[str, str] | None = None  # the two robots of an inter-robot constraint
     isam_index: int | None = None  # slot inside iSAM2 once committed
 
@@ -98,7 +100,7 @@ def _gaussian(covariance: ArrayLike) -> gtsam.noiseModel.Gaussian:
     cov = np.asarray(covariance, dtype=np.float64)
     if cov.shape != (3, 3) or not np.all(np.isfinite(cov)):
         raise CollabSlamError(f"covariance must be a finite 3x3 matrix, got shape {cov.shape}")
-    if not np.allclose(cov, cov.T, rtol=1e-9, atol=1e-12 * max(1.0, float(np.abs(cov).max()))):
+    if np.abs(cov - cov.T).max() > 1e-9 * np.abs(cov).max():
         raise CollabSlamError("covariance must be symmetric")
     try:
         np.linalg.cholesky(cov)
@@ -112,7 +114,12 @@ def _pose2(T: FloatArray) -> gtsam.Pose2:
 
 
 class PoseGraph:
-    """Pose chains of several robots plus constraints between any two nodes, on iSAM2."""
+    """Pose chains of several robots plus constraints between any two nodes, on iSAM2.
+
+    Not thread-safe: build, update and query it from one thread. Changes (nodes,
+    constraints, removals) are pending until ``update``; queries of pending nodes
+    return their initial guess.
+    """
 
     def __init__(
         self,
@@ -121,6 +128,7 @@ class PoseGraph:
         prior_sigmas: tuple[float, float, float] = (0.01, 0.01, 0.001),  # m, m, rad
         change_epsilon: float = 1e-4,  # m or rad: a robot "changed" beyond this
         settle_iterations: int = 10,  # max extra iterations after components merge
+        track_changes: bool = True,  # False: no changed_robots, the O(n) estimate is lazy
     ) -> None:
         params = gtsam.ISAM2Params()
         params.setFactorization("CHOLESKY")
@@ -131,6 +139,7 @@ class PoseGraph:
         self._prior_noise = gtsam.noiseModel.Diagonal.Sigmas(np.asarray(prior_sigmas, float))
         self._change_epsilon = change_epsilon
         self._settle_iterations = settle_iterations
+        self._track_changes = track_changes
         self._chains: dict[str, _Chain] = {}  # registration order = key-character order
         self._factors: dict[int, _Factor] = {}  # active factors (committed or pending)
         self._pending_ids: list[int] = []
@@ -141,6 +150,7 @@ class PoseGraph:
         self._component_of: dict[str, int] = {}  # robot -> component label at last update
         self._guesses = gtsam.Values()  # every initial guess handed to iSAM2 (for batch)
         self._estimate = np.zeros((0, 3))  # committed poses, rows in key order
+        self._estimate_valid = True  # False: recompute on the next full-estimate query
 
     # ----- building the graph -------------------------------------------------------
     def add_robot(self, robot_id: str, T_map_first: ArrayLike | None) -> None:
@@ -257,14 +267,20 @@ class PoseGraph:
                 new_nodes[robot_id] = len(chain.pending)
 
         t_solve = time.perf_counter()
-        result = self._isam.update(graph, values, removals)
-        for fid, slot in zip(new_ids, result.getNewFactorsIndices(), strict=True):
-            self._factors[fid].isam_index = slot
-        iterations = 1
-        for _ in range(max(extra_iterations, self._settle_iterations if merged else 0)):
-            iterations += 1
-            if self._isam.update().getVariablesRelinearized() == 0:
-                break
+        try:
+            result = self._isam.update(graph, values, removals)
+            for fid, slot in zip(new_ids, result.getNewFactorsIndices(), strict=True):
+                self._factors[fid].isam_index = slot
+            iterations = 1
+            for _ in range(max(extra_iterations, self._settle_iterations if merged else 0)):
+                iterations += 1
+                extra = self._isam.update(force_relinearize=True)  # even between skips
+                if extra.getVariablesRelinearized() == 0:
+                    break
+        except RuntimeError as exc:  # e.g. gtsam's IndeterminantLinearSystemException
+            raise CollabSlamError(
+                f"iSAM2 update failed, the pose graph is unusable: {exc}"
+            ) from exc
         solve_ms = (time.perf_counter() - t_solve) * 1e3
 
         self._guesses.insert(values)
@@ -272,8 +288,10 @@ class PoseGraph:
         old_estimate, old_counts = self._estimate, [c.num_committed for c in self._chains.values()]
         for chain in self._chains.values():
             chain.num_committed, chain.pending = chain.size, []
-        self._estimate = self._extract(self._isam.calculateEstimate())
-        changed = self._changed_robots(old_estimate, old_counts)
+        self._estimate_valid = False
+        changed = None
+        if self._track_changes:  # then the previous estimate is always valid
+            changed = self._changed_robots(old_estimate, self._full_estimate(), old_counts)
         stats = UpdateStats(
             wall_ms=(time.perf_counter() - t_start) * 1e3,
             solve_ms=solve_ms,
@@ -303,13 +321,16 @@ class PoseGraph:
             raise CollabSlamError(f"robot {robot_id!r} has no node {index}")
         if index >= chain.num_committed:
             return chain.pending[index - chain.num_committed].copy()
-        return self._estimate[self._offset(robot_id) + index].copy()
+        if self._estimate_valid:
+            return self._estimate[self._offset(robot_id) + index].copy()
+        p = self._isam.calculateEstimatePose2(gtsam.symbol(chain.char, index))  # O(1)-ish
+        return np.array([p.x(), p.y(), p.theta()])
 
     def poses(self, robot_id: str) -> FloatArray:
         """(N, 3) poses of a chain in index order (pending nodes: their initial guess)."""
         chain = self._chain(robot_id)
         offset = self._offset(robot_id)
-        committed = self._estimate[offset : offset + chain.num_committed]
+        committed = self._full_estimate()[offset : offset + chain.num_committed]
         return np.vstack([committed, *chain.pending]) if chain.pending else committed.copy()
 
     def num_nodes(self, robot_id: str | None = None) -> int:
@@ -380,6 +401,13 @@ class PoseGraph:
             offset += chain.num_committed
         raise CollabSlamError(f"unknown robot {robot_id!r}")
 
+    def _full_estimate(self) -> FloatArray:
+        """All committed poses (one O(n) calculateEstimate, cached until the next update)."""
+        if not self._estimate_valid:
+            self._estimate = self._extract(self._isam.calculateEstimate())
+            self._estimate_valid = True
+        return self._estimate
+
     def _extract(self, values: gtsam.Values) -> FloatArray:
         # Keys sort by (character, index), so rows come chain after chain in index order.
         rows = np.asarray(gtsam.utilities.extractPose2(values), dtype=np.float64).reshape(-1, 3)
@@ -389,7 +417,7 @@ class PoseGraph:
         return rows
 
     def _add_factor(
-        self, factor: gtsam.NonlinearFactor, kind: str, robots: tuple[str, str] | None = None
+        self, factor: gtsam.NonlinearFactor, kind: FactorKind, robots: tuple[str, str] | None = None
     ) -> int:
         fid = self._next_id
         self._next_id += 1
@@ -436,6 +464,7 @@ class PoseGraph:
                 if rid != keep and chain.gauge_factor is not None:
                     self._drop_factor(chain.gauge_factor)
                     chain.gauge_factor = None
+                    logger.debug("robot %r merged into another frame: gauge removed", rid)
             if keep is not None and self._chains[keep].gauge_factor is None:
                 chain = self._chains[keep]
                 prior = gtsam.PriorFactorPose2(
@@ -445,11 +474,13 @@ class PoseGraph:
         self._topology_dirty = False
         return merged
 
-    def _changed_robots(self, old: FloatArray, old_counts: list[int]) -> frozenset[str]:
+    def _changed_robots(
+        self, old: FloatArray, new: FloatArray, old_counts: list[int]
+    ) -> frozenset[str]:
         changed, old_off, new_off = set(), 0, 0
         for (robot_id, chain), n_old in zip(self._chains.items(), old_counts, strict=True):
             if n_old:
-                diff = self._estimate[new_off : new_off + n_old] - old[old_off : old_off + n_old]
+                diff = new[new_off : new_off + n_old] - old[old_off : old_off + n_old]
                 diff[:, 2] = wrap_angle(diff[:, 2])
                 if np.abs(diff).max() > self._change_epsilon:
                     changed.add(robot_id)

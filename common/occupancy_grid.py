@@ -1,4 +1,4 @@
-"""Log-odds occupancy grid with laser-ray insertion (numba DDA kernel).
+"""Log-odds occupancy grid with laser-ray insertion (numba kernel).
 
 Cell (ix, iy) covers [ox + ix * res, ox + (ix + 1) * res) x [oy + iy * res, ...) in
 the frame the grid lives in (usually `map` or a robot's `odom`); arrays are
@@ -6,7 +6,12 @@ indexed [iy, ix] like `GridMap.data`.
 
 Update rule per scan (as cartographer's `CastRays` and octomap do): every cell is
 updated at most once per scan, and hits win over misses, so a wall cell hit by one
-beam is not cleared by a neighbouring grazing beam of the same scan.
+beam is not cleared by a neighbouring grazing beam of the same scan. With the default
+probabilities a cell therefore needs one hit to read as occupied (0.70 > 0.65) but four
+scans that see through it to read as free (0.4 -> 0.31 -> 0.23 -> 0.17 < 0.196).
+
+Free space is traced with an 8-connected (Bresenham-like) walk: one cell per column
+(or row), the one the beam crosses at that column's centre line.
 """
 
 from __future__ import annotations
@@ -15,15 +20,13 @@ import logging
 import math
 
 import numpy as np
-from numba import njit
+from numba import njit, uint64
 from numpy.typing import ArrayLike, NDArray
 
 from common.errors import CollabSlamError, ConfigError
 from common.map_io import FREE, OCCUPIED, UNKNOWN, GridMap
 
 logger = logging.getLogger(__name__)
-
-_STAMP_LIMIT = np.iinfo(np.int32).max - 1
 
 
 def logodds(p: float) -> float:
@@ -52,11 +55,64 @@ def _clip_segment(
     return t0, t1
 
 
+# Bits of the per-cell `flags` array (uint8). MISS/HIT only live during one scan.
+_MISS = 1
+_HIT = 2
+_OBSERVED = 4
+_FIX_SHIFT = 32  # fixed-point fraction bits of the ray walker
+
+
+@njit(cache=True)
+def _mark_ray(
+    flags: np.ndarray, w: int, h: int, su: float, sv: float, eu: float, ev: float, skip_last: bool
+) -> None:
+    """Flag as MISS the cells of the segment (su, sv) -> (eu, ev) (cell units, inside the
+    grid box): one cell per column (x-major) or row (y-major), taken where the segment
+    crosses that column's/row's centre line (8-connected, like Bresenham). The end cell
+    is left out if `skip_last`. Fixed-point stepping keeps the loop free of branches.
+    """
+    ix = min(max(int(math.floor(su)), 0), w - 1)
+    iy = min(max(int(math.floor(sv)), 0), h - 1)
+    ex = min(max(int(math.floor(eu)), 0), w - 1)
+    ey = min(max(int(math.floor(ev)), 0), h - 1)
+    nx = abs(ex - ix)
+    ny = abs(ey - iy)
+    steps = max(nx, ny)
+    if steps > 0 or not skip_last:
+        flags[uint64(iy * w + ix)] |= _MISS
+    if steps == 0:
+        return
+    if not skip_last:
+        flags[uint64(ey * w + ex)] |= _MISS
+    one = 1 << _FIX_SHIFT
+    if nx >= ny:
+        step = 1 if ex > ix else -1
+        slope = (ev - sv) / (eu - su)
+        cx = ix + step
+        yf = np.int64((sv + (cx + 0.5 - su) * slope) * one)
+        dyf = np.int64(slope * step * one)
+        for _ in range(steps - 1):
+            cy = min(max(yf >> _FIX_SHIFT, 0), h - 1)
+            flags[uint64(cy * w + cx)] |= _MISS
+            yf += dyf
+            cx += step
+    else:
+        step = 1 if ey > iy else -1
+        slope = (eu - su) / (ev - sv)
+        cy = iy + step
+        xf = np.int64((su + (cy + 0.5 - sv) * slope) * one)
+        dxf = np.int64(slope * step * one)
+        for _ in range(steps - 1):
+            cx = min(max(xf >> _FIX_SHIFT, 0), w - 1)
+            flags[uint64(cy * w + cx)] |= _MISS
+            xf += dxf
+            cy += step
+
+
 @njit(cache=True)
 def _cast_scan(
     log_odds: np.ndarray,
-    stamp: np.ndarray,
-    scan_id: int,
+    flags: np.ndarray,
     u0: float,
     v0: float,
     yaw: float,
@@ -73,23 +129,14 @@ def _cast_scan(
 ) -> None:
     """Apply one scan; sensor at (u0, v0) in cell units, ranges in metres.
 
-    `stamp[iy, ix]` is the id of the last scan that updated the cell (0: never);
-    `scan_id` must be > 0 and differ from every stamp of an earlier scan.
+    Flags HIT and MISS cells first, then updates every flagged cell once (HIT wins),
+    sweeping only the bounding box of the scan.
     """
     h, w = log_odds.shape
+    lo = log_odds.ravel()
+    fl = flags.ravel()
+    bx0, by0, bx1, by1 = w, h, -1, -1
     n = ranges.shape[0]
-    # Pass 1: hits (they take priority over misses of the same scan).
-    for i in range(n):
-        r = ranges[i]
-        if not np.isfinite(r) or r < range_min or r >= range_max:
-            continue
-        a = yaw + angles[i]
-        ix = int(math.floor(u0 + r * inv_res * math.cos(a)))
-        iy = int(math.floor(v0 + r * inv_res * math.sin(a)))
-        if 0 <= ix < w and 0 <= iy < h and stamp[iy, ix] != scan_id:
-            stamp[iy, ix] = scan_id
-            log_odds[iy, ix] = min(log_odds[iy, ix] + l_hit, l_max)
-    # Pass 2: free space along every beam, up to (excluding) its hit cell.
     for i in range(n):
         r = ranges[i]
         if not np.isfinite(r) or r < range_min:
@@ -101,62 +148,39 @@ def _cast_scan(
         a = yaw + angles[i]
         du = length * inv_res * math.cos(a)
         dv = length * inv_res * math.sin(a)
+        hu = u0 + du
+        hv = v0 + dv
+        hit_inside = is_hit and 0.0 <= hu < w and 0.0 <= hv < h
+        if hit_inside:
+            fl[uint64(int(math.floor(hv)) * w + int(math.floor(hu)))] |= _HIT
         t0, t1 = _clip_segment(u0, v0, du, dv, float(w), float(h))
         if t0 > t1:
             continue
-        skip_last = is_hit and t1 >= 1.0  # the endpoint is inside: it is the hit cell
         su = u0 + t0 * du
         sv = v0 + t0 * dv
         eu = u0 + t1 * du
         ev = v0 + t1 * dv
-        ix = min(max(int(math.floor(su)), 0), w - 1)
-        iy = min(max(int(math.floor(sv)), 0), h - 1)
-        ex = min(max(int(math.floor(eu)), 0), w - 1)
-        ey = min(max(int(math.floor(ev)), 0), h - 1)
-        # One cell per column (x-major) or row (y-major): the cell the ray crosses at
-        # the centre line of that column/row, 8-connected like Bresenham, branch-free.
-        nx = abs(ex - ix)
-        ny = abs(ey - iy)
-        if nx >= ny:
-            steps = nx
-            step = 1 if ex > ix else -1
-            slope = (ev - sv) / (eu - su) if steps > 0 else 0.0
-            for k in range(steps + 1):
-                if k == 0:
-                    cx = ix
-                    cy = iy
-                elif k == steps:
-                    cx = ex
-                    cy = ey
-                else:
-                    cx = ix + k * step
-                    cy = int(math.floor(sv + (cx + 0.5 - su) * slope))
-                    cy = min(max(cy, 0), h - 1)
-                if k == steps and skip_last:
-                    break
-                if stamp[cy, cx] != scan_id:
-                    stamp[cy, cx] = scan_id
-                    log_odds[cy, cx] = max(log_odds[cy, cx] + l_miss, l_min)
-        else:
-            steps = ny
-            step = 1 if ey > iy else -1
-            slope = (eu - su) / (ev - sv)
-            for k in range(steps + 1):
-                if k == 0:
-                    cx = ix
-                    cy = iy
-                elif k == steps:
-                    cx = ex
-                    cy = ey
-                else:
-                    cy = iy + k * step
-                    cx = int(math.floor(su + (cy + 0.5 - sv) * slope))
-                    cx = min(max(cx, 0), w - 1)
-                if k == steps and skip_last:
-                    break
-                if stamp[cy, cx] != scan_id:
-                    stamp[cy, cx] = scan_id
-                    log_odds[cy, cx] = max(log_odds[cy, cx] + l_miss, l_min)
+        _mark_ray(fl, w, h, su, sv, eu, ev, hit_inside)
+        for cu, cv in ((su, sv), (eu, ev)):
+            cx = min(max(int(math.floor(cu)), 0), w - 1)
+            cy = min(max(int(math.floor(cv)), 0), h - 1)
+            bx0 = min(bx0, cx)
+            bx1 = max(bx1, cx)
+            by0 = min(by0, cy)
+            by1 = max(by1, cy)
+    # Unsigned indices: numba skips the negative-index wraparound, LLVM vectorizes.
+    span = bx1 + 1 - bx0
+    for cy in range(by0, by1 + 1):
+        row = uint64(cy * w + bx0)
+        for j in range(span):
+            k = row + uint64(j)
+            f = fl[k]
+            old = lo[k]
+            if f & _HIT:
+                lo[k] = min(old + l_hit, l_max)
+            elif f & _MISS:
+                lo[k] = max(old + l_miss, l_min)
+            fl[k] = _OBSERVED if f != 0 else 0
 
 
 class OccupancyGrid:
@@ -190,8 +214,7 @@ class OccupancyGrid:
         self._l_min = logodds(p_min)
         self._l_max = logodds(p_max)
         self._log_odds = np.zeros((h, w), dtype=np.float32)
-        self._stamp = np.zeros((h, w), dtype=np.int32)
-        self._scan_id = 0
+        self._flags = np.zeros((h, w), dtype=np.uint8)  # _OBSERVED between scans
 
     @classmethod
     def from_bounds(
@@ -235,7 +258,7 @@ class OccupancyGrid:
     @property
     def observed(self) -> NDArray[np.bool_]:
         """(H, W) mask (a copy) of the cells any scan has updated since the last clear."""
-        return self._stamp != 0
+        return self._flags != 0
 
     def insert_scan(
         self,
@@ -267,15 +290,10 @@ class OccupancyGrid:
         free_range = range_max if max_free_range is None else min(range_max, max_free_range)
         if not math.isfinite(free_range):
             raise CollabSlamError("range_max or max_free_range must be finite")
-        if self._scan_id >= _STAMP_LIMIT:  # keep "observed" (stamp != 0), restart the ids
-            self._stamp[self._stamp != 0] = 1
-            self._scan_id = 1
-        self._scan_id += 1
         inv_res = 1.0 / self._resolution
         _cast_scan(
             self._log_odds,
-            self._stamp,
-            self._scan_id,
+            self._flags,
             (pose[0] - self._origin[0]) * inv_res,
             (pose[1] - self._origin[1]) * inv_res,
             float(pose[2]),
@@ -285,10 +303,10 @@ class OccupancyGrid:
             float(range_min),
             float(range_max),
             float(free_range),
-            self._l_hit,
-            self._l_miss,
-            self._l_min,
-            self._l_max,
+            np.float32(self._l_hit),
+            np.float32(self._l_miss),
+            np.float32(self._l_min),
+            np.float32(self._l_max),
         )
 
     def grow_to_include(self, min_xy: ArrayLike, max_xy: ArrayLike, margin: float) -> None:
@@ -316,7 +334,7 @@ class OccupancyGrid:
         new_w = w + int(add_lo[0] + add_hi[0])
         new_h = h + int(add_lo[1] + add_hi[1])
         sx, sy = int(add_lo[0]), int(add_lo[1])
-        for name in ("_log_odds", "_stamp"):
+        for name in ("_log_odds", "_flags"):
             old = getattr(self, name)
             new = np.zeros((new_h, new_w), dtype=old.dtype)
             new[sy : sy + h, sx : sx + w] = old
@@ -327,7 +345,7 @@ class OccupancyGrid:
     def clear(self) -> None:
         """Forget everything (all cells back to unknown); the extent is kept."""
         self._log_odds.fill(0.0)
-        self._stamp.fill(0)
+        self._flags.fill(0)
 
     def probability(self) -> NDArray[np.float32]:
         """(H, W) occupancy probabilities (0.5 where nothing is known)."""
@@ -342,7 +360,7 @@ class OccupancyGrid:
             raise ConfigError(
                 f"expected 0 < free_thresh < occupied_thresh < 1, got {free_thresh}, {occupied_thresh}"
             )
-        seen = self._stamp != 0
+        seen = self._flags != 0
         data = np.full(self._log_odds.shape, UNKNOWN, dtype=np.int8)
         data[seen & (self._log_odds > logodds(occupied_thresh))] = OCCUPIED
         data[seen & (self._log_odds < logodds(free_thresh))] = FREE

@@ -48,9 +48,6 @@ class SimRobot:
     command: tuple[float, float, float, float] = (0.0, 0.0, 0.0, 0.0)
     answered: float = -1.0  # stamp of the last tick this robot's agent answered
     status: str = "starting"
-    collisions: int = 0
-    min_clearance: float = float("inf")
-    distance: float = 0.0
     gt: list[list[float]] = field(default_factory=list)  # [t, x, y, z, yaw]
 
 
@@ -190,13 +187,8 @@ class Simulator:
         for r in self.robots.values():
             with self._cond:
                 cmd = r.command
-            before = r.vehicle.pose.copy()
-            info = r.vehicle.step(np.asarray(cmd), self.dt, self.world)
-            r.collisions += int(info.collided)
-            r.min_clearance = min(r.min_clearance, float(info.clearance))
-            r.distance += float(np.hypot(*(r.vehicle.pose[:2] - before[:2])))
-            v = r.vehicle
-            r.odometry.step(v.body_velocity, v.yaw_rate, self.dt, r.rng)
+            r.vehicle.step(np.asarray(cmd), self.dt, self.world)
+            r.odometry.step(r.vehicle.velocity_body, r.vehicle.yaw_rate, self.dt, r.rng)
 
     def _record(self, r: SimRobot, t: float) -> None:
         r.gt.append([t, *(float(x) for x in r.vehicle.pose)])
@@ -210,7 +202,7 @@ class Simulator:
         odo = r.odometry
         self.bus.publish(keys.sensor(rid, "odom"),
                          Odometry(rid, t, pose4_to_pose7(odo.pose), np.asarray(odo.twist)))
-        w, a, q = r.imu.measure(np.array([0.0, 0.0, v.yaw_rate]), v.body_acceleration,
+        w, a, q = r.imu.measure(v.angular_velocity_body, v.accel_body,
                                 v.roll, v.pitch, float(v.pose[3]), r.rng)
         self.bus.publish(keys.sensor(rid, "imu"), Imu(rid, t, w, a, q))
         self.bus.publish(keys.sensor(rid, "altimeter"),
@@ -231,8 +223,9 @@ class Simulator:
             "republished_ticks": self.republished,
             "end_reason": self.end_reason,
             "robots": {
-                rid: {"distance_m": r.distance, "collisions": r.collisions,
-                      "min_clearance_m": r.min_clearance, "status": r.status}
+                rid: {"distance_m": r.vehicle.distance_travelled,
+                      "collisions": r.vehicle.collisions,
+                      "min_clearance_m": r.vehicle.min_clearance, "status": r.status}
                 for rid, r in self.robots.items()
             },
         }

@@ -21,6 +21,7 @@ from scipy import ndimage
 
 from common.errors import ConfigError, FileFormatError
 from common.map_io import GridMap, read_map
+from simulation.raycast import BlockGrid, block_grid
 
 logger = logging.getLogger(__name__)
 
@@ -61,35 +62,36 @@ def resolve_world(name_or_path: str | Path) -> Path:
 
 
 @njit(cache=True)
+def bilinear_at(field: NDArray[np.float64], x: float, y: float) -> float:
+    """Bilinear interpolation of a cell-centred (H, W) field at continuous cell
+    coordinates (x, y), measured from the lower-left grid corner (cell centres at
+    i + 0.5); 0 outside the grid."""
+    h, w = field.shape
+    if not (x >= 0.0 and x <= w and y >= 0.0 and y <= h):
+        return 0.0
+    u = min(max(x - 0.5, 0.0), w - 1.0)
+    v = min(max(y - 0.5, 0.0), h - 1.0)
+    i0 = min(int(u), max(w - 2, 0))
+    j0 = min(int(v), max(h - 2, 0))
+    i1 = min(i0 + 1, w - 1)
+    j1 = min(j0 + 1, h - 1)
+    fu = u - i0
+    fv = v - j0
+    return (1.0 - fv) * ((1.0 - fu) * field[j0, i0] + fu * field[j0, i1]) + fv * (
+        (1.0 - fu) * field[j1, i0] + fu * field[j1, i1]
+    )
+
+
+@njit(cache=True)
 def bilinear_kernel(
     field: NDArray[np.float64],
     gx: NDArray[np.float64],
     gy: NDArray[np.float64],
     out: NDArray[np.float64],
 ) -> None:
-    """Bilinear interpolation of a cell-centred field at continuous cell coordinates.
-
-    gx, gy are in cell units measured from the lower-left grid corner (cell centres at
-    i + 0.5). Points outside the grid read 0.
-    """
-    h, w = field.shape
+    """`bilinear_at` for each of the points (gx[k], gy[k])."""
     for k in range(gx.shape[0]):
-        x = gx[k]
-        y = gy[k]
-        if not (x >= 0.0 and x <= w and y >= 0.0 and y <= h):
-            out[k] = 0.0
-            continue
-        u = min(max(x - 0.5, 0.0), w - 1.0)
-        v = min(max(y - 0.5, 0.0), h - 1.0)
-        i0 = min(int(u), w - 2) if w > 1 else 0
-        j0 = min(int(v), h - 2) if h > 1 else 0
-        i1 = min(i0 + 1, w - 1)
-        j1 = min(j0 + 1, h - 1)
-        fu = u - i0
-        fv = v - j0
-        out[k] = (1.0 - fv) * ((1.0 - fu) * field[j0, i0] + fu * field[j0, i1]) + fv * (
-            (1.0 - fu) * field[j1, i0] + fu * field[j1, i1]
-        )
+        out[k] = bilinear_at(field, gx[k], gy[k])
 
 
 def _clearance_field(obstacle: NDArray[np.bool_], resolution: float) -> NDArray[np.float64]:
@@ -132,6 +134,11 @@ class World:
             world.free_area_m2,
         )
         return world
+
+    @cached_property
+    def ray_blocks(self) -> BlockGrid:
+        """Coarse occupancy for fast `cast_rays` on this world."""
+        return block_grid(self.occupied)
 
     @cached_property
     def free_clearance_grid(self) -> NDArray[np.float64]:

@@ -34,6 +34,7 @@ from numpy.typing import NDArray
 from scipy import ndimage
 
 from common.errors import CollabSlamError, ConfigError
+from common.logging_setup import setup_logging
 from common.map_io import GridMap, write_map
 
 logger = logging.getLogger(__name__)
@@ -535,7 +536,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--kinds", nargs="+", default=list(SHIPPED_KINDS), help="worlds to write")
     parser.add_argument("--seed", type=int, default=0, help="furniture / random-floor seed")
     args = parser.parse_args(argv)
-    logging.basicConfig(level=logging.INFO, format="%(levelname)s %(name)s: %(message)s")
+    setup_logging("INFO", "world_generator")
     try:
         for kind in args.kinds:
             grid = generate_world(kind, args.seed)

@@ -138,11 +138,11 @@ def test_removing_a_constraint_restores_the_estimate() -> None:
 
 
 @pytest.mark.parametrize("first_start", [np.array([1.0, 2.0, 0.5]), None])
-@pytest.mark.parametrize("robust", ["huber", None])
+@pytest.mark.parametrize(("robust", "skip"), [("huber", 1), (None, 1), ("huber", 10)])
 def test_floating_chain_merges_after_one_inter_robot_constraint(
-    first_start: NDArray | None, robust: str | None
+    first_start: NDArray | None, robust: str | None, skip: int
 ) -> None:
-    graph = PoseGraph()
+    graph = PoseGraph(relinearize_skip=skip)
     build_chain(graph, "a", first_start, [np.array([1.0, 0.0, 0.2])] * 14)
     build_chain(graph, "b", None, [np.array([1.0, 0.0, -0.15])] * 14)
     graph.update()
@@ -273,3 +273,34 @@ def test_incremental_m3500_prefix_matches_batch(n_robots: int) -> None:
         assert_pose_close(graph.poses(robot), poses, 0.05, 0.01)
     if n_robots == 1:  # from odometry, LM lands in the same minimum
         assert batch_optimize(graph, start="guess").chi2 == pytest.approx(batch.chi2, rel=1e-3)
+
+
+def test_extra_iterations_relinearize_even_between_skips() -> None:
+    deltas = [d + np.array([0.0, 0.0, 0.03]) for d in square_deltas()]
+    tight = np.diag([0.02**2, 0.02**2, 0.002**2])
+    chi2 = {}
+    for skip in (1, 10):
+        graph = PoseGraph(relinearize_skip=skip)
+        build_chain(graph, "a", np.zeros(3), deltas)
+        graph.update()
+        graph.add_constraint(("a", 20), ("a", 0), np.zeros(3), tight, robust=None)
+        graph.update(extra_iterations=5)
+        chi2[skip] = graph.chi2()
+    assert chi2[10] == pytest.approx(chi2[1], rel=1e-6)
+
+
+def test_lazy_estimate_matches_tracked_estimate() -> None:
+    deltas = [d + np.array([0.0, 0.0, 0.03]) for d in square_deltas()]
+    graphs = {track: PoseGraph(track_changes=track) for track in (True, False)}
+    for track, graph in graphs.items():
+        build_chain(graph, "a", np.zeros(3), deltas)
+        graph.update()
+        graph.add_constraint(("a", 20), ("a", 0), np.zeros(3), LC_COV)
+        stats = graph.update()
+        assert (stats.changed_robots is None) == (not track)
+        graph.add_node("a", 21, deltas[0], ODO_COV)
+        graph.update()
+    lazy, tracked = graphs[False], graphs[True]
+    for i in (0, 7, 20, 21):  # single poses straight from iSAM2, before any full estimate
+        assert_pose_close(lazy.pose("a", i), tracked.pose("a", i), 1e-9, 1e-9)
+    assert_pose_close(lazy.poses("a"), tracked.poses("a"), 1e-9, 1e-9)

@@ -1,0 +1,323 @@
+"""Streaming reader for CARMEN log files (`.clf`, plain or bzip2-compressed).
+
+Every message line is `NAME [contents] ipc_timestamp ipc_hostname logger_timestamp`.
+Understood messages (the shipped Intel / ACES / MIT-CSAIL logs use only the first three):
+
+- `PARAM name value ...`: updates `CarmenParams`; not yielded.
+- `ODOM x y theta tv rv accel ...` -> `CarmenOdometry`.
+- `FLASER n r1..rn x y theta odom_x odom_y odom_theta ...` -> `CarmenLaser`.
+- `ROBOTLASER1 type start fov res maxrange accuracy remission_mode n r1..rn m e1..em
+  laser_x laser_y laser_theta robot_x robot_y robot_theta tv rv fwd_safety side_safety
+  turn_axis ...` -> `CarmenLaser` (beam geometry from the message itself).
+
+Other message types (RLASER, TRUEPOS, RAWLASER*, SYNC, ...) are skipped (logged once per
+type at debug level). Poses are `[x, y, theta]` (m, m, rad) in the log's odometry frame.
+
+Beam geometry of FLASER when the log has no `laser_front_laser_*` PARAM lines follows
+CARMEN's own reader (`carmen_string_to_robot_laser_message_orig`): first beam at -90 deg,
+1 deg steps for 180/181 beams, 0.5 deg for 360/361, 0.25 deg for 400/401, otherwise
+180 deg spread over n-1 steps; maximum range 80 m. Note that the shipped logs contain
+range readings above 80 m (e.g. 81.91 m "no return" in MIT-CSAIL): consumers should treat
+`r >= range_max` as no return.
+
+Timestamps: the `ipc_timestamp` (s). They are NOT monotonic in file order in every log
+(intel.clf: 631 FLASER records are up to 0.9 s older than the previous FLASER); records are
+yielded in file order and consumers that need time order must sort.
+"""
+
+from __future__ import annotations
+
+import bz2
+import logging
+import math
+from collections.abc import Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import IO
+
+import numpy as np
+from numpy.typing import NDArray
+
+from common.errors import FileFormatError
+
+logger = logging.getLogger(__name__)
+
+DEFAULT_RANGE_MAX_M = 80.0  # CARMEN's guess for a SICK LMS when the log does not say
+
+_BZ2_MAGIC = b"BZh"
+_FLASER_TAIL = 9  # laser pose (3), odom pose (3), ipc_timestamp, hostname, logger_timestamp
+_ODOM_FIELDS = 9  # x y theta tv rv accel ipc_timestamp hostname logger_timestamp
+
+
+@dataclass(frozen=True, eq=False)
+class CarmenLaser:
+    """One front-laser scan (FLASER or ROBOTLASER1); beam i is at angle_min + i * angle_increment
+    (rad, counter-clockwise, 0 = the laser's +x axis)."""
+
+    stamp: float  # ipc_timestamp (s)
+    ranges: NDArray[np.float32]  # (n,) m
+    angle_min: float  # rad
+    angle_increment: float  # rad
+    range_max: float  # m
+    odom_pose: NDArray[np.float64]  # [x, y, theta] odometry pose of the robot at the scan
+    laser_pose: NDArray[np.float64]  # [x, y, theta] logged laser pose (front laser offset applied)
+
+
+@dataclass(frozen=True, eq=False)
+class CarmenOdometry:
+    """One ODOM record."""
+
+    stamp: float  # ipc_timestamp (s)
+    pose: NDArray[np.float64]  # [x, y, theta] (m, m, rad)
+    tv: float  # translational velocity (m/s)
+    rv: float  # rotational velocity (rad/s)
+
+
+@dataclass
+class CarmenParams:
+    """Robot / laser parameters from PARAM lines. `None` means "not in the log": the
+    CARMEN guesses from the beam count apply (see the module docstring).
+
+    PARAM names read (CARMEN units in the log; stored here in m / rad):
+    robot_frontlaser_offset (m, forward), robot_frontlaser_side_offset (m, left),
+    robot_frontlaser_angular_offset (rad), laser_front_laser_fov (deg),
+    laser_front_laser_resolution (deg), robot_front_laser_max or
+    laser_front_laser_maxrange (m). Every PARAM line is also kept verbatim in `raw`.
+    """
+
+    frontlaser_offset_m: float = 0.0
+    frontlaser_side_offset_m: float = 0.0
+    frontlaser_angular_offset_rad: float = 0.0
+    laser_fov_rad: float | None = None
+    laser_resolution_rad: float | None = None
+    laser_range_max_m: float | None = None
+    raw: dict[str, str] = field(default_factory=dict)
+
+    def update(self, name: str, value: str) -> None:
+        """Apply one PARAM line (raises ValueError if a known numeric parameter is not a number)."""
+        self.raw[name] = value
+        if name == "robot_frontlaser_offset":
+            self.frontlaser_offset_m = float(value)
+        elif name == "robot_frontlaser_side_offset":
+            self.frontlaser_side_offset_m = float(value)
+        elif name == "robot_frontlaser_angular_offset":
+            self.frontlaser_angular_offset_rad = float(value)
+        elif name == "laser_front_laser_fov":
+            self.laser_fov_rad = math.radians(float(value))
+        elif name == "laser_front_laser_resolution":
+            self.laser_resolution_rad = math.radians(float(value))
+        elif name in ("robot_front_laser_max", "laser_front_laser_maxrange"):
+            self.laser_range_max_m = float(value)
+
+    def beam_geometry(self, n: int) -> tuple[float, float, float]:
+        """(angle_min, angle_increment, range_max) for an FLASER scan with n beams."""
+        inc = self.laser_resolution_rad
+        if inc is None:
+            inc = guess_angle_increment(n)
+        angle_min = -0.5 * self.laser_fov_rad if self.laser_fov_rad is not None else -0.5 * math.pi
+        range_max = self.laser_range_max_m
+        return angle_min, inc, DEFAULT_RANGE_MAX_M if range_max is None else range_max
+
+
+def guess_angle_increment(n: int) -> float:
+    """CARMEN's `carmen_laser_guess_angle_increment` for a SICK LMS with n beams (rad)."""
+    if n in (180, 181):
+        return math.pi / 180.0
+    if n in (360, 361):
+        return math.pi / 360.0
+    if n in (400, 401):
+        return math.pi / 720.0
+    return math.pi / max(n - 1, 1)
+
+
+def _open_text(path: Path) -> IO[str]:
+    """Open a log as text, decompressing bzip2 on the fly (by suffix or magic bytes)."""
+    try:
+        with path.open("rb") as f:
+            magic = f.read(3)
+        if path.suffix == ".bz2" or magic == _BZ2_MAGIC:
+            return bz2.open(path, "rt", encoding="ascii", errors="replace")
+        return path.open("r", encoding="ascii", errors="replace")
+    except OSError as exc:
+        raise FileFormatError(f"{path}: cannot open CARMEN log: {exc}") from exc
+
+
+def _numbers(path: Path, lineno: int, what: str, tokens: list[str]) -> NDArray[np.float64]:
+    """Parse tokens as finite floats or raise a FileFormatError naming the first bad one."""
+    try:
+        values = np.array(tokens, dtype=np.float64)
+    except ValueError:
+        bad = next(t for t in tokens if not _is_float(t))
+        raise FileFormatError(f"{path}:{lineno}: {what}: expected a number, got {bad!r}") from None
+    if not np.all(np.isfinite(values)):
+        raise FileFormatError(f"{path}:{lineno}: {what}: non-finite value")
+    return values
+
+
+def _is_float(token: str) -> bool:
+    try:
+        float(token)
+    except ValueError:
+        return False
+    return True
+
+
+def _beam_count(path: Path, lineno: int, name: str, token: str) -> int:
+    try:
+        n = int(token)
+    except ValueError:
+        raise FileFormatError(
+            f"{path}:{lineno}: {name}: expected an integer beam count, got {token!r}"
+        ) from None
+    if n < 0:
+        raise FileFormatError(f"{path}:{lineno}: {name}: negative beam count {n}")
+    return n
+
+
+def _parse_flaser(path: Path, lineno: int, f: list[str], params: CarmenParams) -> CarmenLaser:
+    if len(f) < 2:
+        raise FileFormatError(f"{path}:{lineno}: FLASER: expected a beam count")
+    n = _beam_count(path, lineno, "FLASER", f[1])
+    if len(f) != 2 + n + _FLASER_TAIL:
+        raise FileFormatError(
+            f"{path}:{lineno}: FLASER: expected {n} ranges + 9 fields (laser x y theta, "
+            f"odom x y theta, ipc_timestamp, hostname, logger_timestamp) = {n + 9} fields "
+            f"after the beam count, got {len(f) - 2}"
+        )
+    v = _numbers(path, lineno, "FLASER", f[2 : 2 + n + 7])
+    angle_min, inc, range_max = params.beam_geometry(n)
+    return CarmenLaser(
+        stamp=float(v[n + 6]),
+        ranges=v[:n].astype(np.float32),
+        angle_min=angle_min,
+        angle_increment=inc,
+        range_max=range_max,
+        odom_pose=v[n + 3 : n + 6].copy(),
+        laser_pose=v[n : n + 3].copy(),
+    )
+
+
+def _parse_robotlaser(path: Path, lineno: int, f: list[str]) -> CarmenLaser:
+    name = f[0]
+    if len(f) < 9:
+        raise FileFormatError(f"{path}:{lineno}: {name}: expected 7 config fields and a beam count")
+    cfg = _numbers(path, lineno, name, f[1:8])
+    n = _beam_count(path, lineno, name, f[8])
+    if len(f) < 10 + n:
+        raise FileFormatError(f"{path}:{lineno}: {name}: expected {n} ranges and a remission count")
+    m = _beam_count(path, lineno, name, f[9 + n])
+    expected = 10 + n + m + 14  # poses (6), tv rv safety (2) turn_axis, ipc, host, logger
+    if len(f) != expected:
+        raise FileFormatError(
+            f"{path}:{lineno}: {name}: expected {expected} fields for {n} ranges and "
+            f"{m} remissions, got {len(f)}"
+        )
+    ranges = _numbers(path, lineno, name, f[9 : 9 + n])
+    tail = _numbers(path, lineno, name, f[10 + n + m : expected - 2])
+    return CarmenLaser(
+        stamp=float(tail[11]),
+        ranges=ranges.astype(np.float32),
+        angle_min=float(cfg[1]),
+        angle_increment=float(cfg[3]),
+        range_max=float(cfg[4]),
+        odom_pose=tail[3:6].copy(),
+        laser_pose=tail[0:3].copy(),
+    )
+
+
+def _parse_odom(path: Path, lineno: int, f: list[str]) -> CarmenOdometry:
+    if len(f) != 1 + _ODOM_FIELDS:
+        raise FileFormatError(
+            f"{path}:{lineno}: ODOM: expected 9 fields (x y theta tv rv accel ipc_timestamp "
+            f"hostname logger_timestamp), got {len(f) - 1}"
+        )
+    v = _numbers(path, lineno, "ODOM", f[1:8])
+    return CarmenOdometry(stamp=float(v[6]), pose=v[0:3].copy(), tv=float(v[3]), rv=float(v[4]))
+
+
+def _apply_param(path: Path, lineno: int, f: list[str], params: CarmenParams) -> None:
+    if len(f) < 3:
+        raise FileFormatError(f"{path}:{lineno}: PARAM: expected 'PARAM name value ...'")
+    try:
+        params.update(f[1], f[2])
+    except ValueError:
+        raise FileFormatError(
+            f"{path}:{lineno}: PARAM {f[1]}: expected a number, got {f[2]!r}"
+        ) from None
+
+
+def read_carmen(
+    path: str | Path, start: float | None = None, end: float | None = None
+) -> Iterator[CarmenLaser | CarmenOdometry]:
+    """Yield the laser and odometry records of a CARMEN log in file order.
+
+    `start` / `end` (s, inclusive) keep only records whose ipc_timestamp is in range.
+    PARAM lines update the beam geometry of the FLASER records that follow them.
+    Raises FileFormatError("path:LINE: ...") on the first malformed known message.
+    """
+    path = Path(path)
+    params = CarmenParams()
+    skipped: set[str] = set()
+    lo = -math.inf if start is None else start
+    hi = math.inf if end is None else end
+    with _open_text(path) as stream:
+        for lineno, line in enumerate(stream, start=1):
+            f = line.split()
+            if not f or f[0].startswith("#"):
+                continue
+            kind = f[0]
+            record: CarmenLaser | CarmenOdometry
+            if kind == "FLASER":
+                record = _parse_flaser(path, lineno, f, params)
+            elif kind == "ODOM":
+                record = _parse_odom(path, lineno, f)
+            elif kind == "ROBOTLASER1":
+                record = _parse_robotlaser(path, lineno, f)
+            elif kind == "PARAM":
+                _apply_param(path, lineno, f, params)
+                continue
+            else:
+                if kind not in skipped:
+                    skipped.add(kind)
+                    logger.debug("%s:%d: skipping %s messages", path, lineno, kind)
+                continue
+            if lo <= record.stamp <= hi:
+                yield record
+
+
+def read_carmen_params(path: str | Path) -> CarmenParams:
+    """All PARAM lines of a log (a later line overrides an earlier one)."""
+    path = Path(path)
+    params = CarmenParams()
+    with _open_text(path) as stream:
+        for lineno, line in enumerate(stream, start=1):
+            if line.startswith("PARAM"):
+                _apply_param(path, lineno, line.split(), params)
+    return params
+
+
+def carmen_time_span(path: str | Path) -> tuple[float, float]:
+    """(earliest, latest) FLASER / ROBOTLASER1 ipc_timestamp (s) of a log.
+
+    Min / max rather than first / last line, because stamps can go backwards in file order.
+    Only the stamps are parsed, so this is cheaper than `read_carmen`.
+    """
+    path = Path(path)
+    lo, hi = math.inf, -math.inf
+    with _open_text(path) as stream:
+        for lineno, line in enumerate(stream, start=1):
+            if not (line.startswith("FLASER") or line.startswith("ROBOTLASER1")):
+                continue
+            f = line.split()
+            if len(f) < 4:
+                raise FileFormatError(f"{path}:{lineno}: {f[0]}: line too short")
+            try:
+                stamp = float(f[-3])
+            except ValueError:
+                raise FileFormatError(
+                    f"{path}:{lineno}: {f[0]}: expected a number for ipc_timestamp, got {f[-3]!r}"
+                ) from None
+            lo, hi = min(lo, stamp), max(hi, stamp)
+    if lo > hi:
+        raise FileFormatError(f"{path}: no FLASER or ROBOTLASER1 record")
+    return lo, hi

@@ -1,0 +1,176 @@
+"""Evaluation metrics: trajectory error (ATE) and map coverage / accuracy.
+
+All quantities are in the `map` frame of the ground truth, metres and radians.
+"""
+
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy import ndimage
+
+from common.errors import CollabSlamError
+from common.geometry import quat_to_yaw, wrap_angle
+from common.map_io import FREE_MAX, GridMap
+from common.trajectory_io import Trajectory
+
+logger = logging.getLogger(__name__)
+
+
+def associate(
+    est: Trajectory, gt: Trajectory, max_dt: float = 0.1, with_z: bool = False
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """Pair every estimated pose with the ground truth interpolated at its stamp.
+
+    Only est stamps inside gt's time span and within `max_dt` (s) of a gt sample are
+    kept. gt positions are interpolated linearly, gt yaw linearly on the unwrapped
+    angle. Returns (est, gt) arrays of shape (M, 3) [x, y, yaw], or (M, 4)
+    [x, y, z, yaw] if `with_z`.
+    """
+    cols = 4 if with_z else 3
+    empty = np.zeros((0, cols))
+    if len(est) == 0 or len(gt) == 0:
+        return empty, empty.copy()
+    t_est, t_gt = est.stamps, gt.stamps
+    inside = (t_est >= t_gt[0]) & (t_est <= t_gt[-1])
+    right = np.clip(np.searchsorted(t_gt, t_est), 0, len(t_gt) - 1)
+    left = np.clip(right - 1, 0, len(t_gt) - 1)
+    nearest_dt = np.minimum(np.abs(t_est - t_gt[left]), np.abs(t_gt[right] - t_est))
+    keep = inside & (nearest_dt <= max_dt)
+    t = t_est[keep]
+
+    gt_yaw = np.unwrap(quat_to_yaw(gt.quats_xyzw))
+    gt_cols = [np.interp(t, t_gt, gt.positions[:, i]) for i in range(3)]
+    gt_cols.append(wrap_angle(np.interp(t, t_gt, gt_yaw)))
+    est_cols = [est.positions[keep, i] for i in range(3)]
+    est_cols.append(quat_to_yaw(est.quats_xyzw[keep]))
+    pick = [0, 1, 2, 3] if with_z else [0, 1, 3]
+    return (
+        np.column_stack([est_cols[i] for i in pick]).reshape(-1, cols),
+        np.column_stack([gt_cols[i] for i in pick]).reshape(-1, cols),
+    )
+
+
+def _align_yaw_translation(
+    est_xyz: NDArray[np.float64], gt_xyz: NDArray[np.float64]
+) -> NDArray[np.float64]:
+    """est positions moved by the rotation about z and 3-D translation that best fit gt
+    (least squares; the x-y part is a 2-D Kabsch/Umeyama without scale)."""
+    mu_e = est_xyz.mean(axis=0)
+    mu_g = gt_xyz.mean(axis=0)
+    e = est_xyz[:, :2] - mu_e[:2]
+    g = gt_xyz[:, :2] - mu_g[:2]
+    theta = np.arctan2(np.sum(e[:, 0] * g[:, 1] - e[:, 1] * g[:, 0]), np.sum(e * g))
+    c, s = np.cos(theta), np.sin(theta)
+    out = np.empty_like(est_xyz)
+    out[:, 0] = c * e[:, 0] - s * e[:, 1] + mu_g[0]
+    out[:, 1] = s * e[:, 0] + c * e[:, 1] + mu_g[1]
+    out[:, 2] = est_xyz[:, 2] - mu_e[2] + mu_g[2]
+    return out
+
+
+def ate_rmse(est: Trajectory, gt: Trajectory, align: bool = False, max_dt: float = 0.1) -> float:
+    """Absolute trajectory error: RMSE (m) of the 3-D position error after `associate`.
+
+    `align=True` first applies the yaw rotation and 3-D translation that best fit the
+    estimate to gt (the 4-DOF gauge freedom of a gravity-aligned SLAM system; for
+    planar data this is the rigid 2-D Kabsch/Umeyama alignment).
+    Raises CollabSlamError if fewer than 2 poses associate.
+    """
+    e, g = associate(est, gt, max_dt=max_dt, with_z=True)
+    if len(e) < 2:
+        raise CollabSlamError(
+            f"ATE needs at least 2 associated poses, got {len(e)} "
+            f"(est {len(est)} poses, gt {len(gt)} poses, max_dt {max_dt} s)"
+        )
+    p_est = _align_yaw_translation(e[:, :3], g[:, :3]) if align else e[:, :3]
+    return float(np.sqrt(np.mean(np.sum((p_est - g[:, :3]) ** 2, axis=1))))
+
+
+def _world_cells_of(grid: GridMap, world: GridMap) -> tuple[NDArray[np.int64], NDArray[np.bool_]]:
+    """(H*W, 2) world cell [ix, iy] containing each `grid` cell centre, and which exist."""
+    xs, ys = grid.cell_centers()
+    cx, cy = np.meshgrid(xs, ys)
+    cells = world.world_to_cell(np.column_stack([cx.ravel(), cy.ravel()]))
+    return cells, world.in_bounds(cells)
+
+
+def _distance_to(mask: NDArray[np.bool_], resolution: float) -> NDArray[np.float64]:
+    """Distance (m) from each cell centre to the nearest cell centre in `mask`."""
+    if not mask.any():
+        return np.full(mask.shape, np.inf)
+    return ndimage.distance_transform_edt(~mask, sampling=resolution)
+
+
+def map_coverage(map_: GridMap, world: GridMap) -> float:
+    """Fraction of the world's free cells whose centre falls in a free cell of `map_`.
+
+    `map_` is sampled at the world's cell centres by the map cell containing each
+    centre (resolutions and origins may differ); centres outside `map_` count as not
+    covered. Raises CollabSlamError if the world has no free cell.
+    """
+    world_free = world.free_mask()
+    n_free = int(world_free.sum())
+    if n_free == 0:
+        raise CollabSlamError("map_coverage: the world map has no free cell")
+    iy, ix = np.nonzero(world_free)
+    centres = world.cell_to_world(np.column_stack([ix, iy]))
+    covered = map_.sample(centres)
+    return float(np.count_nonzero((covered >= 0) & (covered <= FREE_MAX))) / n_free
+
+
+def map_accuracy(map_: GridMap, world: GridMap, tolerance_m: float = 0.1) -> float:
+    """Fraction of `map_`'s known cells (centre inside the world's extent) that agree
+    with the world.
+
+    Rule (the same for both labels, so neither free nor occupied is favoured):
+    a map cell labelled L (free or occupied) agrees if the world has a cell labelled
+    L within `tolerance_m` of it. Distances are measured between world cell centres
+    (Euclidean distance transform of the world); a map cell is represented by the
+    world cell containing its centre. The tolerance absorbs discretization where a
+    laser map meets thin walls: hits land on the wall surface, which may fall in the
+    free cell next to a 1-3 cell thick drawn wall, and the last free cell of a beam
+    may overlap the wall's edge. A wall drawn 0.5 m off, or free space through a
+    wall thicker than 2 * tolerance, disagrees.
+
+    World-unknown cells (outside the building): a map-free cell over them disagrees
+    unless world free space is within tolerance (the laser cannot see through walls);
+    a map-occupied cell over them is not counted (hits on the outer side of an
+    exterior wall are not checkable).
+
+    Raises CollabSlamError if no map cell is counted.
+    """
+    if tolerance_m < 0.0:
+        raise CollabSlamError(f"tolerance_m must be >= 0, got {tolerance_m}")
+    cells, inside = _world_cells_of(map_, world)
+    m_free = map_.free_mask().ravel() & inside
+    m_occ = map_.occupied_mask().ravel() & inside
+
+    w_occ_mask = world.occupied_mask()
+    w_free_mask = world.free_mask()
+    w_known = w_occ_mask | w_free_mask
+    d_occ = _distance_to(w_occ_mask, world.resolution)
+    d_free = _distance_to(w_free_mask, world.resolution)
+    ix, iy = cells[:, 0], cells[:, 1]
+    tol = tolerance_m + 1e-9
+
+    f_idx = np.flatnonzero(m_free)
+    free_ok = d_free[iy[f_idx], ix[f_idx]] <= tol
+    o_idx = np.flatnonzero(m_occ)
+    o_idx = o_idx[w_known[iy[o_idx], ix[o_idx]]]
+    occ_ok = d_occ[iy[o_idx], ix[o_idx]] <= tol
+
+    counted = len(f_idx) + len(o_idx)
+    if counted == 0:
+        raise CollabSlamError("map_accuracy: the map has no known cell inside the world")
+    agree = int(np.count_nonzero(free_ok)) + int(np.count_nonzero(occ_ok))
+    logger.debug(
+        "map_accuracy: %d/%d free and %d/%d occupied cells agree",
+        int(np.count_nonzero(free_ok)),
+        len(f_idx),
+        int(np.count_nonzero(occ_ok)),
+        len(o_idx),
+    )
+    return agree / counted

@@ -1,0 +1,172 @@
+"""PNG snapshots of a map with robots, trajectories, frontiers and planned paths.
+
+Uses matplotlib's object API with the Agg canvas (no pyplot): safe to call from any
+thread, never opens a window. Everything is drawn in the map frame, in metres.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from pathlib import Path
+
+import numpy as np
+from matplotlib.backends.backend_agg import FigureCanvasAgg
+from matplotlib.figure import Figure
+from matplotlib.lines import Line2D
+from matplotlib.markers import MarkerStyle
+from matplotlib.transforms import Affine2D
+from mpl_toolkits.axes_grid1.anchored_artists import AnchoredSizeBar
+from numpy.typing import ArrayLike, NDArray
+
+from common.errors import CollabSlamError
+from common.map_io import GridMap
+
+logger = logging.getLogger(__name__)
+
+DPI = 150
+FIG_WIDTH_IN = 9.0
+# Robot colours: tab10 without orange (frontiers) and grey (unknown space).
+ROBOT_COLOURS = (
+    "#1f77b4",
+    "#d62728",
+    "#2ca02c",
+    "#9467bd",
+    "#8c564b",
+    "#17becf",
+    "#e377c2",
+    "#bcbd22",
+    "#000080",
+    "#006400",
+)
+FRONTIER_COLOUR = "#ff7f0e"
+GREY_UNKNOWN = 0.75
+HEADING_ARROW_M = 0.8
+
+
+def map_rgb(grid: GridMap) -> NDArray[np.uint8]:
+    """(H, W, 3) image of the grid (row 0 = lowest y): unknown grey, free white,
+    occupied black, in-between probabilities (scale-mode maps) as shades of grey."""
+    shade = np.clip(1.0 - grid.data.astype(np.float32) / 100.0, 0.0, 1.0)
+    shade[grid.data < 0] = GREY_UNKNOWN
+    shade[grid.free_mask()] = 1.0
+    shade[grid.occupied_mask()] = 0.0
+    grey = (shade * 255.0).astype(np.uint8)
+    return np.repeat(grey[..., None], 3, axis=2)
+
+
+def _xy(points: ArrayLike, what: str) -> NDArray[np.float64]:
+    p = np.asarray(points, dtype=np.float64)
+    if p.ndim != 2 or p.shape[1] < 2:
+        raise CollabSlamError(f"{what}: expected an (N, 2+) array of map-frame xy, got {p.shape}")
+    return p[:, :2]
+
+
+def _nice_length(span_m: float) -> float:
+    """A 1/2/5 x 10^k length of about a fifth of `span_m`."""
+    target = max(span_m / 5.0, 1e-3)
+    base = 10.0 ** math.floor(math.log10(target))
+    return max(m * base for m in (1.0, 2.0, 5.0) if m * base <= target)
+
+
+def render_map_picture(
+    path: str | Path,
+    grid: GridMap,
+    trajectories: dict[str, NDArray[np.float64]] | None = None,
+    robots: dict[str, NDArray[np.float64]] | None = None,
+    frontiers: NDArray[np.float64] | None = None,
+    paths: dict[str, NDArray[np.float64]] | None = None,
+    ground_truth: dict[str, NDArray[np.float64]] | None = None,
+    title: str = "",
+) -> None:
+    """Save a PNG (parent directories created) of `grid` with overlays, all in the map frame.
+
+    trajectories: robot id -> (N, 2+) xy travelled (solid line, one colour per robot).
+    robots: robot id -> [x, y, yaw] current pose (triangle pointing along yaw + arrow).
+    frontiers: (K, 2) frontier points. paths: robot id -> (M, 2) planned path (dotted).
+    ground_truth: robot id -> (N, 2+) true xy (dashed, same colour as the robot).
+    """
+    trajectories = trajectories or {}
+    robots = robots or {}
+    paths = paths or {}
+    ground_truth = ground_truth or {}
+    ids = sorted(set(trajectories) | set(robots) | set(paths) | set(ground_truth))
+    colour = {rid: ROBOT_COLOURS[i % len(ROBOT_COLOURS)] for i, rid in enumerate(ids)}
+
+    x0, x1, y0, y1 = grid.extent
+    aspect = (y1 - y0) / max(x1 - x0, 1e-9)
+    fig = Figure(figsize=(FIG_WIDTH_IN, min(max(FIG_WIDTH_IN * aspect, 3.0), 16.0) + 0.8))
+    FigureCanvasAgg(fig)
+    ax = fig.add_subplot()
+    ax.imshow(
+        map_rgb(grid),
+        origin="lower",
+        extent=(x0, x1, y0, y1),
+        interpolation="nearest",
+        zorder=0,
+    )
+
+    for rid, xy in ground_truth.items():
+        p = _xy(xy, f"ground_truth[{rid}]")
+        ax.plot(p[:, 0], p[:, 1], "--", color=colour[rid], lw=1.0, alpha=0.8, zorder=2)
+    for rid, xy in trajectories.items():
+        p = _xy(xy, f"trajectories[{rid}]")
+        ax.plot(p[:, 0], p[:, 1], "-", color=colour[rid], lw=1.5, zorder=3)
+    for rid, xy in paths.items():
+        p = _xy(xy, f"paths[{rid}]")
+        ax.plot(p[:, 0], p[:, 1], ":", color=colour[rid], lw=2.0, zorder=4)
+    if frontiers is not None and len(frontiers):
+        f = _xy(frontiers, "frontiers")
+        ax.scatter(f[:, 0], f[:, 1], s=10, c=FRONTIER_COLOUR, marker="o", lw=0, zorder=5)
+    for rid, pose in robots.items():
+        x, y, yaw = (float(v) for v in np.asarray(pose, dtype=np.float64).reshape(-1)[:3])
+        marker = MarkerStyle(">", transform=Affine2D().rotate(yaw))
+        ax.plot(x, y, marker=marker, ms=11, color=colour[rid], mec="k", mew=0.8, zorder=7)
+        ax.annotate(
+            "",
+            xy=(x + HEADING_ARROW_M * math.cos(yaw), y + HEADING_ARROW_M * math.sin(yaw)),
+            xytext=(x, y),
+            arrowprops={"arrowstyle": "->", "color": colour[rid], "lw": 1.5},
+            zorder=6,
+        )
+
+    handles = [Line2D([], [], color=colour[rid], lw=2.5, label=rid) for rid in ids]
+    if ground_truth:
+        handles.append(Line2D([], [], color="k", ls="--", lw=1.0, label="ground truth"))
+    if paths:
+        handles.append(Line2D([], [], color="k", ls=":", lw=2.0, label="planned path"))
+    if frontiers is not None and len(frontiers):
+        handles.append(
+            Line2D([], [], color=FRONTIER_COLOUR, ls="", marker="o", ms=4, label="frontiers")
+        )
+    if handles:
+        ax.legend(handles=handles, loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=8)
+
+    bar = _nice_length(x1 - x0)
+    ax.add_artist(
+        AnchoredSizeBar(
+            ax.transData,
+            bar,
+            f"{bar:g} m",
+            loc="lower right",
+            pad=0.4,
+            borderpad=0.5,
+            sep=3,
+            frameon=True,
+            size_vertical=(y1 - y0) / 150.0,
+        )
+    )
+    ax.set_xlim(x0, x1)
+    ax.set_ylim(y0, y1)
+    ax.set_aspect("equal")
+    ax.set_xlabel("x [m]")
+    ax.set_ylabel("y [m]")
+    ax.tick_params(labelsize=8)
+    if title:
+        ax.set_title(title, fontsize=10)
+    fig.set_layout_engine("constrained")
+
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=DPI, format="png")
+    logger.debug("wrote map picture %s", path)

@@ -1,0 +1,113 @@
+"""Trajectories in the TUM format (one pose per line, readable by `evo`).
+
+Line format: `timestamp tx ty tz qx qy qz qw` (s, m, Hamilton quaternion with the
+scalar last), separated by spaces (commas are accepted on read); lines starting
+with '#' are comments.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from common.errors import CollabSlamError, FileFormatError
+from common.geometry import quat_to_yaw, yaw_to_quat
+
+logger = logging.getLogger(__name__)
+
+_HEADER = "# timestamp tx ty tz qx qy qz qw"
+
+
+@dataclass(eq=False)
+class Trajectory:
+    """Timestamped 3-D poses of one body in one frame (e.g. `map` or `odom`)."""
+
+    stamps: NDArray[np.float64]  # (N,) s, non-decreasing
+    positions: NDArray[np.float64]  # (N, 3) m
+    quats_xyzw: NDArray[np.float64]  # (N, 4) [qx, qy, qz, qw]
+
+    def __post_init__(self) -> None:
+        self.stamps = np.asarray(self.stamps, dtype=np.float64).reshape(-1)
+        self.positions = np.asarray(self.positions, dtype=np.float64).reshape(-1, 3)
+        self.quats_xyzw = np.asarray(self.quats_xyzw, dtype=np.float64).reshape(-1, 4)
+        n = len(self.stamps)
+        if len(self.positions) != n or len(self.quats_xyzw) != n:
+            raise CollabSlamError(
+                f"Trajectory: expected {n} positions and quaternions, got "
+                f"{len(self.positions)} and {len(self.quats_xyzw)}"
+            )
+        if np.any(np.diff(self.stamps) < 0.0):
+            raise CollabSlamError("Trajectory: stamps must be non-decreasing")
+
+    @classmethod
+    def from_pose4(cls, stamps: ArrayLike, poses: ArrayLike) -> Trajectory:
+        """From (N,) stamps and (N, 4) [x, y, z, yaw] poses (m, rad)."""
+        p = np.asarray(poses, dtype=np.float64).reshape(-1, 4)
+        return cls(stamps=np.asarray(stamps), positions=p[:, :3], quats_xyzw=yaw_to_quat(p[:, 3]))
+
+    def poses_se2(self) -> NDArray[np.float64]:
+        """(N, 3) [x, y, yaw] (z, roll and pitch dropped)."""
+        return np.column_stack([self.positions[:, :2], quat_to_yaw(self.quats_xyzw)])
+
+    def __len__(self) -> int:
+        return len(self.stamps)
+
+
+def read_tum(path: str | Path) -> Trajectory:
+    """Read a TUM trajectory file; an empty file (or only comments) is an empty trajectory."""
+    path = Path(path)
+    try:
+        text = path.read_text(encoding="utf-8")
+    except (OSError, UnicodeDecodeError) as exc:
+        raise FileFormatError(f"{path}: cannot read trajectory: {exc}") from exc
+    rows: list[list[float]] = []
+    linenos: list[int] = []
+    for lineno, raw in enumerate(text.splitlines(), start=1):
+        line = raw.strip()
+        if not line or line.startswith("#"):
+            continue
+        fields = line.replace(",", " ").split()
+        if len(fields) != 8:
+            raise FileFormatError(
+                f"{path}:{lineno}: expected 8 values 'timestamp tx ty tz qx qy qz qw', "
+                f"got {len(fields)}: {raw!r}"
+            )
+        try:
+            values = [float(f) for f in fields]
+        except ValueError:
+            raise FileFormatError(f"{path}:{lineno}: expected 8 numbers, got {raw!r}") from None
+        rows.append(values)
+        linenos.append(lineno)
+    data = np.array(rows, dtype=np.float64).reshape(-1, 8)
+    bad = ~np.all(np.isfinite(data), axis=1)
+    if bad.any():
+        raise FileFormatError(f"{path}:{linenos[int(np.argmax(bad))]}: non-finite value")
+    back = np.flatnonzero(np.diff(data[:, 0]) < 0.0)
+    if back.size:
+        raise FileFormatError(
+            f"{path}:{linenos[int(back[0]) + 1]}: timestamp goes backwards "
+            f"({data[back[0] + 1, 0]!r} after {data[back[0], 0]!r})"
+        )
+    norms = np.linalg.norm(data[:, 4:8], axis=1)
+    off = np.abs(norms - 1.0) > 1e-3
+    if off.any():
+        raise FileFormatError(
+            f"{path}:{linenos[int(np.argmax(off))]}: quaternion is not unit length "
+            f"(norm {norms[int(np.argmax(off))]:.6f})"
+        )
+    logger.debug("read %d poses from %s", len(data), path)
+    return Trajectory(stamps=data[:, 0], positions=data[:, 1:4], quats_xyzw=data[:, 4:8])
+
+
+def write_tum(path: str | Path, traj: Trajectory) -> None:
+    """Write `traj` as TUM (stamps '%.9f', values '%.9f'), creating parent directories."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    table = np.column_stack([traj.stamps, traj.positions, traj.quats_xyzw])
+    with path.open("w", encoding="utf-8") as f:
+        np.savetxt(f, table, fmt="%.9f", delimiter=" ", header=_HEADER[2:], comments="# ")
+    logger.debug("wrote %d poses to %s", len(traj), path)

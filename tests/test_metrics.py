@@ -1,0 +1,147 @@
+"""Tests for common.metrics (ATE, map coverage and accuracy)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from common.errors import CollabSlamError
+from common.geometry import se2_transform_points
+from common.map_io import GridMap
+from common.metrics import associate, ate_rmse, map_accuracy, map_coverage
+from common.occupancy_grid import OccupancyGrid
+from common.trajectory_io import Trajectory
+
+RES = 0.05
+
+
+def _world() -> GridMap:
+    """A 10 x 8 m building: free inside [0, 10] x [0, 8], walls 2 cells thick around it,
+    an inner wall at x = 5 with a door, unknown outside (1 m margin)."""
+    h, w = int(10 / RES), int(12 / RES)
+    data = np.full((h, w), -1, dtype=np.int8)
+    m = int(1 / RES)  # margin cells
+    data[m - 2 : h - m + 2, m - 2 : w - m + 2] = 100
+    data[m : h - m, m : w - m] = 0
+    wall = m + int(5 / RES)
+    data[m : h - m, wall : wall + 2] = 100
+    data[m + int(3 / RES) : m + int(4 / RES), wall : wall + 2] = 0  # door
+    return GridMap(data=data, resolution=RES, origin=(-1.0, -1.0, 0.0))
+
+
+def _gt(n: int = 100) -> Trajectory:
+    t = np.linspace(0.0, 9.9, n)
+    poses = np.column_stack([t, np.sin(t), 0.1 * t, 0.3 * t])
+    return Trajectory.from_pose4(t, poses)
+
+
+def test_ate_identical_offset_and_alignment() -> None:
+    gt = _gt()
+    assert ate_rmse(gt, gt) == pytest.approx(0.0, abs=1e-12)
+
+    p = gt.positions + np.array([0.3, 0.4, 0.0])
+    shifted = Trajectory(gt.stamps, p, gt.quats_xyzw)
+    assert ate_rmse(shifted, gt) == pytest.approx(0.5)
+    assert ate_rmse(shifted, gt, align=True) == pytest.approx(0.0, abs=1e-9)
+
+    xy = se2_transform_points([2.0, -1.0, 0.7], gt.positions[:, :2])
+    moved = Trajectory(gt.stamps, np.column_stack([xy, gt.positions[:, 2] + 0.2]), gt.quats_xyzw)
+    assert ate_rmse(moved, gt) > 1.0
+    assert ate_rmse(moved, gt, align=True) == pytest.approx(0.0, abs=1e-9)
+
+    noisy = Trajectory(gt.stamps, gt.positions + [[0.1, 0, 0], [-0.1, 0, 0]] * 50, gt.quats_xyzw)
+    assert ate_rmse(noisy, gt, align=True) == pytest.approx(0.1, abs=1e-3)  # noise stays
+
+
+def test_ate_needs_two_associated_poses() -> None:
+    gt = _gt()
+    late = Trajectory.from_pose4([20.0, 21.0, 22.0], np.zeros((3, 4)))
+    with pytest.raises(CollabSlamError, match="at least 2 associated poses"):
+        ate_rmse(late, gt)
+    single = Trajectory.from_pose4([1.0], np.zeros((1, 4)))
+    with pytest.raises(CollabSlamError):
+        ate_rmse(single, gt)
+
+
+def test_associate_interpolates_inside_span_only() -> None:
+    t_gt = np.array([0.0, 0.1, 0.2, 0.3, 1.0, 1.1])
+    yaw = np.array([3.0, 3.1, -3.1, -3.0, 0.0, 0.0])  # crosses +-pi between 0.1 and 0.2
+    gt = Trajectory.from_pose4(t_gt, np.column_stack([10 * t_gt, -t_gt, t_gt, yaw]))
+    t_est = np.array([-0.05, 0.05, 0.15, 0.6, 1.05, 1.2])
+    est = Trajectory.from_pose4(t_est, np.zeros((6, 4)))
+    e, g = associate(est, gt, max_dt=0.1)
+    assert e.shape == g.shape == (3, 3)  # -0.05 and 1.2 outside span; 0.6 is 0.3 s from gt
+    np.testing.assert_allclose(g[:, 0], [0.5, 1.5, 10.5])
+    np.testing.assert_allclose(g[:, 1], [-0.05, -0.15, -1.05])
+    assert abs(abs(g[1, 2]) - math.pi) < 1e-9  # halfway between 3.1 and -3.1 is pi, not 0
+    e4, g4 = associate(est, gt, max_dt=0.1, with_z=True)
+    assert g4.shape == (3, 4)
+    np.testing.assert_allclose(g4[:, 2], [0.05, 0.15, 1.05])
+
+
+def test_coverage() -> None:
+    world = _world()
+    empty = GridMap(np.full((20, 20), -1, np.int8), 0.5, (-1.0, -1.0, 0.0))
+    assert map_coverage(empty, world) == 0.0
+    assert map_coverage(world, world) == 1.0
+
+    half = world.data.copy()
+    half[:, : half.shape[1] // 2] = -1  # only x >= 5 known
+    cov = map_coverage(GridMap(half, RES, world.origin), world)
+    assert 0.4 < cov < 0.6
+
+    coarse = GridMap(world.data[::2, ::2].copy(), 0.1, (-1.0, -1.0, 0.0))
+    assert map_coverage(coarse, world) > 0.97  # other resolution: nearest-cell sampling
+
+    with pytest.raises(CollabSlamError, match="no free cell"):
+        map_coverage(world, empty)
+
+
+def test_accuracy_perfect_shifted_and_resampled() -> None:
+    world = _world()
+    assert map_accuracy(world, world) == 1.0
+
+    shifted = GridMap(world.data, RES, (-0.5, -1.0, 0.0))  # every wall 0.5 m off in x
+    acc_shifted = map_accuracy(shifted, world)
+    assert acc_shifted < 0.9
+
+    coarse = GridMap(world.data[1::2, 1::2].copy(), 0.1, (-0.95, -0.95, 0.0))
+    assert map_accuracy(coarse, world) > 0.99
+
+    empty = GridMap(np.full((5, 5), -1, np.int8), RES, (0.0, 0.0, 0.0))
+    with pytest.raises(CollabSlamError, match="no known cell"):
+        map_accuracy(empty, world)
+
+
+def test_accuracy_outside_the_building() -> None:
+    world = _world()
+    ghost_wall = world.data.copy()
+    ghost_wall[:, :10] = 100  # occupied over world-unknown: not counted
+    assert map_accuracy(GridMap(ghost_wall, RES, world.origin), world) == 1.0
+    seen_through = world.data.copy()
+    seen_through[:, :10] = 0  # free over world-unknown: the laser cannot see there
+    assert map_accuracy(GridMap(seen_through, RES, world.origin), world) < 0.99
+
+
+def test_accuracy_of_a_laser_map_with_thin_walls() -> None:
+    """Hits land on the wall surface, partly in the free cells next to the drawn walls."""
+    world = _world()
+    grid = OccupancyGrid.from_bounds((-1.0, -1.0), (11.0, 9.0), RES)
+    angles = np.linspace(-math.pi, math.pi, 1440, endpoint=False).astype(np.float32)
+    for x in np.linspace(0.7, 4.3, 10):
+        for y in (1.0, 4.0, 7.0):
+            pose = np.array([x, y, 0.3])
+            a = pose[2] + angles.astype(np.float64)
+            d = np.column_stack([np.cos(a), np.sin(a)])
+            with np.errstate(divide="ignore"):
+                hi = np.where(d > 0, ([5.0, 8.0] - pose[:2]) / d, np.inf)
+                lo = np.where(d < 0, ([0.0, 0.0] - pose[:2]) / d, np.inf)
+            ranges = np.minimum(hi, lo).min(axis=1)  # left room [0, 5] x [0, 8], door ignored
+            grid.insert_scan(pose, ranges.astype(np.float32), angles, 0.1, 20.0)
+    laser_map = grid.to_gridmap()
+    assert laser_map.occupied_mask().sum() > 300
+    assert map_accuracy(laser_map, world) > 0.99
+    assert map_accuracy(laser_map, world, tolerance_m=0.0) < map_accuracy(laser_map, world)
+    assert 0.3 < map_coverage(laser_map, world) < 0.6  # one of the two rooms

@@ -39,6 +39,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from common.errors import FileFormatError
+from common.trajectory_io import Trajectory
 
 logger = logging.getLogger(__name__)
 
@@ -149,7 +150,7 @@ def _numbers(path: Path, lineno: int, what: str, tokens: list[str]) -> NDArray[n
     except ValueError:
         bad = next(t for t in tokens if not _is_float(t))
         raise FileFormatError(f"{path}:{lineno}: {what}: expected a number, got {bad!r}") from None
-    if not np.all(np.isfinite(values)):
+    if not math.isfinite(values.sum()):  # a NaN or inf anywhere propagates to the sum
         raise FileFormatError(f"{path}:{lineno}: {what}: non-finite value")
     return values
 
@@ -231,8 +232,14 @@ def _parse_odom(path: Path, lineno: int, f: list[str]) -> CarmenOdometry:
             f"{path}:{lineno}: ODOM: expected 9 fields (x y theta tv rv accel ipc_timestamp "
             f"hostname logger_timestamp), got {len(f) - 1}"
         )
-    v = _numbers(path, lineno, "ODOM", f[1:8])
-    return CarmenOdometry(stamp=float(v[6]), pose=v[0:3].copy(), tv=float(v[3]), rv=float(v[4]))
+    try:
+        x, y, theta, tv, rv, accel, stamp = (float(t) for t in f[1:8])
+    except ValueError:
+        _numbers(path, lineno, "ODOM", f[1:8])  # raises, naming the bad token
+        raise
+    if not math.isfinite(x + y + theta + tv + rv + accel + stamp):
+        raise FileFormatError(f"{path}:{lineno}: ODOM: non-finite value")
+    return CarmenOdometry(stamp=stamp, pose=np.array([x, y, theta]), tv=tv, rv=rv)
 
 
 def _apply_param(path: Path, lineno: int, f: list[str], params: CarmenParams) -> None:
@@ -321,3 +328,21 @@ def carmen_time_span(path: str | Path) -> tuple[float, float]:
     if lo > hi:
         raise FileFormatError(f"{path}: no FLASER or ROBOTLASER1 record")
     return lo, hi
+
+
+def laser_odometry_trajectory(
+    path: str | Path, start: float | None = None, end: float | None = None
+) -> Trajectory:
+    """The odometry poses logged with each laser scan, sorted by stamp (z = 0): the
+    "no SLAM at all" baseline for the relation metric, at exactly the relations' stamps."""
+    stamps: list[float] = []
+    poses: list[NDArray[np.float64]] = []
+    for record in read_carmen(path, start, end):
+        if isinstance(record, CarmenLaser):
+            stamps.append(record.stamp)
+            poses.append(record.odom_pose)
+    t = np.array(stamps, dtype=np.float64)
+    p = np.array(poses, dtype=np.float64).reshape(-1, 3)
+    order = np.argsort(t, kind="stable")
+    pose4 = np.column_stack([p[order, :2], np.zeros(len(t)), p[order, 2]])
+    return Trajectory.from_pose4(t[order], pose4)

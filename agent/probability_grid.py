@@ -69,7 +69,7 @@ def _insert_scan(
     for k in range(hits_uv.shape[0]):
         ix = int(math.floor(hits_uv[k, 0]))
         iy = int(math.floor(hits_uv[k, 1]))
-        if stamp[iy, ix] != scan_id:
+        if 0 <= ix < nx and 0 <= iy < ny and stamp[iy, ix] != scan_id:
             stamp[iy, ix] = scan_id
             prob[iy, ix] = _update(prob[iy, ix], hit_odds, p_min, p_max)
     n_hits = hits_uv.shape[0] if miss_rays else 0

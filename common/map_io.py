@@ -167,7 +167,7 @@ def _strip_comment(line: str) -> str:
 def _parse_flat_yaml(text: str, path: Path) -> dict[str, object]:
     """Parse the flat `key: value` / `key: [a, b]` / block-list YAML of map_server files."""
     out: dict[str, object] = {}
-    pending_list: str | None = None
+    pending_list: list[object] | None = None  # the block list being filled by '- ' lines
     for lineno, raw in enumerate(text.splitlines(), start=1):
         line = _strip_comment(raw).rstrip()
         if not line.strip() or line.strip() in ("---", "..."):
@@ -176,9 +176,7 @@ def _parse_flat_yaml(text: str, path: Path) -> dict[str, object]:
         if stripped.startswith("- ") or stripped == "-":
             if pending_list is None:
                 raise FileFormatError(f"{path}:{lineno}: list item outside a list: {raw!r}")
-            cast_list = out[pending_list]
-            assert isinstance(cast_list, list)
-            cast_list.append(_parse_scalar(stripped[1:]))
+            pending_list.append(_parse_scalar(stripped[1:]))
             continue
         key, sep, value = line.partition(":")
         if not sep or not key.strip() or key[0].isspace():
@@ -186,8 +184,8 @@ def _parse_flat_yaml(text: str, path: Path) -> dict[str, object]:
         key, value = key.strip(), value.strip()
         pending_list = None
         if not value:
-            out[key] = []
-            pending_list = key
+            pending_list = []
+            out[key] = pending_list
         elif value.startswith("["):
             if not value.endswith("]"):
                 raise FileFormatError(f"{path}:{lineno}: unterminated list for {key!r}: {raw!r}")
@@ -376,8 +374,12 @@ def read_map(yaml_path: str | Path) -> GridMap:
         data[between] = scaled[between]
     data[p > occ_th] = OCCUPIED
     data[p < free_th] = FREE
-    grid = GridMap(data=np.ascontiguousarray(data[::-1]), resolution=resolution, origin=(ox, oy, 0.0))
-    logger.debug("read map %s: %d x %d cells at %.3f m", yaml_path, grid.width, grid.height, resolution)
+    grid = GridMap(
+        data=np.ascontiguousarray(data[::-1]), resolution=resolution, origin=(ox, oy, 0.0)
+    )
+    logger.debug(
+        "read map %s: %d x %d cells at %.3f m", yaml_path, grid.width, grid.height, resolution
+    )
     return grid
 
 
@@ -392,7 +394,9 @@ def write_map(grid: GridMap, yaml_path: str | Path, image_name: str | None = Non
     if image_name is None:
         image_name = yaml_path.stem + ".pgm"
     if Path(image_name).name != image_name:
-        raise FileFormatError(f"{yaml_path}: image_name must be a bare file name, got {image_name!r}")
+        raise FileFormatError(
+            f"{yaml_path}: image_name must be a bare file name, got {image_name!r}"
+        )
     yaml_path.parent.mkdir(parents=True, exist_ok=True)
 
     pixels = np.full(grid.data.shape, PIXEL_UNKNOWN, dtype=np.uint8)

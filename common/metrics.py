@@ -121,6 +121,37 @@ def map_coverage(map_: GridMap, world: GridMap) -> float:
     return float(np.count_nonzero((covered >= 0) & (covered <= FREE_MAX))) / n_free
 
 
+def _agreement(map_: GridMap, world: GridMap, tolerance_m: float) -> tuple[int, int, int, int]:
+    """(free agreeing, free counted, occupied agreeing, occupied counted); see map_accuracy."""
+    if tolerance_m < 0.0:
+        raise CollabSlamError(f"tolerance_m must be >= 0, got {tolerance_m}")
+    cells, inside = _world_cells_of(map_, world)
+    m_free = map_.free_mask().ravel() & inside
+    m_occ = map_.occupied_mask().ravel() & inside
+
+    w_occ_mask = world.occupied_mask()
+    w_free_mask = world.free_mask()
+    w_known = w_occ_mask | w_free_mask
+    d_occ = _distance_to(w_occ_mask, world.resolution)
+    d_free = _distance_to(w_free_mask, world.resolution)
+    ix, iy = cells[:, 0], cells[:, 1]
+    tol = tolerance_m + 1e-9
+
+    f_idx = np.flatnonzero(m_free)
+    free_ok = int(np.count_nonzero(d_free[iy[f_idx], ix[f_idx]] <= tol))
+    o_idx = np.flatnonzero(m_occ)
+    o_idx = o_idx[w_known[iy[o_idx], ix[o_idx]]]
+    occ_ok = int(np.count_nonzero(d_occ[iy[o_idx], ix[o_idx]] <= tol))
+    logger.debug(
+        "map agreement: %d/%d free and %d/%d occupied cells",
+        free_ok,
+        len(f_idx),
+        occ_ok,
+        len(o_idx),
+    )
+    return free_ok, len(f_idx), occ_ok, len(o_idx)
+
+
 def map_accuracy(map_: GridMap, world: GridMap, tolerance_m: float = 0.1) -> float:
     """Fraction of `map_`'s known cells (centre inside the world's extent) that agree
     with the world.
@@ -140,37 +171,23 @@ def map_accuracy(map_: GridMap, world: GridMap, tolerance_m: float = 0.1) -> flo
     a map-occupied cell over them is not counted (hits on the outer side of an
     exterior wall are not checkable).
 
+    Free cells far outnumber wall cells, so this fraction moves little when only
+    walls are wrong; `map_accuracy_per_label` reports both labels separately.
     Raises CollabSlamError if no map cell is counted.
     """
-    if tolerance_m < 0.0:
-        raise CollabSlamError(f"tolerance_m must be >= 0, got {tolerance_m}")
-    cells, inside = _world_cells_of(map_, world)
-    m_free = map_.free_mask().ravel() & inside
-    m_occ = map_.occupied_mask().ravel() & inside
-
-    w_occ_mask = world.occupied_mask()
-    w_free_mask = world.free_mask()
-    w_known = w_occ_mask | w_free_mask
-    d_occ = _distance_to(w_occ_mask, world.resolution)
-    d_free = _distance_to(w_free_mask, world.resolution)
-    ix, iy = cells[:, 0], cells[:, 1]
-    tol = tolerance_m + 1e-9
-
-    f_idx = np.flatnonzero(m_free)
-    free_ok = d_free[iy[f_idx], ix[f_idx]] <= tol
-    o_idx = np.flatnonzero(m_occ)
-    o_idx = o_idx[w_known[iy[o_idx], ix[o_idx]]]
-    occ_ok = d_occ[iy[o_idx], ix[o_idx]] <= tol
-
-    counted = len(f_idx) + len(o_idx)
-    if counted == 0:
+    free_ok, free_n, occ_ok, occ_n = _agreement(map_, world, tolerance_m)
+    if free_n + occ_n == 0:
         raise CollabSlamError("map_accuracy: the map has no known cell inside the world")
-    agree = int(np.count_nonzero(free_ok)) + int(np.count_nonzero(occ_ok))
-    logger.debug(
-        "map_accuracy: %d/%d free and %d/%d occupied cells agree",
-        int(np.count_nonzero(free_ok)),
-        len(f_idx),
-        int(np.count_nonzero(occ_ok)),
-        len(o_idx),
+    return (free_ok + occ_ok) / (free_n + occ_n)
+
+
+def map_accuracy_per_label(
+    map_: GridMap, world: GridMap, tolerance_m: float = 0.1
+) -> tuple[float, float]:
+    """(free, occupied): the `map_accuracy` agreement fraction of the map's free cells
+    and of its occupied cells, each NaN if the map has no counted cell of that label."""
+    free_ok, free_n, occ_ok, occ_n = _agreement(map_, world, tolerance_m)
+    return (
+        free_ok / free_n if free_n else float("nan"),
+        occ_ok / occ_n if occ_n else float("nan"),
     )
-    return agree / counted

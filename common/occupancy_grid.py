@@ -286,10 +286,11 @@ class OccupancyGrid:
                 f"ranges and angles must be (N,) arrays of one length, got {r.shape}, {a.shape}"
             )
         if not 0.0 <= range_min < range_max:
-            raise CollabSlamError(f"expected 0 <= range_min < range_max, got {range_min}, {range_max}")
+            raise CollabSlamError(
+                f"expected 0 <= range_min < range_max, got {range_min}, {range_max}"
+            )
+        # Infinite only if range_max is, and then no finite range counts as "no return".
         free_range = range_max if max_free_range is None else min(range_max, max_free_range)
-        if not math.isfinite(free_range):
-            raise CollabSlamError("range_max or max_free_range must be finite")
         inv_res = 1.0 / self._resolution
         _cast_scan(
             self._log_odds,
@@ -318,8 +319,14 @@ class OccupancyGrid:
         """
         lo = np.asarray(min_xy, dtype=np.float64)
         hi = np.asarray(max_xy, dtype=np.float64)
-        if lo.shape != (2,) or hi.shape != (2,) or not (np.all(np.isfinite(lo)) and np.all(np.isfinite(hi))):
+        if (
+            lo.shape != (2,)
+            or hi.shape != (2,)
+            or not (np.all(np.isfinite(lo)) and np.all(np.isfinite(hi)))
+        ):
             raise CollabSlamError(f"expected finite 2-D bounds, got {lo}, {hi}")
+        if not margin >= 0.0:
+            raise CollabSlamError(f"margin must be >= 0 m, got {margin}")
         res = self._resolution
         h, w = self.shape
         ox, oy = self._origin
@@ -358,7 +365,8 @@ class OccupancyGrid:
         """
         if not 0.0 < free_thresh < occupied_thresh < 1.0:
             raise ConfigError(
-                f"expected 0 < free_thresh < occupied_thresh < 1, got {free_thresh}, {occupied_thresh}"
+                "expected 0 < free_thresh < occupied_thresh < 1, "
+                f"got {free_thresh}, {occupied_thresh}"
             )
         seen = self._flags != 0
         data = np.full(self._log_odds.shape, UNKNOWN, dtype=np.int8)

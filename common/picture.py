@@ -168,5 +168,5 @@ def render_map_picture(
 
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=DPI, format="png")
+    fig.savefig(path, dpi=DPI, format="png", bbox_inches="tight", pad_inches=0.1)
     logger.debug("wrote map picture %s", path)

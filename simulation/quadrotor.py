@@ -30,7 +30,8 @@ logger = logging.getLogger(__name__)
 
 __all__ = ["Quadrotor", "StepInfo"]
 
-_BISECT_ITERS = 12
+_BISECT_ROUNDS = 2  # contact located to 1/(BISECT_POINTS + 1)^2 of a sample step
+_BISECT_POINTS = 30
 
 
 @dataclass(frozen=True)
@@ -218,13 +219,15 @@ class Quadrotor:
         if blocked.size == 0:
             return p1, False
         lo, hi = float(t[blocked[0] - 1]), float(t[blocked[0]])
-        for _ in range(_BISECT_ITERS):
-            mid = 0.5 * (lo + hi)
-            c = float(world.clearance((p0 + mid * (p1 - p0))[None])[0])
-            if c >= need:
-                lo = mid
-            else:
-                hi = mid
+        # Bisection on the contact, all candidate points evaluated at once per round.
+        for _ in range(_BISECT_ROUNDS):
+            ts = np.linspace(lo, hi, _BISECT_POINTS + 2)
+            clear = world.clearance(p0 + ts[:, None] * (p1 - p0))
+            blocked_ts = np.flatnonzero(clear < need)
+            first = int(blocked_ts[0]) if blocked_ts.size else len(ts) - 1
+            if first == 0:  # lo itself reads blocked: stay there
+                break
+            lo, hi = float(ts[first - 1]), float(ts[first])
         return p0 + lo * (p1 - p0), True
 
     def _update_attitude(self, dt: float) -> None:

@@ -86,6 +86,10 @@ def test_read_ascii_pgm_png_and_scale_mode(tmp_path: Path) -> None:
     (tmp_path / "c.yaml").write_text(YAML_OK.format(image="c.png", negate=0))
     np.testing.assert_array_equal(read_map(tmp_path / "c.yaml").data, [[100, 0, -1]])
 
+    Image.fromarray(np.array([[0, 65535, 30000]], dtype=np.uint16)).save(tmp_path / "w.png")
+    (tmp_path / "w.yaml").write_text(YAML_OK.format(image="w.png", negate=0))
+    np.testing.assert_array_equal(read_map(tmp_path / "w.yaml").data, [[100, 0, -1]])
+
     Image.fromarray(np.array([[128]], dtype=np.uint8)).save(tmp_path / "s.png")
     text = YAML_OK.format(image="s.png", negate=0) + "mode: scale\n"
     (tmp_path / "s.yaml").write_text(text)

@@ -10,7 +10,13 @@ import pytest
 from common.errors import CollabSlamError
 from common.geometry import se2_transform_points
 from common.map_io import GridMap
-from common.metrics import associate, ate_rmse, map_accuracy, map_coverage
+from common.metrics import (
+    associate,
+    ate_rmse,
+    map_accuracy,
+    map_accuracy_per_label,
+    map_coverage,
+)
 from common.occupancy_grid import OccupancyGrid
 from common.trajectory_io import Trajectory
 
@@ -103,9 +109,20 @@ def test_accuracy_perfect_shifted_and_resampled() -> None:
     world = _world()
     assert map_accuracy(world, world) == 1.0
 
+    assert map_accuracy_per_label(world, world) == (1.0, 1.0)
+
     shifted = GridMap(world.data, RES, (-0.5, -1.0, 0.0))  # every wall 0.5 m off in x
-    acc_shifted = map_accuracy(shifted, world)
-    assert acc_shifted < 0.9
+    assert map_accuracy(shifted, world) < 0.95
+    free_acc, occ_acc = map_accuracy_per_label(shifted, world)
+    assert occ_acc < 0.7 and free_acc < 0.97  # x-walls wrong, free space outside
+
+    moved = world.data.copy()
+    wall = moved[world.height // 2] == 100
+    inner = np.flatnonzero(wall)[2:-2]  # the inner wall's columns (outer walls excluded)
+    moved[:, inner] = world.data[:, inner - 10]  # inner wall drawn 0.5 m further in +x
+    moved[:, inner + 10] = world.data[:, inner]
+    free_acc, occ_acc = map_accuracy_per_label(GridMap(moved, RES, world.origin), world)
+    assert occ_acc < 0.85 and free_acc == 1.0
 
     coarse = GridMap(world.data[1::2, 1::2].copy(), 0.1, (-0.95, -0.95, 0.0))
     assert map_accuracy(coarse, world) > 0.99

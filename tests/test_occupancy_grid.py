@@ -81,7 +81,13 @@ def test_traced_cells_follow_the_beam() -> None:
         _one_beam(grid, [start[0], start[1], yaw], r)
         end = start + r * np.array([math.cos(yaw), math.sin(yaw)])
         iy, ix = np.nonzero(grid.observed)
-        n_expected = max(abs(math.floor(end[0] / RES) - math.floor(start[0] / RES)), abs(math.floor(end[1] / RES) - math.floor(start[1] / RES))) + 1
+        n_expected = (
+            max(
+                abs(math.floor(end[0] / RES) - math.floor(start[0] / RES)),
+                abs(math.floor(end[1] / RES) - math.floor(start[1] / RES)),
+            )
+            + 1
+        )
         assert len(ix) == n_expected  # one cell per column (or row), none twice
         centres = (np.column_stack([ix, iy]) + 0.5) * RES
         d = end - start
@@ -107,6 +113,10 @@ def test_invalid_and_no_return_beams() -> None:
     grid.clear()
     _one_beam(grid, [0.25, 0.25, 0.0], 7.0, range_max=3.0)  # clears up to range_max
     assert np.count_nonzero(grid.log_odds) == 31 and not np.any(grid.log_odds > 0)
+
+    grid.clear()
+    _one_beam(grid, [0.25, 0.25, 0.0], 1.0, range_max=math.inf)  # every finite range hits
+    assert grid.log_odds[2, 12] == pytest.approx(L_HIT)
 
 
 def test_rays_leaving_the_grid_are_clipped_without_wraparound() -> None:
@@ -144,7 +154,13 @@ def test_clamping() -> None:
 def test_square_room_map() -> None:
     grid = OccupancyGrid.from_bounds((-1.0, -1.0), (5.0, 5.0), 0.05)
     angles = np.linspace(-math.pi, math.pi, 1081, endpoint=False).astype(np.float32)
-    for x, y, yaw in [(1.0, 1.0, 0.0), (3.0, 1.2, 1.0), (3.0, 3.0, 2.0), (1.1, 3.0, -2.0), (2.0, 2.0, 0.5)]:
+    for x, y, yaw in [
+        (1.0, 1.0, 0.0),
+        (3.0, 1.2, 1.0),
+        (3.0, 3.0, 2.0),
+        (1.1, 3.0, -2.0),
+        (2.0, 2.0, 0.5),
+    ]:
         pose = np.array([x, y, yaw])
         grid.insert_scan(pose, _room_ranges(pose, angles, 0.0, 4.0), angles, 0.1, 10.0)
     gm = grid.to_gridmap()

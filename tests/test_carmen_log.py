@@ -1,0 +1,193 @@
+"""CARMEN log reader: hand-written logs (plain and bzip2), malformed lines, the real Intel log."""
+
+from __future__ import annotations
+
+import bz2
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from agent.carmen_log import (
+    CarmenLaser,
+    CarmenOdometry,
+    carmen_time_span,
+    laser_odometry_trajectory,
+    read_carmen,
+    read_carmen_params,
+)
+from common.errors import FileFormatError
+
+CARMEN = Path(__file__).resolve().parents[2] / "shared" / "data" / "carmen"
+
+SMALL_LOG = """\
+# message_name [message contents] ipc_timestamp ipc_hostname logger_timestamp
+PARAM robot_frontlaser_offset 0.25 nohost 0
+PARAM robot_use_laser on nohost 0
+ODOM 1.0 2.0 0.5 0.3 -0.1 0.0 100.000000 nohost 0.0
+FLASER 4 1.0 2.0 3.0 81.91 1.25 2.0 0.5 1.0 2.0 0.5 100.050000 nohost 0.05
+TRUEPOS 1.0 2.0 0.5 1.0 2.0 0.5 100.060000 nohost 0.06
+
+PARAM laser_front_laser_fov 100 nohost 0
+PARAM laser_front_laser_resolution 50 nohost 0
+PARAM robot_front_laser_max 30.0 nohost 0
+FLASER 3 4.0 5.0 6.0 1.5 2.5 0.75 1.2 2.4 0.7 100.150000 nohost 0.15
+ODOM 1.2 2.4 0.7 0.0 0.0 0.0 100.200000 nohost 0.2
+"""
+# type start fov res maxrange accuracy remission_mode, 3 ranges, 0 remissions, laser pose,
+# robot pose, tv rv forward_safety side_safety turn_axis, ipc host logger
+SMALL_LOG += (
+    "ROBOTLASER1 0 -1.0 2.0 1.0 20.0 0.01 0 3 7.0 8.0 9.0 0 1.0 1.0 0.1 1.1 1.1 0.2 "
+    "0.3 0.01 0.5 0.5 0.3 100.250000 nohost 0.25\n"
+)
+
+
+def write_log(folder: Path, text: str, name: str = "log.clf") -> Path:
+    path = folder / name
+    path.write_text(text, encoding="ascii")
+    return path
+
+
+def as_tuples(path: Path) -> list[tuple]:
+    out: list[tuple] = []
+    for r in read_carmen(path):
+        if isinstance(r, CarmenLaser):
+            out.append(
+                ("L", r.stamp, r.ranges.tolist(), r.angle_min, r.angle_increment, r.range_max)
+                + (r.odom_pose.tolist(), r.laser_pose.tolist())
+            )
+        else:
+            out.append(("O", r.stamp, r.pose.tolist(), r.tv, r.rv))
+    return out
+
+
+def test_small_log_fields(tmp_path: Path) -> None:
+    records = list(read_carmen(write_log(tmp_path, SMALL_LOG)))
+    assert [type(r).__name__ for r in records] == [
+        "CarmenOdometry",
+        "CarmenLaser",
+        "CarmenLaser",
+        "CarmenOdometry",
+        "CarmenLaser",
+    ]
+    odom, scan1, scan2, _, robotlaser = records
+    assert isinstance(odom, CarmenOdometry)
+    assert odom.stamp == 100.0 and odom.tv == 0.3 and odom.rv == -0.1
+    np.testing.assert_array_equal(odom.pose, [1.0, 2.0, 0.5])
+
+    assert isinstance(scan1, CarmenLaser)
+    assert scan1.stamp == 100.05
+    assert scan1.ranges.dtype == np.float32
+    np.testing.assert_allclose(scan1.ranges, [1.0, 2.0, 3.0, 81.91], rtol=1e-6)
+    np.testing.assert_array_equal(scan1.laser_pose, [1.25, 2.0, 0.5])
+    np.testing.assert_array_equal(scan1.odom_pose, [1.0, 2.0, 0.5])
+    # No laser PARAM yet: CARMEN's defaults (start -90 deg, 180 deg over n-1 steps, 80 m).
+    assert scan1.angle_min == pytest.approx(-math.pi / 2)
+    assert scan1.angle_increment == pytest.approx(math.pi / 3)
+    assert scan1.range_max == 80.0
+
+    # The PARAM lines in between change the beam geometry of later scans.
+    assert isinstance(scan2, CarmenLaser)
+    assert scan2.angle_min == pytest.approx(math.radians(-50.0))
+    assert scan2.angle_increment == pytest.approx(math.radians(50.0))
+    assert scan2.range_max == 30.0
+
+    assert isinstance(robotlaser, CarmenLaser)
+    assert robotlaser.stamp == 100.25
+    assert (robotlaser.angle_min, robotlaser.angle_increment, robotlaser.range_max) == (
+        -1.0,
+        1.0,
+        20.0,
+    )
+    np.testing.assert_array_equal(robotlaser.laser_pose, [1.0, 1.0, 0.1])
+    np.testing.assert_array_equal(robotlaser.odom_pose, [1.1, 1.1, 0.2])
+
+
+def test_bz2_reads_identically(tmp_path: Path) -> None:
+    plain = write_log(tmp_path, SMALL_LOG)
+    packed = tmp_path / "log.clf.bz2"
+    packed.write_bytes(bz2.compress(SMALL_LOG.encode("ascii")))
+    disguised = tmp_path / "log_without_suffix"  # detected by its magic bytes
+    disguised.write_bytes(packed.read_bytes())
+    expected = as_tuples(plain)
+    assert len(expected) == 5
+    assert as_tuples(packed) == expected
+    assert as_tuples(disguised) == expected
+
+
+def test_start_end_filter(tmp_path: Path) -> None:
+    path = write_log(tmp_path, SMALL_LOG)
+    stamps = [r.stamp for r in read_carmen(path, start=100.05, end=100.2)]
+    assert stamps == [100.05, 100.15, 100.2]
+    assert list(read_carmen(path, start=200.0)) == []
+
+
+def test_params_and_time_span(tmp_path: Path) -> None:
+    path = write_log(tmp_path, SMALL_LOG)
+    params = read_carmen_params(path)
+    assert params.frontlaser_offset_m == 0.25
+    assert params.laser_fov_rad == pytest.approx(math.radians(100.0))
+    assert params.laser_resolution_rad == pytest.approx(math.radians(50.0))
+    assert params.laser_range_max_m == 30.0
+    assert params.raw["robot_use_laser"] == "on"
+    assert carmen_time_span(path) == (100.05, 100.25)
+
+
+@pytest.mark.parametrize(
+    ("bad_line", "message"),
+    [
+        ("FLASER 4 1.0 2.0 3.0 1.0 2.0 0.5 1.0 2.0 0.5 100.3 nohost 0.3", "expected 4 ranges"),
+        ("FLASER 3 1.0 oops 3.0 1.0 2.0 0.5 1.0 2.0 0.5 100.3 nohost 0.3", "'oops'"),
+        ("FLASER x 1.0 2.0", "integer beam count"),
+        ("ODOM 1.0 2.0 0.5 0.0 0.0 100.3 nohost 0.3", "expected 9 fields"),
+        ("ODOM 1.0 2.0 nan 0.0 0.0 0.0 100.3 nohost 0.3", "non-finite"),
+        ("PARAM robot_frontlaser_offset abc nohost 0", "expected a number"),
+    ],
+)
+def test_malformed_line_raises_with_line_number(
+    tmp_path: Path, bad_line: str, message: str
+) -> None:
+    lines = SMALL_LOG.splitlines()
+    lines.insert(4, bad_line)  # becomes line 5
+    path = write_log(tmp_path, "\n".join(lines) + "\n")
+    with pytest.raises(FileFormatError, match=rf"log\.clf:5: .*{message}"):
+        list(read_carmen(path))
+
+
+def test_missing_file_raises(tmp_path: Path) -> None:
+    with pytest.raises(FileFormatError, match="cannot open"):
+        list(read_carmen(tmp_path / "absent.clf"))
+
+
+@pytest.fixture(scope="module")
+def intel_records() -> list[CarmenLaser | CarmenOdometry]:
+    path = CARMEN / "intel.clf.bz2"
+    if not path.is_file():
+        pytest.skip(f"shared CARMEN data {path} is not present on this machine")
+    return list(read_carmen(path))
+
+
+def test_real_intel_log(intel_records: list[CarmenLaser | CarmenOdometry]) -> None:
+    scans = [r for r in intel_records if isinstance(r, CarmenLaser)]
+    odoms = [r for r in intel_records if isinstance(r, CarmenOdometry)]
+    assert len(scans) == 13631
+    assert len(odoms) == 26915
+    assert all(len(s.ranges) == 180 for s in scans)
+    assert scans[0].angle_increment == pytest.approx(math.radians(1.0))
+    stamps = np.array([s.stamp for s in scans])
+    # ipc stamps are unique but NOT monotonic in file order: 631 scans are logged up to
+    # 0.9 s after a newer one. The reader keeps file order; consumers sort.
+    assert len(np.unique(stamps)) == len(stamps)
+    steps = np.diff(stamps)
+    assert int((steps < 0).sum()) == 631
+    assert steps.min() > -1.0
+    assert stamps.min() == pytest.approx(976052857.33753)
+    assert stamps.max() == pytest.approx(976055548.63389)
+
+
+def test_laser_odometry_trajectory_is_sorted(tmp_path: Path) -> None:
+    text = SMALL_LOG.replace("100.150000", "100.010000")  # second scan logged out of order
+    traj = laser_odometry_trajectory(write_log(tmp_path, text))
+    np.testing.assert_array_equal(traj.stamps, [100.01, 100.05, 100.25])
+    np.testing.assert_allclose(traj.poses_se2()[0], [1.2, 2.4, 0.7])

@@ -1,0 +1,67 @@
+"""Tests for common.picture (PNG map snapshots)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+from PIL import Image
+
+from common.errors import CollabSlamError
+from common.map_io import GridMap
+from common.picture import map_rgb, render_map_picture
+
+
+def _grid() -> GridMap:
+    data = np.full((500, 600), -1, dtype=np.int8)  # 30 x 25 m at 0.05 m
+    data[50:450, 50:550] = 0
+    data[50:52, 50:550] = 100
+    data[448:450, 50:550] = 100
+    data[50:450, 50:52] = 100
+    data[50:450, 548:550] = 100
+    return GridMap(data=data, resolution=0.05, origin=(-2.5, -2.5, 0.0))
+
+
+def test_map_colours() -> None:
+    grid = GridMap(np.array([[-1, 0, 100]], dtype=np.int8), 1.0, (0.0, 0.0, 0.0))
+    rgb = map_rgb(grid)
+    assert rgb.shape == (1, 3, 3) and rgb.dtype == np.uint8
+    assert 100 < rgb[0, 0, 0] < 250  # unknown grey
+    assert rgb[0, 1, 0] == 255 and rgb[0, 2, 0] == 0  # free white, occupied black
+
+
+def test_render_writes_a_non_trivial_png(tmp_path: Path) -> None:
+    t = np.linspace(0.0, 2.0 * np.pi, 50)
+    traj = {
+        "r0": np.column_stack([5 + 3 * np.cos(t), 5 + 2 * np.sin(t), np.zeros_like(t)]),
+        "r1": np.column_stack([15 + 2 * np.cos(t), 12 + 2 * np.sin(t)]),
+    }
+    out = tmp_path / "pics" / "map.png"
+    render_map_picture(
+        out,
+        _grid(),
+        trajectories=traj,
+        robots={"r0": np.array([8.0, 5.0, 1.57]), "r1": np.array([17.0, 12.0, -0.5])},
+        frontiers=np.array([[20.0, 3.0], [21.0, 3.5]]),
+        paths={"r0": np.array([[8.0, 5.0], [12.0, 8.0], [20.0, 3.0]])},
+        ground_truth={"r0": traj["r0"] + 0.2},
+        title="test",
+    )
+    assert out.stat().st_size > 20_000
+    with Image.open(out) as img:
+        assert img.format == "PNG"
+        w, h = img.size
+        pixels = np.asarray(img.convert("RGB"), dtype=np.int16)
+    assert 900 < w < 2000 and 600 < h < 2000  # ~150 dpi, sized for a 30 x 25 m map
+    assert pixels.std() > 10.0
+    colours = {tuple(c) for c in pixels.reshape(-1, 3)[::97]}
+    assert len(colours) > 10  # map greys plus robot colours, not a blank canvas
+    assert np.any((pixels[..., 0] < 60) & (pixels[..., 2] > 150))  # r0's blue line drawn
+
+
+def test_render_map_only_and_bad_input(tmp_path: Path) -> None:
+    render_map_picture(tmp_path / "bare.png", _grid())
+    assert (tmp_path / "bare.png").stat().st_size > 5_000
+    with pytest.raises(CollabSlamError, match="trajectories"):
+        render_map_picture(tmp_path / "bad.png", _grid(), trajectories={"r0": np.zeros(5)})

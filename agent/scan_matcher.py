@@ -126,49 +126,48 @@ def _discretize(pts, angles, tx, ty, ox, oy, res, cx, cy):  # type: ignore[no-un
 
 
 @njit(cache=True)
-def _build_levels(prob, x0, y0, w, h, depth, p_min):  # type: ignore[no-untyped-def]
-    """levels[k] (flat, row-major h x w) = max of the crop over cells [c, c + 2^k)^2.
-    Crop cell (0, 0) is grid cell (x0, y0); cells outside the grid read as p_min."""
-    ny, nx = prob.shape
-    levels = np.empty((depth + 1, h * w), dtype=np.float32)
-    pm = np.float32(p_min)
-    for y in range(h):
-        gy = y0 + y
-        for x in range(w):
-            gx = x0 + x
-            v = pm
-            if 0 <= gy < ny and 0 <= gx < nx:
-                v = max(prob[gy, gx], pm)
-            levels[0, y * w + x] = v
-    tmp = np.empty(h * w, dtype=np.float32)
+def _quantize(prob, gx0, gy0, gx1, gy1, p_min, dst, x0, y0, w):  # type: ignore[no-untyped-def]
+    """dst[(y - y0) * w + x - x0] = round(max(prob[y, x], p_min) * 255) as uint8 for the
+    grid cells gx0 <= x < gx1, gy0 <= y < gy1."""
+    for y in range(gy0, gy1):
+        row = prob[y]
+        r = (y - y0) * w - x0
+        for x in range(gx0, gx1):
+            dst[r + x] = np.uint8(max(row[x], p_min) * np.float32(255.0) + np.float32(0.5))
+
+
+def _build_levels(
+    grid: ProbabilityGrid, x0: int, y0: int, w: int, h: int, depth: int
+) -> NDArray[np.uint8]:
+    """Flat (depth + 1, h * w) uint8 pyramid: levels[k] at crop cell c is the max of the
+    probabilities (* 255) over cells [c, c + 2^k)^2. Crop cell (0, 0) is grid cell
+    (x0, y0); cells outside the grid read p_min. Rows are max-pooled on the flat array,
+    so the last 2^k - 1 columns and rows of level k wrap around: callers keep 2^depth
+    cells of crop beyond their last lookup."""
+    ny, nx = grid.shape
+    levels = np.full((depth + 1, h * w), round(grid.min_probability * 255.0), dtype=np.uint8)
+    gx0, gy0 = max(x0, 0), max(y0, 0)
+    gx1, gy1 = min(x0 + w, nx), min(y0 + h, ny)
+    if gx0 < gx1 and gy0 < gy1:
+        p_min = np.float32(grid.min_probability)
+        _quantize(grid.data, gx0, gy0, gx1, gy1, p_min, levels[0], x0, y0, w)
+    tmp = np.empty(h * w, dtype=np.uint8)
     for k in range(1, depth + 1):
         s = 1 << (k - 1)
-        src = levels[k - 1]
-        for y in range(h):  # along x
-            r = y * w
-            for x in range(w - s):
-                tmp[r + x] = max(src[r + x], src[r + x + s])
-            for x in range(max(w - s, 0), w):
-                tmp[r + x] = max(src[r + x], pm)
-        dst = levels[k]
-        for y in range(h):  # along y
-            r = y * w
-            if y + s < h:
-                rs = (y + s) * w
-                for x in range(w):
-                    dst[r + x] = max(tmp[r + x], tmp[rs + x])
-            else:
-                for x in range(w):
-                    dst[r + x] = max(tmp[r + x], pm)
+        np.maximum(levels[k - 1, :-s], levels[k - 1, s:], out=tmp[:-s])  # along x
+        tmp[-s:] = levels[k - 1, -s:]
+        sw = s * w
+        np.maximum(tmp[:-sw], tmp[sw:], out=levels[k, :-sw])  # along y
+        levels[k, -sw:] = tmp[-sw:]
     return levels
 
 
 @njit(cache=True)
 def _node_score(level, flat, a, off, n):  # type: ignore[no-untyped-def]
-    acc = 0.0
+    acc = 0
     for i in range(n):
         acc += level[flat[a, i] + off]
-    return acc / n
+    return acc / (255.0 * n)
 
 
 @njit(cache=True)
@@ -351,7 +350,7 @@ class RealTimeCorrelativeMatcher:
 
     def _levels(
         self, grid: ProbabilityGrid, lx: int, ly: int, hx: int, hy: int, depth: int
-    ) -> tuple[int, int, int, NDArray[np.float32]]:
+    ) -> tuple[int, int, int, NDArray[np.uint8]]:
         """The pyramid over grid cells [lx, hx) x [ly, hy), from the cache if it covers."""
         c = self._cache
         if c is not None and c[0]() is grid and c[1] == grid.version and c[6] == depth:
@@ -361,12 +360,36 @@ class RealTimeCorrelativeMatcher:
         m = int(math.ceil(self.pyramid_margin_m / grid.resolution))
         x0, y0 = int(lx) - m, int(ly) - m
         w, h = int(hx) + m - x0, int(hy) + m - y0
-        levels = _build_levels(grid.data, x0, y0, w, h, depth, grid.min_probability)
+        levels = _build_levels(grid, x0, y0, w, h, depth)
         self._cache = (weakref.ref(grid), grid.version, x0, y0, w, h, depth, levels)
         return x0, y0, w, levels
 
 
 # ---------------------------------------------------------------- refinement (numba kernels)
+
+
+@njit(cache=True, inline="always")
+def _cell(g, p_min, x, y):  # type: ignore[no-untyped-def]
+    ny, nx = g.shape
+    if 0 <= x < nx and 0 <= y < ny:
+        return max(g[y, x], p_min)
+    return p_min
+
+
+@njit(cache=True, inline="always")
+def _row(g, p_min, x, y, inside, w0, w1, w2, w3, d0, d1, d2, d3):  # type: ignore[no-untyped-def]
+    """Catmull-Rom value and x-derivative of row y around columns x .. x + 3."""
+    if inside:
+        c0 = max(g[y, x], p_min)
+        c1 = max(g[y, x + 1], p_min)
+        c2 = max(g[y, x + 2], p_min)
+        c3 = max(g[y, x + 3], p_min)
+    else:
+        c0 = _cell(g, p_min, x, y)
+        c1 = _cell(g, p_min, x + 1, y)
+        c2 = _cell(g, p_min, x + 2, y)
+        c3 = _cell(g, p_min, x + 3, y)
+    return w0 * c0 + w1 * c1 + w2 * c2 + w3 * c3, d0 * c0 + d1 * c1 + d2 * c2 + d3 * c3
 
 
 @njit(cache=True)
@@ -376,41 +399,38 @@ def _bicubic(g, p_min, u, v):  # type: ignore[no-untyped-def]
     ny, nx = g.shape
     fu = math.floor(u)
     fv = math.floor(v)
-    iu = int(fu)
-    iv = int(fv)
+    x = int(fu) - 1
+    y = int(fv) - 1
     t = u - fu
     t2 = t * t
     t3 = t2 * t
-    wu = (0.5 * (-t3 + 2 * t2 - t), 0.5 * (3 * t3 - 5 * t2 + 2),
-          0.5 * (-3 * t3 + 4 * t2 + t), 0.5 * (t3 - t2))
-    du = (0.5 * (-3 * t2 + 4 * t - 1), 0.5 * (9 * t2 - 10 * t),
-          0.5 * (-9 * t2 + 8 * t + 1), 0.5 * (3 * t2 - 2 * t))
+    wu0 = 0.5 * (-t3 + 2.0 * t2 - t)
+    wu1 = 0.5 * (3.0 * t3 - 5.0 * t2 + 2.0)
+    wu2 = 0.5 * (-3.0 * t3 + 4.0 * t2 + t)
+    wu3 = 0.5 * (t3 - t2)
+    du0 = 0.5 * (-3.0 * t2 + 4.0 * t - 1.0)
+    du1 = 0.5 * (9.0 * t2 - 10.0 * t)
+    du2 = 0.5 * (-9.0 * t2 + 8.0 * t + 1.0)
+    du3 = 0.5 * (3.0 * t2 - 2.0 * t)
     t = v - fv
     t2 = t * t
     t3 = t2 * t
-    wv = (0.5 * (-t3 + 2 * t2 - t), 0.5 * (3 * t3 - 5 * t2 + 2),
-          0.5 * (-3 * t3 + 4 * t2 + t), 0.5 * (t3 - t2))
-    dv = (0.5 * (-3 * t2 + 4 * t - 1), 0.5 * (9 * t2 - 10 * t),
-          0.5 * (-9 * t2 + 8 * t + 1), 0.5 * (3 * t2 - 2 * t))
-    val = 0.0
-    gu = 0.0
-    gv = 0.0
-    inside = iu >= 1 and iv >= 1 and iu + 2 < nx and iv + 2 < ny
-    for j in range(4):
-        y = iv - 1 + j
-        row = 0.0
-        drow = 0.0
-        for i in range(4):
-            x = iu - 1 + i
-            if inside or (0 <= x < nx and 0 <= y < ny):
-                c = max(g[y, x], p_min)
-            else:
-                c = p_min
-            row += wu[i] * c
-            drow += du[i] * c
-        val += wv[j] * row
-        gu += wv[j] * drow
-        gv += dv[j] * row
+    wv0 = 0.5 * (-t3 + 2.0 * t2 - t)
+    wv1 = 0.5 * (3.0 * t3 - 5.0 * t2 + 2.0)
+    wv2 = 0.5 * (-3.0 * t3 + 4.0 * t2 + t)
+    wv3 = 0.5 * (t3 - t2)
+    dv0 = 0.5 * (-3.0 * t2 + 4.0 * t - 1.0)
+    dv1 = 0.5 * (9.0 * t2 - 10.0 * t)
+    dv2 = 0.5 * (-9.0 * t2 + 8.0 * t + 1.0)
+    dv3 = 0.5 * (3.0 * t2 - 2.0 * t)
+    inside = x >= 0 and y >= 0 and x + 3 < nx and y + 3 < ny
+    r0, e0 = _row(g, p_min, x, y, inside, wu0, wu1, wu2, wu3, du0, du1, du2, du3)
+    r1, e1 = _row(g, p_min, x, y + 1, inside, wu0, wu1, wu2, wu3, du0, du1, du2, du3)
+    r2, e2 = _row(g, p_min, x, y + 2, inside, wu0, wu1, wu2, wu3, du0, du1, du2, du3)
+    r3, e3 = _row(g, p_min, x, y + 3, inside, wu0, wu1, wu2, wu3, du0, du1, du2, du3)
+    val = wv0 * r0 + wv1 * r1 + wv2 * r2 + wv3 * r3
+    gu = wv0 * e0 + wv1 * e1 + wv2 * e2 + wv3 * e3
+    gv = dv0 * r0 + dv1 * r1 + dv2 * r2 + dv3 * r3
     return val, gu, gv
 
 
@@ -575,9 +595,9 @@ class CeresLikeRefiner:
         translation_weight: float = 0.1,
         rotation_weight: float = 0.1,
         max_iterations: int = 20,
-        step_tolerance_m: float = 1e-5,
-        step_tolerance_rad: float = 1e-6,
-        cost_tolerance: float = 1e-10,
+        step_tolerance_m: float = 1e-4,
+        step_tolerance_rad: float = 1e-4,
+        cost_tolerance: float = 1e-6,
     ) -> None:
         if occupied_space_weight <= 0.0 or translation_weight < 0.0 or rotation_weight < 0.0:
             raise ConfigError("refiner weights must be >= 0 (occupied_space_weight > 0)")

@@ -29,7 +29,7 @@ logger = logging.getLogger(__name__)
 __all__ = ["plan_tours", "start_poses"]
 
 _SQRT2 = math.sqrt(2.0)
-_PLAN_MARGIN_M = 0.01  # m planned on top of the requested clearance (sampling slack)
+_PLAN_MARGIN_M = 0.02  # m planned on top of the requested clearance (interpolation slack)
 _MAX_SEGMENT_M = 20.0  # m, longest straight segment the shortcutting tries
 
 

@@ -102,6 +102,48 @@ def sample_kernel(
             out[k] = bilinear_at(field, x, y)
 
 
+@njit(cache=True)
+def exact_clearance_kernel(
+    field: NDArray[np.float64],
+    occupied: NDArray[np.bool_],
+    gx: NDArray[np.float64],
+    gy: NDArray[np.float64],
+    window: int,
+    out: NDArray[np.float64],
+) -> None:
+    """Distance (cells) from each point (gx[k], gy[k]) to the nearest occupied cell square
+    or the grid border: exact when that is < window - 1 cells (all cells within +-window
+    are searched), else the interpolated `field` (in cells) but at least window - 1. 0 in
+    occupied cells and outside the grid."""
+    h, w = occupied.shape
+    for k in range(gx.shape[0]):
+        x = gx[k]
+        y = gy[k]
+        if not (x >= 0.0 and x < w and y >= 0.0 and y < h):
+            out[k] = 0.0
+            continue
+        ix = int(x)
+        iy = int(y)
+        if occupied[iy, ix]:
+            out[k] = 0.0
+            continue
+        best = min(x, w - x, y, h - y)
+        for j in range(max(iy - window, 0), min(iy + window + 1, h)):
+            dy = max(j - y, y - (j + 1.0), 0.0)
+            if dy >= best:
+                continue
+            for i in range(max(ix - window, 0), min(ix + window + 1, w)):
+                if occupied[j, i]:
+                    dx = max(i - x, x - (i + 1.0), 0.0)
+                    d = math.sqrt(dx * dx + dy * dy)
+                    if d < best:
+                        best = d
+        if best < window - 1:
+            out[k] = best
+        else:
+            out[k] = max(bilinear_at(field, x, y), window - 1.0)
+
+
 def _clearance_field(obstacle: NDArray[np.bool_], resolution: float) -> NDArray[np.float64]:
     """Per cell: distance (m) from the cell centre to the nearest obstacle cell's boundary
     (centre-to-centre distance minus half a cell, >= 0), the grid border counting as an
@@ -114,11 +156,16 @@ def _clearance_field(obstacle: NDArray[np.bool_], resolution: float) -> NDArray[
 class World:
     """A floor plan with precomputed occupancy masks and clearance fields.
 
-    clearance: distance from a point to the nearest occupied cell (or the grid
-    border), bilinearly interpolated from cell centres: exact near a single
-    axis-aligned wall, up to half a cell too small on the medial axis between
-    two walls, at most ~0.2 cell too large next to an outside corner.
+    `clearance` is the exact distance from a point to the nearest occupied cell square
+    (or the grid border) up to `EXACT_CLEARANCE_M`; beyond that it is interpolated from
+    the per-cell distance transform (within half a cell). `free_clearance` (distance to
+    any non-free cell, for planning) is always the bilinear interpolation of its
+    per-cell field: exact near a single axis-aligned wall, up to half a cell too small on
+    the medial axis between two walls, up to ~0.2 cell too large next to an outside
+    corner.
     """
+
+    EXACT_CLEARANCE_M = 0.6
 
     def __init__(self, grid: GridMap) -> None:
         self.grid = grid
@@ -129,6 +176,8 @@ class World:
         # (H, W) metres from each cell centre to the nearest occupied cell.
         self.clearance_grid = _clearance_field(self.occupied, self.resolution)
         self._not_free = ~self.free
+        self._clearance_cells = self.clearance_grid / self.resolution
+        self._window = int(math.ceil(self.EXACT_CLEARANCE_M / self.resolution)) + 2
 
     @classmethod
     def load(cls, name_or_path: str | Path) -> World:
@@ -185,8 +234,14 @@ class World:
 
     def clearance(self, xy: ArrayLike) -> NDArray[np.float64]:
         """(N,) metres from each (N, 2) point to the nearest occupied cell (or the grid
-        border); 0 inside occupied cells and outside the grid."""
-        return self._sample(self.clearance_grid, self.occupied, xy)
+        border); 0 inside occupied cells and outside the grid. Exact below
+        EXACT_CLEARANCE_M (see the class docstring)."""
+        gx, gy = self.to_grid_coords(xy)
+        out = np.empty(gx.shape[0], dtype=np.float64)
+        exact_clearance_kernel(
+            self._clearance_cells, self.occupied, gx, gy, self._window, out
+        )
+        return out * self.resolution
 
     def free_clearance(self, xy: ArrayLike) -> NDArray[np.float64]:
         """(N,) metres from each point to the nearest non-free cell; 0 on non-free cells."""

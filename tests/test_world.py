@@ -146,15 +146,30 @@ def test_clearance_and_is_free() -> None:
     # Wall faces at x = 0.05, x = 3.95, y = 0.05, y = 2.95.
     xy = np.array([[1.0, 1.5], [1.6, 1.2], [0.32, 1.5], [2.0, 0.2], [0.02, 1.0], [-1.0, 1.0]])
     np.testing.assert_allclose(world.clearance(xy), [0.95, 1.15, 0.27, 0.15, 0.0, 0.0], atol=1e-9)
-    # On the medial axis (equidistant from two walls) the interpolation is conservative by
-    # at most half a cell.
-    centre = world.clearance(np.array([[2.0, 1.5]]))[0]
-    assert 1.45 - 0.5 * 0.05 - 1e-9 <= centre <= 1.45
+    # On the medial axis (equidistant from two walls) clearance is still exact; the
+    # interpolated planning field is conservative by at most half a cell there.
+    corridor = World(box_room(4.0, 1.1))  # wall faces at y = 0.05 and y = 1.05
+    centre = np.array([[2.0, 0.55]])
+    assert corridor.clearance(centre)[0] == pytest.approx(0.5)
+    assert 0.5 - 0.5 * 0.05 - 1e-9 <= corridor.free_clearance(centre)[0] <= 0.5
     assert world.is_free(xy, 0.25).tolist() == [True, True, True, False, False, False]
     assert world.is_free(xy).tolist() == [True, True, True, True, False, False]
     np.testing.assert_allclose(world.free_clearance(xy[:2]), world.clearance(xy[:2]))
     with pytest.raises(ConfigError):
         world.is_free(xy, -1.0)
+
+
+def test_clearance_exact_at_outside_corners() -> None:
+    g = box_room(6.0, 6.0)
+    g.data[60:64, 60:64] = 100  # pillar: x, y in [3.0, 3.2]
+    world = World(g)
+    rng = np.random.default_rng(0)
+    ang = rng.uniform(-np.pi, -np.pi / 2, 50)  # all around the lower-left corner
+    r = rng.uniform(0.01, 0.5, 50)
+    xy = np.array([3.0, 3.0]) + r[:, None] * np.stack([np.cos(ang), np.sin(ang)], axis=1)
+    np.testing.assert_allclose(world.clearance(xy), r, atol=1e-9)
+    far = np.array([[1.3, 1.2]])  # beyond the exact range: interpolated, within half a cell
+    assert world.clearance(far)[0] == pytest.approx(1.15, abs=0.025)
 
 
 def test_free_clearance_sees_unknown_but_clearance_does_not() -> None:

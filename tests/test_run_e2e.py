@@ -1,0 +1,103 @@
+"""End to end: `collabslam run` starts the simulator, the base station and the
+agents as separate processes over loopback Zenoh; every keyframe sent reaches
+the graph and the map agrees with the world."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from common.map_io import GridMap, read_map, write_map
+from common.trajectory_io import read_tum
+from simulation.world_generator import random_floor
+
+pytestmark = pytest.mark.e2e
+
+OUTPUTS = ["map.pgm", "map.yaml", "map.png", "config.toml", "summary.json", "scenario.json"]
+
+
+def _run(args: list[str], timeout: float = 400) -> subprocess.CompletedProcess[str]:
+    return subprocess.run([sys.executable, "-m", "collabslam.cli", "run", *args],
+                          capture_output=True, text=True, timeout=timeout)
+
+
+def _check_run(out: Path, n_robots: int) -> dict:
+    for name in OUTPUTS:
+        assert (out / name).is_file(), f"missing {name}"
+    summary = json.loads((out / "summary.json").read_text())
+    assert len(summary["robots"]) == n_robots
+    for r in summary["robots"]:
+        assert r["keyframes_sent"] > 0
+        assert r["keyframes_in_graph"] == r["keyframes_sent"] == r["keyframes_acked"]
+        assert r["distance_m"] > 1.0
+        assert r["ate_rmse_m"] is not None and r["ate_rmse_m"] < 1.0
+        est = read_tum(out / "trajectories" / f"{r['id']}.tum")
+        gt = read_tum(out / "ground_truth" / f"{r['id']}.tum")
+        assert len(est) == r["keyframes_in_graph"] and len(gt) > 10
+    assert summary["sim_time_s"] > 0 and summary["wall_time_s"] > 0
+    return summary
+
+
+def test_two_robots_short_tour(tmp_path: Path) -> None:
+    out = tmp_path / "run"
+    res = _run(["--world", "bshape", "--robots", "2", "--out", str(out),
+                "--max-sim-time", "25"])
+    assert res.returncode == 0, res.stderr[-3000:]
+    summary = _check_run(out, 2)
+    assert summary["map_accuracy"] >= 0.95
+    assert summary["map_coverage"] > 0.2
+    m = read_map(out / "map.yaml")
+    assert (m.data == 100).sum() > 100 and (m.data == 0).sum() > 1000
+
+
+def test_unseen_world_three_robots(tmp_path: Path) -> None:
+    """A random floor plan the code never saw, written as PGM+YAML by hand."""
+    world: GridMap = random_floor(seed=12345, width_m=18.0, height_m=14.0)
+    write_map(world, tmp_path / "unseen" / "floor.yaml", "floor.pgm")
+    out = tmp_path / "run"
+    res = _run(["--world", str(tmp_path / "unseen" / "floor.yaml"), "--robots", "3",
+                "--out", str(out), "--max-sim-time", "15", "--set", "sim.seed=4"])
+    assert res.returncode == 0, res.stderr[-3000:]
+    summary = _check_run(out, 3)
+    assert summary["map_accuracy"] >= 0.9
+
+
+def test_dead_child_is_named(tmp_path: Path) -> None:
+    """A child that dies stops the run with an error naming it."""
+    out = tmp_path / "run"
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "collabslam.cli", "run", "--world", "rooms15", "--robots", "1",
+         "--out", str(out), "--max-sim-time", "300"],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        pid = None
+        deadline = time.monotonic() + 60
+        while pid is None and time.monotonic() < deadline:
+            log = out / "logs" / "r0.log"
+            if log.is_file() and "running" in log.read_text():
+                found = subprocess.run(["pgrep", "-f", "--", f"{out}.*--robot-id r0"],
+                                       capture_output=True, text=True).stdout.split()
+                pid = int(found[0]) if found else None
+            time.sleep(0.2)
+        assert pid is not None, "agent r0 never started"
+        os.kill(pid, signal.SIGKILL)
+        _, err = proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == 1
+    assert "r0" in err and "exited with code" in err
+
+
+def test_bad_world_is_one_clear_error(tmp_path: Path) -> None:
+    res = _run(["--world", "no-such-world", "--robots", "1", "--out", str(tmp_path)], 60)
+    assert res.returncode == 1
+    assert "unknown world 'no-such-world'" in res.stderr
+    assert "Traceback" not in res.stderr

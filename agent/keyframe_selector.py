@@ -41,7 +41,9 @@ class KeyframeSelector:
         dist = float(np.hypot(delta[0], delta[1]))
         sxy = max(c.odom_sigma_min, c.odom_sigma_per_m * dist)
         sz = max(c.odom_sigma_min, c.odom_sigma_per_m * abs(float(delta[2])))
-        syaw = max(c.odom_sigma_min,
-                   c.odom_sigma_yaw_per_rad * abs(float(delta[3])) + c.odom_sigma_yaw_per_m * dist)
+        syaw = max(
+            c.odom_sigma_min,
+            c.odom_sigma_yaw_per_rad * abs(float(delta[3])) + c.odom_sigma_yaw_per_m * dist,
+        )
         srp = c.odom_sigma_min
         return np.diag([sxy, sxy, sz, srp, srp, syaw]) ** 2

@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import json
 import logging
-import queue
 import threading
 import time
 from pathlib import Path
@@ -25,12 +24,13 @@ from agent.keyframe_selector import KeyframeSelector
 from agent.odometry_tracker import OdometryTracker
 from agent.outbox import Outbox
 from agent.path_follower import PathFollower
+from agent.sensor_sources import SensorSource
+from agent.vehicle import NullVehicle, ZenohVehicle
 from common.bus import Bus
 from common.config import Config
 from common.geometry import pose4_compose, pose4_inverse, pose4_to_pose7, pose7_to_pose4
 from protocol import (
     Altimeter,
-    Imu,
     Keyframe,
     KeyframeAck,
     LaserScan,
@@ -38,7 +38,6 @@ from protocol import (
     PoseCorrection,
     RobotState,
     Scan2D,
-    VehicleCommand,
     encode,
 )
 
@@ -46,20 +45,35 @@ log = logging.getLogger(__name__)
 
 
 class AgentNode:
-    def __init__(self, cfg: Config, robot_id: str, bus: Bus, tour_map: np.ndarray,
-                 T_map_odom: np.ndarray | None = None) -> None:
-        """tour_map: (M, 2) waypoints in `map`; T_map_odom: [x, y, z, yaw] known at start."""
+    def __init__(
+        self,
+        cfg: Config,
+        robot_id: str,
+        bus: Bus,
+        tour_map: np.ndarray,
+        T_map_odom: np.ndarray | None = None,
+        vehicle: ZenohVehicle | NullVehicle | None = None,
+    ) -> None:
+        """tour_map: (M, 2) waypoints in `map`; T_map_odom: [x, y, z, yaw] known at start;
+        vehicle: where commands go (default: VehicleCommand over Zenoh)."""
         self.cfg = cfg
         self.robot_id = robot_id
         self.bus = bus
         self.keys = bus.keys
+        self.vehicle = vehicle if vehicle is not None else ZenohVehicle(bus, robot_id)
         a = cfg.agent
         self.tracker = OdometryTracker()
         self.selector = KeyframeSelector(a)
-        self.outbox = Outbox(a.outbox_max, a.outbox_warn_fraction, a.resend_timeout_s,
-                             a.resend_batch)
-        self.follower = PathFollower(a.cruise_speed_mps, a.waypoint_tolerance_m, a.yaw_gain,
-                                     a.max_accel_mps2, a.cruise_altitude_m)
+        self.outbox = Outbox(
+            a.outbox_max, a.outbox_warn_fraction, a.resend_timeout_s, a.resend_batch
+        )
+        self.follower = PathFollower(
+            a.cruise_speed_mps,
+            a.waypoint_tolerance_m,
+            a.yaw_gain,
+            a.max_accel_mps2,
+            a.cruise_altitude_m,
+        )
         self.tour_map = np.asarray(tour_map, dtype=np.float64).reshape(-1, 2)
         self._corr_lock = threading.Lock()
         self.T_map_odom = np.zeros(4) if T_map_odom is None else np.asarray(T_map_odom, float)
@@ -69,21 +83,17 @@ class AgentNode:
         self.last_scan_stamp: float | None = None
         self.last_state_stamp = -np.inf
         self.scans = 0
-        self.inbox: queue.Queue[Any] = queue.Queue()
 
     # --- wiring -------------------------------------------------------------------------
     def start(self) -> None:
-        """Declare subscriptions, then the liveliness token (so the token implies routes)."""
+        """Declare subscriptions, then the liveliness token (so the token implies routes).
+
+        The sensor source must be created before this (its subscriptions count too).
+        """
         rid = self.robot_id
-        for kind, typ in (("odom", Odometry), ("imu", Imu), ("altimeter", Altimeter),
-                          ("scan", LaserScan)):
-            self.bus.subscribe(self.keys.sensor(rid, kind), typ, self._enqueue)
         self.bus.subscribe(self.keys.robot(rid, "ack"), KeyframeAck, self._on_ack)
         self.bus.subscribe(self.keys.robot(rid, "correction"), PoseCorrection, self._on_correction)
         self.bus.declare_alive("agent", rid)
-
-    def _enqueue(self, msg: Any, key: str) -> None:
-        self.inbox.put(msg)
 
     def _on_ack(self, msg: KeyframeAck, key: str) -> None:
         self.outbox.ack(msg.acked_seq)
@@ -97,12 +107,9 @@ class AgentNode:
             self._new_correction = True
 
     # --- main loop ----------------------------------------------------------------------
-    def run(self, stop: threading.Event) -> None:
-        while not stop.is_set():
-            try:
-                msg = self.inbox.get(timeout=0.05)
-            except queue.Empty:
-                msg = None
+    def run(self, source: SensorSource, stop: threading.Event) -> None:
+        """Process the source's messages until it ends or `stop` is set."""
+        for msg in source.messages(stop):
             if msg is not None:
                 self.handle(msg)
             self._resend()
@@ -121,8 +128,11 @@ class AgentNode:
             if scan.stamp == self.last_scan_stamp:  # a re-sent lock-step tick: answer again
                 self._command(scan.stamp)
             else:
-                log.error("scan stamp %.3f is before the previous %.3f: dropped", scan.stamp,
-                          self.last_scan_stamp)
+                log.error(
+                    "scan stamp %.3f is before the previous %.3f: dropped",
+                    scan.stamp,
+                    self.last_scan_stamp,
+                )
             return
         self.last_scan_stamp = scan.stamp
         self.scans += 1
@@ -137,10 +147,15 @@ class AgentNode:
     def _send_keyframe(self, scan: LaserScan, pose: np.ndarray) -> None:
         delta, cov = self.selector.cut(pose)
         kf = Keyframe(
-            robot_id=self.robot_id, seq=self.next_seq, stamp=scan.stamp,
-            pose_odom=pose4_to_pose7(pose), delta=pose4_to_pose7(delta), delta_cov=cov,
-            scan2d=Scan2D.from_ranges(scan.angle_min, scan.angle_increment, scan.range_max,
-                                      scan.ranges),
+            robot_id=self.robot_id,
+            seq=self.next_seq,
+            stamp=scan.stamp,
+            pose_odom=pose4_to_pose7(pose),
+            delta=pose4_to_pose7(delta),
+            delta_cov=cov,
+            scan2d=Scan2D.from_ranges(
+                scan.angle_min, scan.angle_increment, scan.range_max, scan.ranges
+            ),
         )
         payload = encode(kf)
         self.outbox.add(self.next_seq, payload)
@@ -155,13 +170,19 @@ class AgentNode:
                 pts = np.column_stack([self.tour_map, np.zeros((len(self.tour_map), 2))])
                 tour_odom = pose4_compose(T_odom_map, pts) if len(pts) else pts
                 self.follower.set_path(tour_odom[:, :2], keep_progress=True)
-        vx, vy, vz, wz = self.follower.command(self.tracker.T_odom_base)
-        self.bus.publish(self.keys.robot(self.robot_id, "cmd"),
-                         VehicleCommand(self.robot_id, stamp, vx, vy, vz, wz))
+        self.vehicle.command(stamp, *self.follower.command(self.tracker.T_odom_base))
 
     def _resend(self) -> None:
         key = self.keys.robot(self.robot_id, "keyframe")
-        for payload in self.outbox.due_for_resend():
+        batch = self.outbox.due_for_resend()
+        if batch:
+            log.info(
+                "no ack for %.1f s: resending %d keyframes after seq %d",
+                self.cfg.agent.resend_timeout_s,
+                len(batch),
+                self.outbox.acked_seq,
+            )
+        for payload in batch:
             self.bus.put_raw(key, payload)
 
     def status(self) -> str:
@@ -173,12 +194,20 @@ class AgentNode:
         with self._corr_lock:
             T_map_odom, epoch = self.T_map_odom.copy(), self.epoch
         pose = self.tracker.T_odom_base
-        self.bus.publish(self.keys.robot(self.robot_id, "state"), RobotState(
-            robot_id=self.robot_id, stamp=stamp, status=self.status(), correction_epoch=epoch,
-            keyframes_sent=self.next_seq, keyframes_acked=self.outbox.acked_seq + 1,
-            outbox_len=len(self.outbox), pose_odom=pose4_to_pose7(pose),
-            pose_map=pose4_to_pose7(pose4_compose(T_map_odom, pose)),
-        ))
+        self.bus.publish(
+            self.keys.robot(self.robot_id, "state"),
+            RobotState(
+                robot_id=self.robot_id,
+                stamp=stamp,
+                status=self.status(),
+                correction_epoch=epoch,
+                keyframes_sent=self.next_seq,
+                keyframes_acked=self.outbox.acked_seq + 1,
+                outbox_len=len(self.outbox),
+                pose_odom=pose4_to_pose7(pose),
+                pose_map=pose4_to_pose7(pose4_compose(T_map_odom, pose)),
+            ),
+        )
 
     # --- shutdown -----------------------------------------------------------------------
     def drain(self, timeout_s: float) -> bool:

@@ -28,8 +28,7 @@ class OdometryTracker:
     def on_odometry(self, stamp: float, pose7: np.ndarray) -> bool:
         """Integrate one odometry sample; returns False (and logs) if time went backwards."""
         if self.stamp is not None and stamp < self.stamp:
-            log.error("odometry stamp %.3f is before the previous %.3f: dropped", stamp,
-                      self.stamp)
+            log.error("odometry stamp %.3f is before the previous %.3f: dropped", stamp, self.stamp)
             return False
         pose = pose7_to_pose4(pose7)
         if self._last_odom is not None:

@@ -24,8 +24,14 @@ log = logging.getLogger(__name__)
 
 
 class Outbox:
-    def __init__(self, max_len: int, warn_fraction: float, resend_timeout_s: float,
-                 resend_batch: int, clock: Callable[[], float] = time.monotonic) -> None:
+    def __init__(
+        self,
+        max_len: int,
+        warn_fraction: float,
+        resend_timeout_s: float,
+        resend_batch: int,
+        clock: Callable[[], float] = time.monotonic,
+    ) -> None:
         self.max_len = max_len
         self.warn_len = max(1, int(max_len * warn_fraction))
         self.resend_timeout_s = resend_timeout_s
@@ -55,8 +61,9 @@ class Outbox:
                 self._last_progress = self._clock()
         if n >= self.warn_len and not self._warned:
             self._warned = True
-            log.warning("outbox is %d/%d full: the base station is not acknowledging", n,
-                        self.max_len)
+            log.warning(
+                "outbox is %d/%d full: the base station is not acknowledging", n, self.max_len
+            )
 
     def ack(self, acked_seq: int) -> int:
         """Drop everything <= acked_seq; returns how many were released."""
@@ -79,8 +86,9 @@ class Outbox:
             if not self._pending or self._clock() - self._last_progress < self.resend_timeout_s:
                 return []
             self._last_progress = self._clock()
-            batch = [p for _, p in zip(range(self.resend_batch), self._pending.values(),
-                                       strict=False)]
+            batch = [
+                p for _, p in zip(range(self.resend_batch), self._pending.values(), strict=False)
+            ]
         self.resent += len(batch)
         return batch
 

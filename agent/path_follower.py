@@ -14,8 +14,14 @@ from common.geometry import wrap_angle
 
 
 class PathFollower:
-    def __init__(self, cruise_speed: float, tolerance: float, yaw_gain: float,
-                 max_accel: float, altitude_m: float) -> None:
+    def __init__(
+        self,
+        cruise_speed: float,
+        tolerance: float,
+        yaw_gain: float,
+        max_accel: float,
+        altitude_m: float,
+    ) -> None:
         self.cruise_speed = cruise_speed
         self.tolerance = tolerance
         self.yaw_gain = yaw_gain
@@ -49,7 +55,7 @@ class PathFollower:
         d = self.waypoints[self.index] - (x, y)
         dist = float(np.hypot(*d))
         remaining = dist + float(
-            np.sum(np.linalg.norm(np.diff(self.waypoints[self.index:], axis=0), axis=1))
+            np.sum(np.linalg.norm(np.diff(self.waypoints[self.index :], axis=0), axis=1))
         )
         heading_err = float(wrap_angle(np.arctan2(d[1], d[0]) - yaw))
         speed = min(self.cruise_speed, np.sqrt(2.0 * self.max_accel * 0.5 * remaining))

@@ -125,32 +125,38 @@ def _discretize(pts, angles, tx, ty, ox, oy, res, cx, cy):  # type: ignore[no-un
             cy[a, i] = int(math.floor((y - oy) / res))
 
 
+@njit(cache=True, inline="always")
+def _p(v, p_unknown):  # type: ignore[no-untyped-def]
+    """A stored cell value as a probability: 0 (never observed) reads `p_unknown`."""
+    return v if v > 0.0 else p_unknown
+
+
 @njit(cache=True)
-def _quantize(prob, gx0, gy0, gx1, gy1, p_min, dst, x0, y0, w):  # type: ignore[no-untyped-def]
-    """dst[(y - y0) * w + x - x0] = round(max(prob[y, x], p_min) * 255) as uint8 for the
+def _quantize(prob, gx0, gy0, gx1, gy1, p_unknown, dst, x0, y0, w):  # type: ignore[no-untyped-def]
+    """dst[(y - y0) * w + x - x0] = round(max(prob[y, x], p_unknown) * 255) as uint8 for the
     grid cells gx0 <= x < gx1, gy0 <= y < gy1."""
     for y in range(gy0, gy1):
         row = prob[y]
         r = (y - y0) * w - x0
         for x in range(gx0, gx1):
-            dst[r + x] = np.uint8(max(row[x], p_min) * np.float32(255.0) + np.float32(0.5))
+            dst[r + x] = np.uint8(_p(row[x], p_unknown) * np.float32(255.0) + np.float32(0.5))
 
 
 def _build_levels(
-    grid: ProbabilityGrid, x0: int, y0: int, w: int, h: int, depth: int
+    grid: ProbabilityGrid, x0: int, y0: int, w: int, h: int, depth: int, p_unknown: float
 ) -> NDArray[np.uint8]:
     """Flat (depth + 1, h * w) uint8 pyramid: levels[k] at crop cell c is the max of the
     probabilities (* 255) over cells [c, c + 2^k)^2. Crop cell (0, 0) is grid cell
-    (x0, y0); cells outside the grid read p_min. Rows are max-pooled on the flat array,
+    (x0, y0); cells outside the grid read p_unknown. Rows are max-pooled on the flat array,
     so the last 2^k - 1 columns and rows of level k wrap around: callers keep 2^depth
     cells of crop beyond their last lookup."""
     ny, nx = grid.shape
-    levels = np.full((depth + 1, h * w), round(grid.min_probability * 255.0), dtype=np.uint8)
+    levels = np.full((depth + 1, h * w), round(p_unknown * 255.0), dtype=np.uint8)
     gx0, gy0 = max(x0, 0), max(y0, 0)
     gx1, gy1 = min(x0 + w, nx), min(y0 + h, ny)
     if gx0 < gx1 and gy0 < gy1:
-        p_min = np.float32(grid.min_probability)
-        _quantize(grid.data, gx0, gy0, gx1, gy1, p_min, levels[0], x0, y0, w)
+        p_unk = np.float32(p_unknown)
+        _quantize(grid.data, gx0, gy0, gx1, gy1, p_unk, levels[0], x0, y0, w)
     tmp = np.empty(h * w, dtype=np.uint8)
     for k in range(1, depth + 1):
         s = 1 << (k - 1)
@@ -267,6 +273,11 @@ def _branch_and_bound(levels, flat, w, win, depth, ang_factor, lin_coef, min_sco
     return best_a, best_x, best_y, best_s
 
 
+def _unknown(grid: ProbabilityGrid, unknown_probability: float | None) -> float:
+    """What a never-observed cell reads as (default: the grid's min probability)."""
+    return grid.min_probability if unknown_probability is None else unknown_probability
+
+
 @dataclass(frozen=True)
 class CorrelativeResult:
     """Best lattice pose T_submap_sensor [x, y, yaw] and its (penalized) score in [0, 1]."""
@@ -296,6 +307,7 @@ class RealTimeCorrelativeMatcher:
         translation_delta_cost_weight: float = 0.1,
         rotation_delta_cost_weight: float = 0.1,
         pyramid_margin_m: float = 0.5,
+        unknown_probability: float | None = None,
     ) -> None:
         if not (linear_window >= 0.0 and angular_window >= 0.0):
             raise ConfigError("search windows must be >= 0")
@@ -308,6 +320,7 @@ class RealTimeCorrelativeMatcher:
         self.translation_delta_cost_weight = float(translation_delta_cost_weight)
         self.rotation_delta_cost_weight = float(rotation_delta_cost_weight)
         self.pyramid_margin_m = float(pyramid_margin_m)
+        self.unknown_probability = unknown_probability
         self._cache: tuple | None = None  # (grid ref, version, x0, y0, w, h, depth, levels)
 
     def match(
@@ -334,8 +347,12 @@ class RealTimeCorrelativeMatcher:
         ox, oy = grid.origin_xy
         _discretize(pts, angles, pred[0], pred[1], ox, oy, res, cx, cy)
         x0, y0, w, levels = self._levels(
-            grid, cx.min() - win, cy.min() - win, cx.max() + win + (1 << depth),
-            cy.max() + win + (1 << depth), depth
+            grid,
+            cx.min() - win,
+            cy.min() - win,
+            cx.max() + win + (1 << depth),
+            cy.max() + win + (1 << depth),
+            depth,
         )
         flat = (cy - y0) * w + (cx - x0)
         ang_factor = np.exp(-self.rotation_delta_cost_weight * offsets**2)
@@ -360,7 +377,7 @@ class RealTimeCorrelativeMatcher:
         m = int(math.ceil(self.pyramid_margin_m / grid.resolution))
         x0, y0 = int(lx) - m, int(ly) - m
         w, h = int(hx) + m - x0, int(hy) + m - y0
-        levels = _build_levels(grid, x0, y0, w, h, depth)
+        levels = _build_levels(grid, x0, y0, w, h, depth, _unknown(grid, self.unknown_probability))
         self._cache = (weakref.ref(grid), grid.version, x0, y0, w, h, depth, levels)
         return x0, y0, w, levels
 
@@ -368,33 +385,9 @@ class RealTimeCorrelativeMatcher:
 # ---------------------------------------------------------------- refinement (numba kernels)
 
 
-@njit(cache=True, inline="always")
-def _cell(g, p_min, x, y):  # type: ignore[no-untyped-def]
-    ny, nx = g.shape
-    if 0 <= x < nx and 0 <= y < ny:
-        return max(g[y, x], p_min)
-    return p_min
-
-
-@njit(cache=True, inline="always")
-def _row(g, p_min, x, y, inside, w0, w1, w2, w3, d0, d1, d2, d3):  # type: ignore[no-untyped-def]
-    """Catmull-Rom value and x-derivative of row y around columns x .. x + 3."""
-    if inside:
-        c0 = max(g[y, x], p_min)
-        c1 = max(g[y, x + 1], p_min)
-        c2 = max(g[y, x + 2], p_min)
-        c3 = max(g[y, x + 3], p_min)
-    else:
-        c0 = _cell(g, p_min, x, y)
-        c1 = _cell(g, p_min, x + 1, y)
-        c2 = _cell(g, p_min, x + 2, y)
-        c3 = _cell(g, p_min, x + 3, y)
-    return w0 * c0 + w1 * c1 + w2 * c2 + w3 * c3, d0 * c0 + d1 * c1 + d2 * c2 + d3 * c3
-
-
 @njit(cache=True)
-def _bicubic(g, p_min, u, v):  # type: ignore[no-untyped-def]
-    """Catmull-Rom interpolation of g (unknown/outside -> p_min) at (u, v) in cell-centre
+def _bicubic(g, p_unknown, u, v):  # type: ignore[no-untyped-def]
+    """Catmull-Rom interpolation of g (unknown/outside -> p_unknown) at (u, v) in cell-centre
     units (u = 0 is the centre of column 0). Returns value, d/du, d/dv."""
     ny, nx = g.shape
     fu = math.floor(u)
@@ -415,27 +408,42 @@ def _bicubic(g, p_min, u, v):  # type: ignore[no-untyped-def]
     t = v - fv
     t2 = t * t
     t3 = t2 * t
-    wv0 = 0.5 * (-t3 + 2.0 * t2 - t)
-    wv1 = 0.5 * (3.0 * t3 - 5.0 * t2 + 2.0)
-    wv2 = 0.5 * (-3.0 * t3 + 4.0 * t2 + t)
-    wv3 = 0.5 * (t3 - t2)
-    dv0 = 0.5 * (-3.0 * t2 + 4.0 * t - 1.0)
-    dv1 = 0.5 * (9.0 * t2 - 10.0 * t)
-    dv2 = 0.5 * (-9.0 * t2 + 8.0 * t + 1.0)
-    dv3 = 0.5 * (3.0 * t2 - 2.0 * t)
     inside = x >= 0 and y >= 0 and x + 3 < nx and y + 3 < ny
-    r0, e0 = _row(g, p_min, x, y, inside, wu0, wu1, wu2, wu3, du0, du1, du2, du3)
-    r1, e1 = _row(g, p_min, x, y + 1, inside, wu0, wu1, wu2, wu3, du0, du1, du2, du3)
-    r2, e2 = _row(g, p_min, x, y + 2, inside, wu0, wu1, wu2, wu3, du0, du1, du2, du3)
-    r3, e3 = _row(g, p_min, x, y + 3, inside, wu0, wu1, wu2, wu3, du0, du1, du2, du3)
-    val = wv0 * r0 + wv1 * r1 + wv2 * r2 + wv3 * r3
-    gu = wv0 * e0 + wv1 * e1 + wv2 * e2 + wv3 * e3
-    gv = dv0 * r0 + dv1 * r1 + dv2 * r2 + dv3 * r3
+    val = 0.0
+    gu = 0.0
+    gv = 0.0
+    for j in range(4):
+        if j == 0:
+            wv, dv = 0.5 * (-t3 + 2.0 * t2 - t), 0.5 * (-3.0 * t2 + 4.0 * t - 1.0)
+        elif j == 1:
+            wv, dv = 0.5 * (3.0 * t3 - 5.0 * t2 + 2.0), 0.5 * (9.0 * t2 - 10.0 * t)
+        elif j == 2:
+            wv, dv = 0.5 * (-3.0 * t3 + 4.0 * t2 + t), 0.5 * (-9.0 * t2 + 8.0 * t + 1.0)
+        else:
+            wv, dv = 0.5 * (t3 - t2), 0.5 * (3.0 * t2 - 2.0 * t)
+        yy = y + j
+        if inside:
+            c0 = _p(g[yy, x], p_unknown)
+            c1 = _p(g[yy, x + 1], p_unknown)
+            c2 = _p(g[yy, x + 2], p_unknown)
+            c3 = _p(g[yy, x + 3], p_unknown)
+        elif 0 <= yy < ny:
+            c0 = _p(g[yy, x], p_unknown) if 0 <= x < nx else p_unknown
+            c1 = _p(g[yy, x + 1], p_unknown) if 0 <= x + 1 < nx else p_unknown
+            c2 = _p(g[yy, x + 2], p_unknown) if 0 <= x + 2 < nx else p_unknown
+            c3 = _p(g[yy, x + 3], p_unknown) if 0 <= x + 3 < nx else p_unknown
+        else:
+            c0 = c1 = c2 = c3 = p_unknown
+        r = wu0 * c0 + wu1 * c1 + wu2 * c2 + wu3 * c3
+        e = du0 * c0 + du1 * c1 + du2 * c2 + du3 * c3
+        val += wv * r
+        gu += wv * e
+        gv += dv * r
     return val, gu, gv
 
 
 @njit(cache=True)
-def _normal_equations(g, p_min, ox, oy, res, pts, pose, prior, s_occ, w_t, w_r, H, b):  # type: ignore[no-untyped-def]
+def _normal_equations(g, p_unknown, ox, oy, res, pts, pose, prior, s_occ, w_t, w_r, H, b):  # type: ignore[no-untyped-def]
     """Cost 0.5 * sum r^2 at `pose`; fills H = J^T J and b = J^T r (3x3, 3).
     With s_occ = 1, w_t = w_r = 0 these are the bare occupancy terms."""
     c = math.cos(pose[2])
@@ -450,7 +458,7 @@ def _normal_equations(g, p_min, ox, oy, res, pts, pose, prior, s_occ, w_t, w_r, 
         ry = s * pts[i, 0] + c * pts[i, 1]
         u = (pose[0] + rx - ox) / res - 0.5
         v = (pose[1] + ry - oy) / res - 0.5
-        p, pu, pv = _bicubic(g, p_min, u, v)
+        p, pu, pv = _bicubic(g, p_unknown, u, v)
         r = s_occ * (1.0 - p)
         j0 = -s_occ * pu / res
         j1 = -s_occ * pv / res
@@ -502,8 +510,23 @@ def _solve3(A, y):  # type: ignore[no-untyped-def]
 
 
 @njit(cache=True)
-def _levenberg_marquardt(g, p_min, ox, oy, res, pts, pose0, prior, s_occ, w_t, w_r,  # type: ignore[no-untyped-def]
-                         max_iterations, step_tol_m, step_tol_rad, cost_tol):
+def _levenberg_marquardt(
+    g,
+    p_unknown,
+    ox,
+    oy,
+    res,
+    pts,
+    pose0,
+    prior,
+    s_occ,
+    w_t,
+    w_r,  # type: ignore[no-untyped-def]
+    max_iterations,
+    step_tol_m,
+    step_tol_rad,
+    cost_tol,
+):
     """Minimize the refinement cost from pose0; returns (pose, cost, iterations, converged)."""
     H = np.empty((3, 3))
     b = np.empty(3)
@@ -511,7 +534,7 @@ def _levenberg_marquardt(g, p_min, ox, oy, res, pts, pose0, prior, s_occ, w_t, w
     bn = np.empty(3)
     A = np.empty((3, 3))
     pose = pose0.copy()
-    cost = _normal_equations(g, p_min, ox, oy, res, pts, pose, prior, s_occ, w_t, w_r, H, b)
+    cost = _normal_equations(g, p_unknown, ox, oy, res, pts, pose, prior, s_occ, w_t, w_r, H, b)
     lam = 1e-4
     converged = False
     it = 0
@@ -523,10 +546,14 @@ def _levenberg_marquardt(g, p_min, ox, oy, res, pts, pose0, prior, s_occ, w_t, w
             A[i, i] += lam * H[i, i] + 1e-12
         delta = _solve3(A, -b)
         cand = pose + delta
-        new_cost = _normal_equations(g, p_min, ox, oy, res, pts, cand, prior, s_occ, w_t, w_r,
-                                     Hn, bn)
-        small = abs(delta[0]) < step_tol_m and abs(delta[1]) < step_tol_m and \
-            abs(delta[2]) < step_tol_rad
+        new_cost = _normal_equations(
+            g, p_unknown, ox, oy, res, pts, cand, prior, s_occ, w_t, w_r, Hn, bn
+        )
+        small = (
+            abs(delta[0]) < step_tol_m
+            and abs(delta[1]) < step_tol_m
+            and abs(delta[2]) < step_tol_rad
+        )
         if new_cost <= cost:
             decrease = cost - new_cost
             pose = cand
@@ -548,8 +575,8 @@ def _levenberg_marquardt(g, p_min, ox, oy, res, pts, pose0, prior, s_occ, w_t, w
 
 
 @njit(cache=True)
-def _mean_cell_probability(g, p_min, ox, oy, res, pts, pose):  # type: ignore[no-untyped-def]
-    """Mean probability of the cells the points fall in (unknown/outside -> p_min)."""
+def _mean_cell_probability(g, p_unknown, ox, oy, res, pts, pose):  # type: ignore[no-untyped-def]
+    """Mean probability of the cells the points fall in (unknown/outside -> p_unknown)."""
     ny, nx = g.shape
     c = math.cos(pose[2])
     s = math.sin(pose[2])
@@ -557,9 +584,9 @@ def _mean_cell_probability(g, p_min, ox, oy, res, pts, pose):  # type: ignore[no
     for i in range(pts.shape[0]):
         x = int(math.floor((pose[0] + c * pts[i, 0] - s * pts[i, 1] - ox) / res))
         y = int(math.floor((pose[1] + s * pts[i, 0] + c * pts[i, 1] - oy) / res))
-        v = p_min
+        v = p_unknown
         if 0 <= x < nx and 0 <= y < ny:
-            v = max(g[y, x], p_min)
+            v = _p(g[y, x], p_unknown)
         acc += v
     return acc / max(pts.shape[0], 1)
 
@@ -598,6 +625,7 @@ class CeresLikeRefiner:
         step_tolerance_m: float = 1e-4,
         step_tolerance_rad: float = 1e-4,
         cost_tolerance: float = 1e-6,
+        unknown_probability: float | None = None,
     ) -> None:
         if occupied_space_weight <= 0.0 or translation_weight < 0.0 or rotation_weight < 0.0:
             raise ConfigError("refiner weights must be >= 0 (occupied_space_weight > 0)")
@@ -610,6 +638,7 @@ class CeresLikeRefiner:
         self.step_tolerance_m = float(step_tolerance_m)
         self.step_tolerance_rad = float(step_tolerance_rad)
         self.cost_tolerance = float(cost_tolerance)
+        self.unknown_probability = unknown_probability
 
     def refine(
         self,
@@ -625,20 +654,32 @@ class CeresLikeRefiner:
             raise CollabSlamError(f"refinement needs >= 3 finite points, got {len(pts)}")
         pose0 = np.asarray(initial_pose, dtype=np.float64).reshape(3).copy()
         prior = pose0 if prior_pose is None else np.asarray(prior_pose, np.float64).reshape(3)
-        g, p_min = grid.data, grid.min_probability
+        g, p_unknown = grid.data, _unknown(grid, self.unknown_probability)
         ox, oy = (float(v) for v in grid.origin_xy)
         res = grid.resolution
         n = len(pts)
         pose, cost, iterations, converged = _levenberg_marquardt(
-            g, p_min, ox, oy, res, pts, pose0, prior,
-            self.occupied_space_weight / math.sqrt(n), self.translation_weight,
-            self.rotation_weight, self.max_iterations, self.step_tolerance_m,
-            self.step_tolerance_rad, self.cost_tolerance,
+            g,
+            p_unknown,
+            ox,
+            oy,
+            res,
+            pts,
+            pose0,
+            prior,
+            self.occupied_space_weight / math.sqrt(n),
+            self.translation_weight,
+            self.rotation_weight,
+            self.max_iterations,
+            self.step_tolerance_m,
+            self.step_tolerance_rad,
+            self.cost_tolerance,
         )
         info = np.empty((3, 3))
         scratch = np.empty(3)
-        half_ss = _normal_equations(g, p_min, ox, oy, res, pts, pose, pose, 1.0, 0.0, 0.0,
-                                    info, scratch)
+        half_ss = _normal_equations(
+            g, p_unknown, ox, oy, res, pts, pose, pose, 1.0, 0.0, 0.0, info, scratch
+        )
         pose[2] = float(wrap_angle(pose[2]))
         return RefineResult(
             pose=pose,
@@ -719,10 +760,10 @@ class ScanMatcher:
             raise CollabSlamError(f"predicted pose must be finite, got {pred}")
         pts = _finite_points(points_sensor, "points_sensor")
         if len(pts) < self.min_num_points:
-            logger.warning("scan has %d finite points (< %d): not matched", len(pts),
-                           self.min_num_points)
-            return MatchResult(pred.copy(), 0.0, np.linalg.inv(self.prior_information), 0,
-                               False)
+            logger.warning(
+                "scan has %d finite points (< %d): not matched", len(pts), self.min_num_points
+            )
+            return MatchResult(pred.copy(), 0.0, np.linalg.inv(self.prior_information), 0, False)
         initial, prior, corr_score, found = pred, pred, math.nan, True
         if self.use_correlative:
             corr = self.correlative.match(grid, pts, pred)
@@ -737,10 +778,12 @@ class ScanMatcher:
         covariance = np.linalg.inv(info)
         covariance = 0.5 * (covariance + covariance.T)
         ox, oy = (float(v) for v in grid.origin_xy)
-        score = _mean_cell_probability(grid.data, grid.min_probability, ox, oy,
-                                       grid.resolution, pts, ref.pose)
-        return MatchResult(ref.pose, float(score), covariance, ref.iterations,
-                           ref.converged and found, corr_score)
+        score = _mean_cell_probability(
+            grid.data, grid.min_probability, ox, oy, grid.resolution, pts, ref.pose
+        )
+        return MatchResult(
+            ref.pose, float(score), covariance, ref.iterations, ref.converged and found, corr_score
+        )
 
 
 _default_matcher: ScanMatcher | None = None

@@ -51,9 +51,14 @@ class KeyframeStore:
             return []
         if kf.seq > r.next_seq:
             if len(r.held) >= self.reorder_window:
-                log.error("robot %s: reorder window full (%d held, waiting for seq %d); "
-                          "dropped seq %d (it will be resent)", kf.robot_id, len(r.held),
-                          r.next_seq, kf.seq)
+                log.error(
+                    "robot %s: reorder window full (%d held, waiting for seq %d); "
+                    "dropped seq %d (it will be resent)",
+                    kf.robot_id,
+                    len(r.held),
+                    r.next_seq,
+                    kf.seq,
+                )
                 return []
             r.held[kf.seq] = kf
             return []
@@ -62,8 +67,12 @@ class KeyframeStore:
             ready.append(r.held.pop(r.next_seq + len(ready)))
         for k in ready:
             if r.stamps and k.stamp < r.stamps[-1]:
-                log.warning("robot %s: keyframe %d stamp %.3f is before the previous one",
-                            k.robot_id, k.seq, k.stamp)
+                log.warning(
+                    "robot %s: keyframe %d stamp %.3f is before the previous one",
+                    k.robot_id,
+                    k.seq,
+                    k.stamp,
+                )
             r.stamps.append(k.stamp)
             r.poses_odom.append(pose7_to_pose4(k.pose_odom))
             r.keyframes.append(k)

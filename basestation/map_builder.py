@@ -61,19 +61,29 @@ class MapBuilder:
             before = np.array([self._inserted[keys[i]] for i in old])
             d_xy = np.hypot(*(poses[old, :2] - before[:, :2]).T)
             d_th = np.abs(wrap_angle(poses[old, 2] - before[:, 2]))
-            moved = bool(np.any(d_xy > self.cfg.pose_moved_m)
-                         or np.any(d_th > self.cfg.pose_moved_rad))
-        todo = range(len(keys)) if (moved or self.grid is None) else [
-            i for i, k in enumerate(keys) if k not in self._inserted]
+            moved = bool(
+                np.any(d_xy > self.cfg.pose_moved_m) or np.any(d_th > self.cfg.pose_moved_rad)
+            )
+        todo = (
+            range(len(keys))
+            if (moved or self.grid is None)
+            else [i for i, k in enumerate(keys) if k not in self._inserted]
+        )
         todo = list(todo)
         if not todo:
             return False
         lo, hi = self._extent([scans[i] for i in todo], poses[todo])
         c = self.cfg
         if self.grid is None:
-            self.grid = OccupancyGrid.from_bounds(lo - 1.0, hi + 1.0, c.resolution_m,
-                                                  p_hit=c.p_hit, p_miss=c.p_miss,
-                                                  p_min=c.p_min, p_max=c.p_max)
+            self.grid = OccupancyGrid.from_bounds(
+                lo - 1.0,
+                hi + 1.0,
+                c.resolution_m,
+                p_hit=c.p_hit,
+                p_miss=c.p_miss,
+                p_min=c.p_min,
+                p_max=c.p_max,
+            )
         else:
             self.grid.grow_to_include(lo, hi, 1.0)
         if moved:
@@ -82,12 +92,17 @@ class MapBuilder:
             self.full_renders += 1
         for i in todo:
             r, a = self._beams(scans[i])
-            self.grid.insert_scan(poses[i], r, a, 0.0, scans[i].range_max,
-                                  max_free_range=c.max_free_range_m)
+            self.grid.insert_scan(
+                poses[i], r, a, 0.0, scans[i].range_max, max_free_range=c.max_free_range_m
+            )
             self._inserted[keys[i]] = poses[i].copy()
         self.last_render_ms = (time.perf_counter() - t0) * 1e3
-        log.debug("map: inserted %d keyframes (%s) in %.1f ms", len(todo),
-                  "full re-render" if moved else "incremental", self.last_render_ms)
+        log.debug(
+            "map: inserted %d keyframes (%s) in %.1f ms",
+            len(todo),
+            "full re-render" if moved else "incremental",
+            self.last_render_ms,
+        )
         return moved
 
     def gridmap(self) -> GridMap | None:

@@ -51,9 +51,13 @@ class BaseStationNode:
         self.map = MapBuilder(cfg.map)
         self.inbox: queue.Queue[Keyframe] = queue.Queue()
         self.states: dict[str, RobotState] = {}
+        # With a scenario the roster is closed (other robot ids are dropped) and start
+        # poses are known; without one, any robot may join with a floating chain.
         self.known_starts: dict[str, np.ndarray] = {}
+        self.roster: set[str] | None = None
         if scenario is not None:
             self.known_starts = {r.robot_id: r.start_pose for r in scenario.robots}
+            self.roster = set(self.known_starts)
         self.epoch = 0
         self.unknown_robot_drops = 0
         self.update_ms: list[float] = []
@@ -63,8 +67,9 @@ class BaseStationNode:
 
     # --- wiring -------------------------------------------------------------------------
     def start(self) -> None:
-        self.bus.subscribe(self.keys.all_robots("keyframe"), Keyframe,
-                           lambda m, k: self.inbox.put(m))
+        self.bus.subscribe(
+            self.keys.all_robots("keyframe"), Keyframe, lambda m, k: self.inbox.put(m)
+        )
         self.bus.subscribe(self.keys.all_robots("state"), RobotState, self._on_state)
         self.bus.watch_alive("agent", self._on_agent_alive)
         self.bus.declare_alive("basestation", "base")
@@ -85,8 +90,9 @@ class BaseStationNode:
         """Process one batch of received keyframes; returns how many were admitted."""
         batch: list[Keyframe] = []
         try:
-            batch.append(self.inbox.get(timeout=timeout) if timeout > 0 else
-                         self.inbox.get_nowait())
+            batch.append(
+                self.inbox.get(timeout=timeout) if timeout > 0 else self.inbox.get_nowait()
+            )
             while len(batch) < self.cfg.basestation.batch_max:
                 batch.append(self.inbox.get_nowait())
         except queue.Empty:
@@ -103,11 +109,15 @@ class BaseStationNode:
         admitted = 0
         for kf in batch:
             rid = kf.robot_id
-            if rid not in self.known_starts:
+            if self.roster is not None and rid not in self.roster:
                 self.unknown_robot_drops += 1
                 if self.unknown_robot_drops <= 20 or self.unknown_robot_drops % 1000 == 0:
-                    log.error("keyframe from unknown robot %r dropped (%d so far); known: %s",
-                              rid, self.unknown_robot_drops, sorted(self.known_starts))
+                    log.error(
+                        "keyframe from unknown robot %r dropped (%d so far); known: %s",
+                        rid,
+                        self.unknown_robot_drops,
+                        sorted(self.roster),
+                    )
                 continue
             touched.add(rid)
             for k in self.store.admit(kf):
@@ -129,7 +139,7 @@ class BaseStationNode:
     def _add_to_graph(self, kf: Keyframe) -> None:
         rid = kf.robot_id
         if kf.seq == 0:
-            start = self.known_starts[rid]
+            start = self.known_starts.get(rid)  # None: unknown start, floating chain
             self.graph.add_robot(rid, start)
             self.graph.add_node(rid, 0, None, None, initial_guess=start)
             return
@@ -148,9 +158,15 @@ class BaseStationNode:
             T_map_base = self.graph.pose(rid, idx)
             T_odom_base = r.poses_odom[idx][[0, 1, 3]]
             T_map_odom = se2_compose(T_map_base, se2_inverse(T_odom_base))
-            self.bus.publish(self.keys.robot(rid, "correction"), PoseCorrection(
-                rid, self.epoch, stamp,
-                pose4_to_pose7([T_map_odom[0], T_map_odom[1], 0.0, T_map_odom[2]])))
+            self.bus.publish(
+                self.keys.robot(rid, "correction"),
+                PoseCorrection(
+                    rid,
+                    self.epoch,
+                    stamp,
+                    pose4_to_pose7([T_map_odom[0], T_map_odom[1], 0.0, T_map_odom[2]]),
+                ),
+            )
 
     def _all_keyframes(self) -> tuple[list[tuple[str, int]], list[Any], np.ndarray]:
         keys, scans, poses = [], [], []
@@ -192,9 +208,13 @@ class BaseStationNode:
         upd = np.array(self.update_ms) if self.update_ms else np.zeros(1)
         return {
             "robots": {
-                rid: {"keyframes_in_graph": self.graph.num_nodes(rid)
-                      if rid in self.graph.robots() else 0,
-                      "duplicates": r.duplicates, "held_out_of_order": len(r.held)}
+                rid: {
+                    "keyframes_in_graph": self.graph.num_nodes(rid)
+                    if rid in self.graph.robots()
+                    else 0,
+                    "duplicates": r.duplicates,
+                    "held_out_of_order": len(r.held),
+                }
                 for rid, r in self.store.robots.items()
             },
             "unknown_robot_drops": self.unknown_robot_drops,
@@ -217,7 +237,8 @@ class BaseStationNode:
         if grid is not None:
             write_map(grid, out / "map.yaml", "map.pgm")
             render_map_picture(
-                out / "map.png", grid,
+                out / "map.png",
+                grid,
                 trajectories={rid: t.positions[:, :2] for rid, t in trajs.items()},
                 robots={rid: t.poses_se2()[-1] for rid, t in trajs.items() if len(t)},
                 title=f"collabslam map: {len(trajs)} robots",

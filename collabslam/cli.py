@@ -18,14 +18,21 @@ log = logging.getLogger("collabslam")
 
 
 def _version() -> str:
+    from importlib.metadata import version
+
     import gtsam  # noqa: F401  (the check: every core library imports)
     import ompl.base  # noqa: F401
     import zenoh
 
-    from importlib.metadata import version
-
-    libs = {n: version(d) for n, d in (("gtsam", "gtsam"), ("ompl", "ompl"),
-                                        ("zenoh", "eclipse-zenoh"), ("numpy", "numpy"))}
+    libs = {
+        n: version(d)
+        for n, d in (
+            ("gtsam", "gtsam"),
+            ("ompl", "ompl"),
+            ("zenoh", "eclipse-zenoh"),
+            ("numpy", "numpy"),
+        )
+    }
     del zenoh
     return f"collabslam {__version__} (" + ", ".join(f"{k} {v}" for k, v in libs.items()) + ")"
 
@@ -86,6 +93,8 @@ def cmd_agent(args: argparse.Namespace) -> int:
     import numpy as np
 
     from agent.node import AgentNode
+    from agent.sensor_sources import CarmenReplay, ZenohSensors
+    from agent.vehicle import NullVehicle
     from common.scenario import read_scenario
     from common.shutdown import install_signal_handlers
 
@@ -99,14 +108,32 @@ def cmd_agent(args: argparse.Namespace) -> int:
     stop = threading.Event()
     install_signal_handlers(stop)
     with _bus(cfg) as bus:
-        node = AgentNode(cfg, args.robot_id, bus, tour, T_map_odom)
+        if args.replay:
+            source = CarmenReplay(args.replay, args.robot_id, _segment(args.segment))
+            node = AgentNode(cfg, args.robot_id, bus, tour, T_map_odom, NullVehicle())
+        else:
+            source = ZenohSensors(bus, args.robot_id)
+            node = AgentNode(cfg, args.robot_id, bus, tour, T_map_odom)
         node.start()
         log.info("agent %s running", args.robot_id)
-        node.run(stop)
+        node.run(source, stop)
         node.drain(cfg.agent.drain_timeout_s)
         if args.out:
             node.write_stats(Path(args.out) / "agents" / f"{args.robot_id}.json")
     return 0
+
+
+def _segment(text: str | None) -> tuple[float | None, float | None]:
+    """'START:END' in log time (s); either side may be empty."""
+    if not text:
+        return None, None
+    a, sep, b = text.partition(":")
+    try:
+        if not sep:
+            raise ValueError
+        return (float(a) if a else None, float(b) if b else None)
+    except ValueError:
+        raise ConfigError(f"--segment {text!r}: expected START:END in seconds") from None
 
 
 def cmd_basestation(args: argparse.Namespace) -> int:
@@ -138,8 +165,10 @@ def cmd_run(args: argparse.Namespace) -> int:
     install_signal_handlers(launcher.stop)
     summary = launcher.run()
     print(json.dumps(summary, indent=1))
-    print(f"\nresults in {out.resolve()}: map.png, map.pgm/.yaml, trajectories/, "
-          f"ground_truth/, summary.json, config.toml, logs/")
+    print(
+        f"\nresults in {out.resolve()}: map.png, map.pgm/.yaml, trajectories/, "
+        f"ground_truth/, summary.json, config.toml, logs/"
+    )
     return 0
 
 
@@ -151,13 +180,26 @@ def build_parser() -> argparse.ArgumentParser:
 
     def common(sp: argparse.ArgumentParser, zenoh: bool = True) -> None:
         sp.add_argument("--config", help="TOML config file (defaults are built in)")
-        sp.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
-                        help="override one config key, e.g. --set sim.seed=3")
+        sp.add_argument(
+            "--set",
+            action="append",
+            default=[],
+            metavar="KEY=VALUE",
+            help="override one config key, e.g. --set sim.seed=3",
+        )
         if zenoh:
-            sp.add_argument("--listen", action="append", metavar="ENDPOINT",
-                            help="Zenoh endpoint to listen on, e.g. tcp/127.0.0.1:7447")
-            sp.add_argument("--connect", action="append", metavar="ENDPOINT",
-                            help="Zenoh endpoint to connect to")
+            sp.add_argument(
+                "--listen",
+                action="append",
+                metavar="ENDPOINT",
+                help="Zenoh endpoint to listen on, e.g. tcp/127.0.0.1:7447",
+            )
+            sp.add_argument(
+                "--connect",
+                action="append",
+                metavar="ENDPOINT",
+                help="Zenoh endpoint to connect to",
+            )
 
     sp = sub.add_parser("sim", help="run the simulator process")
     common(sp)
@@ -171,6 +213,10 @@ def build_parser() -> argparse.ArgumentParser:
     sp.add_argument("--robot-id", required=True)
     sp.add_argument("--scenario", help="scenario JSON (tour and known start pose)")
     sp.add_argument("--out", help="folder for the agent's statistics")
+    sp.add_argument(
+        "--replay", metavar="LOG", help="replay a CARMEN .clf/.clf.bz2 log instead of live sensors"
+    )
+    sp.add_argument("--segment", metavar="START:END", help="with --replay: log time window (s)")
     sp.set_defaults(func=cmd_agent)
 
     sp = sub.add_parser("basestation", help="run the base-station daemon")

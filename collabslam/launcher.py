@@ -56,8 +56,15 @@ def make_scenario(cfg: Config, world_yaml: Path, n_robots: int) -> Scenario:
 
 
 class Launcher:
-    def __init__(self, cfg: Config, world: str, n_robots: int, out: Path,
-                 max_sim_time: float, log_level: str = "INFO") -> None:
+    def __init__(
+        self,
+        cfg: Config,
+        world: str,
+        n_robots: int,
+        out: Path,
+        max_sim_time: float,
+        log_level: str = "INFO",
+    ) -> None:
         if n_robots < 1:
             raise ProcessError("--robots must be at least 1")
         self.cfg = cfg
@@ -75,8 +82,14 @@ class Launcher:
         f = open(logs / f"{name}.log", "wb")  # noqa: SIM115 - closed in _close_logs
         cmd = [sys.executable, "-m", "collabslam.cli", "--log-level", self.log_level, *args]
         env = dict(os.environ, PYTHONUNBUFFERED="1")
-        proc = subprocess.Popen(cmd, stdout=f, stderr=subprocess.STDOUT, env=env,
-                                stdin=subprocess.DEVNULL, start_new_session=True)
+        proc = subprocess.Popen(
+            cmd,
+            stdout=f,
+            stderr=subprocess.STDOUT,
+            env=env,
+            stdin=subprocess.DEVNULL,
+            start_new_session=True,
+        )
         child = Child(name, proc, f)
         self.children.append(child)
         log.info("started %s (pid %d)", name, proc.pid)
@@ -88,16 +101,46 @@ class Launcher:
         scenario = make_scenario(self.cfg, self.world_yaml, self.n_robots)
         write_scenario(self.out / "scenario.json", scenario)
         dump_config(self.cfg, self.out / "config.toml")
-        common = ["--config", str(self.out / "config.toml"),
-                  "--scenario", str(self.out / "scenario.json"), "--out", str(self.out)]
+        common = [
+            "--config",
+            str(self.out / "config.toml"),
+            "--scenario",
+            str(self.out / "scenario.json"),
+            "--out",
+            str(self.out),
+        ]
         base_ep, sim_ep = endpoint(free_port()), endpoint(free_port())
         try:
             base = self._spawn("basestation", ["basestation", *common, "--listen", base_ep])
-            sim = self._spawn("sim", ["sim", *common, "--listen", sim_ep, "--connect", base_ep,
-                                      "--max-sim-time", str(self.max_sim_time)])
-            agents = [self._spawn(r.robot_id, ["agent", *common, "--robot-id", r.robot_id,
-                                               "--connect", sim_ep, "--connect", base_ep])
-                      for r in scenario.robots]
+            sim = self._spawn(
+                "sim",
+                [
+                    "sim",
+                    *common,
+                    "--listen",
+                    sim_ep,
+                    "--connect",
+                    base_ep,
+                    "--max-sim-time",
+                    str(self.max_sim_time),
+                ],
+            )
+            agents = [
+                self._spawn(
+                    r.robot_id,
+                    [
+                        "agent",
+                        *common,
+                        "--robot-id",
+                        r.robot_id,
+                        "--connect",
+                        sim_ep,
+                        "--connect",
+                        base_ep,
+                    ],
+                )
+                for r in scenario.robots
+            ]
             self._supervise_until(sim, [base, *agents])
             for a in agents:
                 a.proc.send_signal(signal.SIGINT)
@@ -108,8 +151,9 @@ class Launcher:
             self._terminate_all()
         from collabslam.summary import build_summary
 
-        summary = build_summary(self.out, self.world_yaml, scenario.robot_ids,
-                                time.monotonic() - t0)
+        summary = build_summary(
+            self.out, self.world_yaml, scenario.robot_ids, time.monotonic() - t0
+        )
         (self.out / "summary.json").write_text(json.dumps(summary, indent=1))
         return summary
 
@@ -133,8 +177,10 @@ class Launcher:
             time.sleep(0.2)
 
     def _died(self, c: Child, rc: int) -> str:
-        return (f"{c.name} (pid {c.proc.pid}) exited with code {rc}; "
-                f"see {self.out / 'logs' / (c.name + '.log')}")
+        return (
+            f"{c.name} (pid {c.proc.pid}) exited with code {rc}; "
+            f"see {self.out / 'logs' / (c.name + '.log')}"
+        )
 
     def _wait(self, children: list[Child], timeout: float) -> None:
         deadline = time.monotonic() + timeout

@@ -19,8 +19,9 @@ def _load(path: Path) -> dict[str, Any]:
     return json.loads(path.read_text()) if path.is_file() else {}
 
 
-def build_summary(out: Path, world_yaml: Path, robot_ids: list[str],
-                  wall_time_s: float) -> dict[str, Any]:
+def build_summary(
+    out: Path, world_yaml: Path, robot_ids: list[str], wall_time_s: float
+) -> dict[str, Any]:
     sim = _load(out / "simulator.json")
     base = _load(out / "basestation.json")
     robots = []
@@ -35,17 +36,19 @@ def build_summary(out: Path, world_yaml: Path, robot_ids: list[str],
             except CollabSlamError as exc:
                 log.warning("no ATE for %s: %s", rid, exc)
         sim_r = sim.get("robots", {}).get(rid, {})
-        robots.append({
-            "id": rid,
-            "keyframes_sent": agent.get("keyframes_sent", 0),
-            "keyframes_acked": agent.get("keyframes_acked", 0),
-            "keyframes_in_graph": in_graph,
-            "keyframes_resent": agent.get("keyframes_resent", 0),
-            "distance_m": sim_r.get("distance_m", 0.0),
-            "collisions": sim_r.get("collisions", 0),
-            "min_clearance_m": sim_r.get("min_clearance_m"),
-            "ate_rmse_m": ate,
-        })
+        robots.append(
+            {
+                "id": rid,
+                "keyframes_sent": agent.get("keyframes_sent", 0),
+                "keyframes_acked": agent.get("keyframes_acked", 0),
+                "keyframes_in_graph": in_graph,
+                "keyframes_resent": agent.get("keyframes_resent", 0),
+                "distance_m": sim_r.get("distance_m", 0.0),
+                "collisions": sim_r.get("collisions", 0),
+                "min_clearance_m": sim_r.get("min_clearance_m"),
+                "ate_rmse_m": ate,
+            }
+        )
     coverage = accuracy = None
     if (out / "map.yaml").is_file():
         world, grid = read_map(world_yaml), read_map(out / "map.yaml")

@@ -82,17 +82,20 @@ class Bus:
             if pub is None:
                 pub = self.session.declare_publisher(
                     key,
-                    reliability=zenoh.Reliability.RELIABLE if reliable
+                    reliability=zenoh.Reliability.RELIABLE
+                    if reliable
                     else zenoh.Reliability.BEST_EFFORT,
-                    congestion_control=zenoh.CongestionControl.BLOCK if reliable
+                    congestion_control=zenoh.CongestionControl.BLOCK
+                    if reliable
                     else zenoh.CongestionControl.DROP,
                 )
                 self._publishers[key] = pub
         pub.put(payload)
 
     # --- subscribing --------------------------------------------------------------------
-    def subscribe(self, key_expr: str, msg_type: type[M],
-                  handler: Callable[[M, str], None]) -> None:
+    def subscribe(
+        self, key_expr: str, msg_type: type[M], handler: Callable[[M, str], None]
+    ) -> None:
         """Decode each sample as `msg_type` and call handler(msg, key).
 
         Samples on a robot key must carry that robot's id; bad samples are dropped.

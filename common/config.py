@@ -252,9 +252,12 @@ def validate(cfg: Config) -> None:
         raise ConfigError(f"sim.clock: expected lockstep or realtime, got {cfg.sim.clock!r}")
     las = cfg.sim.laser
     for key, v in [
-        ("sim.rate", cfg.sim.rate), ("sim.laser.beams", las.beams),
-        ("sim.laser.fov_deg", las.fov_deg), ("sim.laser.range_max_m", las.range_max_m),
-        ("sim.laser.rate_hz", las.rate_hz), ("sim.lockstep_timeout_s", cfg.sim.lockstep_timeout_s),
+        ("sim.rate", cfg.sim.rate),
+        ("sim.laser.beams", las.beams),
+        ("sim.laser.fov_deg", las.fov_deg),
+        ("sim.laser.range_max_m", las.range_max_m),
+        ("sim.laser.rate_hz", las.rate_hz),
+        ("sim.lockstep_timeout_s", cfg.sim.lockstep_timeout_s),
         ("sim.quadrotor.max_speed_mps", cfg.sim.quadrotor.max_speed_mps),
         ("sim.quadrotor.max_accel_mps2", cfg.sim.quadrotor.max_accel_mps2),
         ("sim.quadrotor.radius_m", cfg.sim.quadrotor.radius_m),

@@ -34,8 +34,10 @@ class Scenario:
         for r in self.robots:
             if r.robot_id == robot_id:
                 return r
-        raise FileFormatError(f"robot {robot_id!r} is not in the scenario "
-                              f"({', '.join(r.robot_id for r in self.robots)})")
+        raise FileFormatError(
+            f"robot {robot_id!r} is not in the scenario "
+            f"({', '.join(r.robot_id for r in self.robots)})"
+        )
 
     @property
     def robot_ids(self) -> list[str]:
@@ -47,8 +49,11 @@ def write_scenario(path: str | Path, sc: Scenario) -> None:
         "world": sc.world,
         "seed": sc.seed,
         "robots": [
-            {"id": r.robot_id, "start_pose": [float(v) for v in r.start_pose],
-             "tour": np.asarray(r.tour, dtype=float).tolist()}
+            {
+                "id": r.robot_id,
+                "start_pose": [float(v) for v in r.start_pose],
+                "tour": np.asarray(r.tour, dtype=float).tolist(),
+            }
             for r in sc.robots
         ],
     }

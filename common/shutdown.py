@@ -19,8 +19,7 @@ def install_signal_handlers(stop: threading.Event) -> None:
         if stop.is_set():
             log.warning("second %s: forcing exit", signal.Signals(signum).name)
             os._exit(130)
-        log.info("%s received: shutting down (send again to force)",
-                 signal.Signals(signum).name)
+        log.info("%s received: shutting down (send again to force)", signal.Signals(signum).name)
         stop.set()
 
     signal.signal(signal.SIGINT, handler)

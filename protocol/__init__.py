@@ -19,7 +19,22 @@ from protocol.messages import (
 )
 
 __all__ = [
-    "DEFAULT_MAX_BYTES", "SCHEMA_VERSION", "decode", "encode", "Keys",
-    "Altimeter", "Cloud3D", "Goal", "Imu", "Keyframe", "KeyframeAck", "LaserScan", "Odometry",
-    "Path", "PoseCorrection", "RobotState", "Scan2D", "VehicleCommand",
+    "DEFAULT_MAX_BYTES",
+    "SCHEMA_VERSION",
+    "decode",
+    "encode",
+    "Keys",
+    "Altimeter",
+    "Cloud3D",
+    "Goal",
+    "Imu",
+    "Keyframe",
+    "KeyframeAck",
+    "LaserScan",
+    "Odometry",
+    "Path",
+    "PoseCorrection",
+    "RobotState",
+    "Scan2D",
+    "VehicleCommand",
 ]

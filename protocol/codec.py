@@ -79,21 +79,27 @@ def encode(msg: Any) -> bytes:
     name = type(msg).__name__
     if _REGISTRY.get(name) is not type(msg):
         raise ProtocolError(f"cannot encode {name}: not a registered protocol message")
-    return msgpack.packb(
-        {"v": SCHEMA_VERSION, "t": name, "d": _to_wire(msg)}, use_bin_type=True
-    )
+    return msgpack.packb({"v": SCHEMA_VERSION, "t": name, "d": _to_wire(msg)}, use_bin_type=True)
 
 
-def decode(payload: bytes | bytearray | memoryview, expected: type[T] | None = None,
-           max_bytes: int = DEFAULT_MAX_BYTES) -> T:
+def decode(
+    payload: bytes | bytearray | memoryview,
+    expected: type[T] | None = None,
+    max_bytes: int = DEFAULT_MAX_BYTES,
+) -> T:
     """Decode and validate one message; `expected` restricts the accepted type."""
     n = len(payload)
     if n > max_bytes:
         raise ProtocolError(f"message of {n} bytes exceeds the limit of {max_bytes} bytes")
     try:
         env = msgpack.unpackb(
-            bytes(payload), raw=False, strict_map_key=True, max_bin_len=max_bytes,
-            max_str_len=1 << 16, max_array_len=1 << 20, max_map_len=1 << 10,
+            bytes(payload),
+            raw=False,
+            strict_map_key=True,
+            max_bin_len=max_bytes,
+            max_str_len=1 << 16,
+            max_array_len=1 << 20,
+            max_map_len=1 << 10,
         )
     except Exception as exc:  # msgpack raises several unrelated exception types
         raise ProtocolError(f"malformed msgpack: {exc}") from None
@@ -130,8 +136,10 @@ def _from_wire(cls: type, data: Any, path: str) -> Any:
     if extra:
         raise ProtocolError(f"{path}: unknown fields {sorted(extra)}")
     hints = _hints(cls)
-    kwargs = {name: _field_from_wire(f, hints[name], data[name], f"{path}.{name}")
-              for name, f in fields.items()}
+    kwargs = {
+        name: _field_from_wire(f, hints[name], data[name], f"{path}.{name}")
+        for name, f in fields.items()
+    }
     return cls(**kwargs)
 
 
@@ -173,8 +181,12 @@ def _value_from_wire(hint: Any, value: Any, path: str) -> Any:
 
 
 def _array_from_wire(meta: dict, value: Any, path: str) -> np.ndarray:
-    if (not isinstance(value, list) or len(value) != 2 or not isinstance(value[0], list)
-            or not isinstance(value[1], bytes)):
+    if (
+        not isinstance(value, list)
+        or len(value) != 2
+        or not isinstance(value[0], list)
+        or not isinstance(value[1], bytes)
+    ):
         raise ProtocolError(f"{path}: expected [shape, bytes] for an array")
     shape, raw = value
     spec: tuple[int | None, ...] = meta["shape"]

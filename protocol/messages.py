@@ -154,8 +154,9 @@ class Scan2D:
         )
 
     @staticmethod
-    def from_ranges(angle_min: float, angle_increment: float, range_max: float,
-                    ranges: np.ndarray) -> Scan2D:
+    def from_ranges(
+        angle_min: float, angle_increment: float, range_max: float, ranges: np.ndarray
+    ) -> Scan2D:
         """Quantize metres to mm; NaN/inf/>= range_max/<= 0 become 0 (no return)."""
         r = np.asarray(ranges, dtype=np.float64)
         valid = np.isfinite(r) & (r > 0.0) & (r < min(range_max, 65.0))
@@ -287,6 +288,17 @@ def message_types() -> dict[str, Any]:
     """All top-level messages (for tests and docs)."""
     return {
         c.__name__: c
-        for c in (LaserScan, Odometry, Imu, Altimeter, VehicleCommand, Keyframe, KeyframeAck,
-                  PoseCorrection, Goal, Path, RobotState)
+        for c in (
+            LaserScan,
+            Odometry,
+            Imu,
+            Altimeter,
+            VehicleCommand,
+            Keyframe,
+            KeyframeAck,
+            PoseCorrection,
+            Goal,
+            Path,
+            RobotState,
+        )
     }

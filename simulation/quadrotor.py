@@ -151,13 +151,17 @@ class Quadrotor:
         yaw-aligned body frame). Commands beyond the limits are clipped."""
         cmd = np.asarray(cmd_body, dtype=np.float64).reshape(-1)
         if cmd.shape != (4,) or not np.all(np.isfinite(cmd)):
-            raise ConfigError(f"cmd_body must be 4 finite numbers (vx, vy, vz, yaw_rate), got {cmd}")
+            raise ConfigError(
+                f"cmd_body must be 4 finite numbers (vx, vy, vz, yaw_rate), got {cmd}"
+            )
         if not (dt > 0.0 and math.isfinite(dt)):
             raise ConfigError(f"dt must be > 0, got {dt}")
 
         # Yaw: rate- and acceleration-limited.
         yaw_cmd = float(np.clip(cmd[3], -self.max_yaw_rate, self.max_yaw_rate))
-        dw = float(np.clip(yaw_cmd - self.yaw_rate, -self.max_yaw_accel * dt, self.max_yaw_accel * dt))
+        dw = float(
+            np.clip(yaw_cmd - self.yaw_rate, -self.max_yaw_accel * dt, self.max_yaw_accel * dt)
+        )
         new_yaw_rate = self.yaw_rate + dw
 
         # Velocity target in the world frame, speed limits applied.

@@ -317,7 +317,15 @@ def cast_rays(
             f"blocks were built for a {blocks.shape} grid, occupied is {occ.shape}"
         )
     _cast_blocks_kernel(
-        occ, blocks.blocks, blocks.size, gx, gy, float(pose[2]), ang, max_cells, out,
+        occ,
+        blocks.blocks,
+        blocks.size,
+        gx,
+        gy,
+        float(pose[2]),
+        ang,
+        max_cells,
+        out,
         float(resolution),
     )
     return out

@@ -61,7 +61,9 @@ class LaserModel:
         if not 0.0 < fov_rad <= 2.0 * math.pi:
             raise ConfigError(f"laser fov_rad must be in (0, 2 pi], got {fov_rad}")
         if not 0.0 <= range_min < range_max:
-            raise ConfigError(f"laser needs 0 <= range_min < range_max, got {range_min}, {range_max}")
+            raise ConfigError(
+                f"laser needs 0 <= range_min < range_max, got {range_min}, {range_max}"
+            )
         _check_nonneg(range_noise_std=range_noise_std)
         self.beams = int(beams)
         self.fov_rad = float(fov_rad)

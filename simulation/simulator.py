@@ -52,17 +52,22 @@ class SimRobot:
 
 
 class Simulator:
-    def __init__(self, cfg: Config, bus: Bus, scenario: Scenario, world: World,
-                 max_sim_time: float) -> None:
+    def __init__(
+        self, cfg: Config, bus: Bus, scenario: Scenario, world: World, max_sim_time: float
+    ) -> None:
         self.cfg = cfg
         self.bus = bus
         self.keys = bus.keys
         self.world = world
         self.max_sim_time = max_sim_time
         s = cfg.sim
-        self.laser = LaserModel(beams=s.laser.beams, fov_rad=np.radians(s.laser.fov_deg),
-                                range_min=s.laser.range_min_m, range_max=s.laser.range_max_m,
-                                range_noise_std=s.laser.range_noise_std_m)
+        self.laser = LaserModel(
+            beams=s.laser.beams,
+            fov_rad=np.radians(s.laser.fov_deg),
+            range_min=s.laser.range_min_m,
+            range_max=s.laser.range_max_m,
+            range_noise_std=s.laser.range_noise_std_m,
+        )
         self.dt = 1.0 / s.laser.rate_hz
         q = s.quadrotor
         self.robots: dict[str, SimRobot] = {}
@@ -70,18 +75,28 @@ class Simulator:
             x, y, yaw = (float(v) for v in r.start_pose)
             self.robots[r.robot_id] = SimRobot(
                 robot_id=r.robot_id,
-                vehicle=Quadrotor(np.array([x, y, q.altitude_m, yaw]), max_speed=q.max_speed_mps,
-                                  max_accel=q.max_accel_mps2,
-                                  max_vertical_speed=q.max_vertical_speed_mps,
-                                  max_yaw_rate=q.max_yaw_rate_rps, radius=q.radius_m),
-                odometry=OdometryModel(speed_noise_frac=s.odometry.speed_noise_frac,
-                                       yaw_rate_noise_std=s.odometry.yaw_rate_noise_std,
-                                       yaw_rate_bias=s.odometry.yaw_rate_bias),
-                imu=ImuModel(gyro_noise_std=s.imu.gyro_noise_std, gyro_bias=s.imu.gyro_bias,
-                             accel_noise_std=s.imu.accel_noise_std,
-                             accel_bias=s.imu.accel_bias),
-                altimeter=AltimeterModel(noise_std=s.altimeter.noise_std_m,
-                                         bias=s.altimeter.bias_m),
+                vehicle=Quadrotor(
+                    np.array([x, y, q.altitude_m, yaw]),
+                    max_speed=q.max_speed_mps,
+                    max_accel=q.max_accel_mps2,
+                    max_vertical_speed=q.max_vertical_speed_mps,
+                    max_yaw_rate=q.max_yaw_rate_rps,
+                    radius=q.radius_m,
+                ),
+                odometry=OdometryModel(
+                    speed_noise_frac=s.odometry.speed_noise_frac,
+                    yaw_rate_noise_std=s.odometry.yaw_rate_noise_std,
+                    yaw_rate_bias=s.odometry.yaw_rate_bias,
+                ),
+                imu=ImuModel(
+                    gyro_noise_std=s.imu.gyro_noise_std,
+                    gyro_bias=s.imu.gyro_bias,
+                    accel_noise_std=s.imu.accel_noise_std,
+                    accel_bias=s.imu.accel_bias,
+                ),
+                altimeter=AltimeterModel(
+                    noise_std=s.altimeter.noise_std_m, bias=s.altimeter.bias_m
+                ),
                 rng=np.random.default_rng([s.seed, i]),
             )
         self.t = 0.0
@@ -129,8 +144,7 @@ class Simulator:
                     missing = sorted(set(self.robots) - self._alive)
                     raise ProcessError(f"agents never came alive: {', '.join(missing)}")
                 self._cond.wait(0.1)
-        log.info("all %d agents alive: starting the %s clock", len(self.robots),
-                 self.cfg.sim.clock)
+        log.info("all %d agents alive: starting the %s clock", len(self.robots), self.cfg.sim.clock)
 
     # --- the clock ----------------------------------------------------------------------
     def run(self, stop: threading.Event) -> None:
@@ -166,8 +180,13 @@ class Simulator:
         if stop.is_set():
             self.end_reason = self.end_reason or "interrupted"
         self.wall_s = time.monotonic() - t_wall0
-        log.info("simulation ended at t=%.1f s (%s) after %.1f s wall (%.1fx real time)",
-                 self.t, self.end_reason, self.wall_s, self.t / max(self.wall_s, 1e-9))
+        log.info(
+            "simulation ended at t=%.1f s (%s) after %.1f s wall (%.1fx real time)",
+            self.t,
+            self.end_reason,
+            self.wall_s,
+            self.t / max(self.wall_s, 1e-9),
+        )
 
     def _wait_answers(self, stop: threading.Event) -> None:
         timeout = self.cfg.sim.lockstep_timeout_s
@@ -178,8 +197,11 @@ class Simulator:
                     return
                 if not self._cond.wait(timeout):
                     self.republished += 1
-                    log.warning("t=%.3f: no command yet from %s; re-publishing the tick",
-                                self.t, ", ".join(r.robot_id for r in late))
+                    log.warning(
+                        "t=%.3f: no command yet from %s; re-publishing the tick",
+                        self.t,
+                        ", ".join(r.robot_id for r in late),
+                    )
                     for r in late:
                         self._publish_sensors(r, self.t)
 
@@ -200,18 +222,32 @@ class Simulator:
     def _publish_sensors(self, r: SimRobot, t: float) -> None:
         v, rid, keys = r.vehicle, r.robot_id, self.keys
         odo = r.odometry
-        self.bus.publish(keys.sensor(rid, "odom"),
-                         Odometry(rid, t, pose4_to_pose7(odo.pose), np.asarray(odo.twist)))
-        w, a, q = r.imu.measure(v.angular_velocity_body, v.accel_body,
-                                v.roll, v.pitch, float(v.pose[3]), r.rng)
+        self.bus.publish(
+            keys.sensor(rid, "odom"),
+            Odometry(rid, t, pose4_to_pose7(odo.pose), np.asarray(odo.twist)),
+        )
+        w, a, q = r.imu.measure(
+            v.angular_velocity_body, v.accel_body, v.roll, v.pitch, float(v.pose[3]), r.rng
+        )
         self.bus.publish(keys.sensor(rid, "imu"), Imu(rid, t, w, a, q))
-        self.bus.publish(keys.sensor(rid, "altimeter"),
-                         Altimeter(rid, t, float(r.altimeter.measure(float(v.pose[2]), r.rng))))
+        self.bus.publish(
+            keys.sensor(rid, "altimeter"),
+            Altimeter(rid, t, float(r.altimeter.measure(float(v.pose[2]), r.rng))),
+        )
         pose = v.pose
         ranges = self.laser.measure(self.world, np.array([pose[0], pose[1], pose[3]]), r.rng)
-        self.bus.publish(keys.sensor(rid, "scan"), LaserScan(
-            rid, t, float(self.laser.angles[0]), float(self.laser.angles[1] - self.laser.angles[0]),
-            self.laser.range_min, self.laser.range_max, ranges))
+        self.bus.publish(
+            keys.sensor(rid, "scan"),
+            LaserScan(
+                rid,
+                t,
+                float(self.laser.angles[0]),
+                float(self.laser.angles[1] - self.laser.angles[0]),
+                self.laser.range_min,
+                self.laser.range_max,
+                ranges,
+            ),
+        )
 
     # --- outputs ------------------------------------------------------------------------
     def stats(self) -> dict[str, Any]:
@@ -223,9 +259,12 @@ class Simulator:
             "republished_ticks": self.republished,
             "end_reason": self.end_reason,
             "robots": {
-                rid: {"distance_m": r.vehicle.distance_travelled,
-                      "collisions": r.vehicle.collisions,
-                      "min_clearance_m": r.vehicle.min_clearance, "status": r.status}
+                rid: {
+                    "distance_m": r.vehicle.distance_travelled,
+                    "collisions": r.vehicle.collisions,
+                    "min_clearance_m": r.vehicle.min_clearance,
+                    "status": r.status,
+                }
                 for rid, r in self.robots.items()
             },
         }
@@ -234,8 +273,9 @@ class Simulator:
         out = Path(out_dir)
         for rid, r in self.robots.items():
             gt = np.array(r.gt)
-            write_tum(out / "ground_truth" / f"{rid}.tum",
-                      Trajectory.from_pose4(gt[:, 0], gt[:, 1:5]))
+            write_tum(
+                out / "ground_truth" / f"{rid}.tum", Trajectory.from_pose4(gt[:, 0], gt[:, 1:5])
+            )
         (out / "simulator.json").write_text(json.dumps(self.stats(), indent=1))
 
 

@@ -10,7 +10,6 @@ every straight segment between consecutive waypoints keeps the clearance too
 
 from __future__ import annotations
 
-import heapq
 import logging
 import math
 
@@ -146,7 +145,9 @@ def _shortcut(
             dy = pts[j + 1, 1] - pts[i, 1]
             if math.hypot(dx, dy) > max_len:
                 break
-            if not _segment_clear(field, pts[i, 0], pts[i, 1], pts[j + 1, 0], pts[j + 1, 1], thresh):
+            if not _segment_clear(
+                field, pts[i, 0], pts[i, 1], pts[j + 1, 0], pts[j + 1, 1], thresh
+            ):
                 break
             j += 1
         keep[m] = j
@@ -305,7 +306,9 @@ def plan_tours(
     for r in range(len(start_xy)):
         anchor = anchors[order[r] % len(anchors)]
         tours.append(
-            _tour(planner, places, owner, anchor, start_xy[r], start_cells[r], length_m, place_spacing)
+            _tour(
+                planner, places, owner, anchor, start_xy[r], start_cells[r], length_m, place_spacing
+            )
         )
     return tours
 
@@ -379,7 +382,10 @@ def _tour(
         legs += 1
         goal = -1
         wanted = [np.array([anchor])] if legs == 1 else []
-        wanted += [np.flatnonzero(~visited & ~excluded & region), np.flatnonzero(~visited & ~excluded)]
+        wanted += [
+            np.flatnonzero(~visited & ~excluded & region),
+            np.flatnonzero(~visited & ~excluded),
+        ]
         for cand in wanted:
             if cand.size == 0:
                 continue

@@ -52,13 +52,10 @@ def resolve_world(name_or_path: str | Path) -> Path:
     if path.is_file():
         if path.suffix.lower() not in (".yaml", ".yml"):
             raise FileFormatError(
-                f"world {text!r}: expected a map_server .yaml file or a shipped world "
-                f"({shipped})"
+                f"world {text!r}: expected a map_server .yaml file or a shipped world ({shipped})"
             )
         return path
-    raise ConfigError(
-        f"unknown world {text!r}: not a shipped world ({shipped}) and no such file"
-    )
+    raise ConfigError(f"unknown world {text!r}: not a shipped world ({shipped}) and no such file")
 
 
 @njit(cache=True)
@@ -238,9 +235,7 @@ class World:
         EXACT_CLEARANCE_M (see the class docstring)."""
         gx, gy = self.to_grid_coords(xy)
         out = np.empty(gx.shape[0], dtype=np.float64)
-        exact_clearance_kernel(
-            self._clearance_cells, self.occupied, gx, gy, self._window, out
-        )
+        exact_clearance_kernel(self._clearance_cells, self.occupied, gx, gy, self._window, out)
         return out * self.resolution
 
     def free_clearance(self, xy: ArrayLike) -> NDArray[np.float64]:

@@ -69,6 +69,7 @@ class _Plan:
     polylines: list[tuple[NDArray[np.float64], float]] = field(default_factory=list)
     solids: list[Rect] = field(default_factory=list)
     rooms: list[Rect] = field(default_factory=list)  # where furniture may go
+    doors: list[Rect] = field(default_factory=list)  # openings furniture keeps away from
 
     def room(self, x0: float, y0: float, x1: float, y1: float) -> None:
         self.free_rects.append((x0, y0, x1, y1))
@@ -76,11 +77,15 @@ class _Plan:
 
     def door_x(self, x_wall: float, yc: float, width: float = DOOR_M) -> None:
         """Door through the vertical partition [x_wall, x_wall + PARTITION_M] centred at yc."""
-        self.free_rects.append((x_wall, yc - width / 2, x_wall + PARTITION_M, yc + width / 2))
+        self.opening((x_wall, yc - width / 2, x_wall + PARTITION_M, yc + width / 2))
 
     def door_y(self, y_wall: float, xc: float, width: float = DOOR_M) -> None:
         """Door through the horizontal partition [y_wall, y_wall + PARTITION_M] centred at xc."""
-        self.free_rects.append((xc - width / 2, y_wall, xc + width / 2, y_wall + PARTITION_M))
+        self.opening((xc - width / 2, y_wall, xc + width / 2, y_wall + PARTITION_M))
+
+    def opening(self, rect: Rect) -> None:
+        self.free_rects.append(rect)
+        self.doors.append(rect)
 
 
 class _Raster:
@@ -168,7 +173,7 @@ def validate_world(
 def _furnish(plan: _Plan, rng: np.random.Generator, per_room: float, resolution: float) -> None:
     """Put boxes (desks, cabinets) against room walls, keeping the world valid."""
     n = int(round(per_room * len(plan.rooms)))
-    base = _rasterize(plan, resolution)
+    boxes: list[Rect] = []
     for _ in range(n):
         x0, y0, x1, y1 = plan.rooms[int(rng.integers(len(plan.rooms)))]
         bw, bd = float(rng.uniform(0.6, 1.6)), float(rng.uniform(0.4, 0.8))
@@ -178,21 +183,49 @@ def _furnish(plan: _Plan, rng: np.random.Generator, per_room: float, resolution:
                 continue
             bx = float(rng.uniform(x0 + 0.3, x1 - 0.3 - bw))
             by = y0 if side == 0 else y1 - bd
-            box = (bx, by, bx + bw, by + bd)
+            boxes.append((bx, by, bx + bw, by + bd))
         else:  # against the left / right wall
             if y1 - y0 < bw + 1.0:
                 continue
             by = float(rng.uniform(y0 + 0.3, y1 - 0.3 - bw))
             bx = x0 if side == 2 else x1 - bd
-            box = (bx, by, bx + bd, by + bw)
-        ras = _Raster(plan.width_m, plan.height_m, resolution, MARGIN_M)
-        free = base.free_mask() & ~ras.rect_mask([box])
-        if _n_components(free) != 1:
-            continue
-        if _n_components(_passable(free, resolution, DRONE_RADIUS_M + PASS_MARGIN_M)) != 1:
-            continue
-        plan.solids.append(box)
-        base.data[~free & base.free_mask()] = 100
+            boxes.append((bx, by, bx + bd, by + bw))
+    keep_out = 0.8  # m between a box and any door
+    boxes = [
+        b
+        for b in boxes
+        if not any(
+            b[0] < d[2] + keep_out
+            and d[0] < b[2] + keep_out
+            and b[1] < d[3] + keep_out
+            and d[1] < b[3] + keep_out
+            for d in plan.doors
+        )
+    ]
+    ras = _Raster(plan.width_m, plan.height_m, resolution, MARGIN_M)
+    free = _rasterize(plan, resolution).free_mask()
+
+    def valid(mask: NDArray[np.bool_]) -> bool:
+        return (
+            _n_components(mask) == 1
+            and _n_components(_passable(mask, resolution, DRONE_RADIUS_M + PASS_MARGIN_M)) == 1
+        )
+
+    def add(group: list[Rect]) -> None:
+        """Accept the whole group if the world stays valid, else split it (few checks when
+        most boxes are fine; deterministic)."""
+        nonlocal free
+        if not group:
+            return
+        trial = free & ~ras.rect_mask(group)
+        if valid(trial):
+            plan.solids.extend(group)
+            free = trial
+        elif len(group) > 1:
+            add(group[: len(group) // 2])
+            add(group[len(group) // 2 :])
+
+    add(boxes)
 
 
 # ------------------------------------------------------------------------------ shipped plans
@@ -454,11 +487,13 @@ def random_floor(
             plan.rooms.append(rect)
             _maybe_pillars(plan, rect, rng)
     for x0, y0, x1, y1 in openings:
-        plan.free_rects.append((x0 * cell, y0 * cell, x1 * cell, y1 * cell))
+        plan.opening((x0 * cell, y0 * cell, x1 * cell, y1 * cell))
     _furnish(plan, rng, furniture_per_room, resolution)
     grid = _rasterize(plan, resolution)
     validate_world(grid)
-    logger.debug("random floor seed %d: %d rooms, %d openings", seed, len(plan.rooms), len(openings))
+    logger.debug(
+        "random floor seed %d: %d rooms, %d openings", seed, len(plan.rooms), len(openings)
+    )
     return grid
 
 

@@ -26,9 +26,16 @@ def _keyframe(seq: int, robot: str = "r0", x: float | None = None) -> Keyframe:
     angles = np.linspace(-np.pi / 2, np.pi / 2, 181)
     ranges = 2.0 / np.maximum(np.cos(angles), 0.2)  # a wall 2 m ahead
     x = 0.2 * seq if x is None else x
-    return Keyframe(robot, seq, 0.5 * seq, pose4_to_pose7([x, 0, 1, 0]),
-                    pose4_to_pose7([0.2 if seq else 0.0, 0, 0, 0]), np.eye(6) * 1e-4,
-                    Scan2D.from_ranges(-np.pi / 2, np.pi / 180, 30.0, ranges), None)
+    return Keyframe(
+        robot,
+        seq,
+        0.5 * seq,
+        pose4_to_pose7([x, 0, 1, 0]),
+        pose4_to_pose7([0.2 if seq else 0.0, 0, 0, 0]),
+        np.eye(6) * 1e-4,
+        Scan2D.from_ranges(-np.pi / 2, np.pi / 180, 30.0, ranges),
+        None,
+    )
 
 
 def _wait(pred, timeout: float = 20.0) -> bool:
@@ -41,22 +48,45 @@ def _wait(pred, timeout: float = 20.0) -> bool:
 
 
 def test_basestation_survives_bad_input_and_acks_valid(tmp_path: Path, endpoint: str) -> None:
-    write_scenario(tmp_path / "scenario.json",
-                   Scenario("none", [RobotScenario("r0", np.array([1.0, 2.0, 0.0]))]))
+    write_scenario(
+        tmp_path / "scenario.json",
+        Scenario("none", [RobotScenario("r0", np.array([1.0, 2.0, 0.0]))]),
+    )
     proc = subprocess.Popen(
-        [sys.executable, "-m", "collabslam.cli", "basestation", "--scenario",
-         str(tmp_path / "scenario.json"), "--out", str(tmp_path), "--listen", endpoint,
-         "--set", "protocol.max_message_bytes=100000", "--set", "basestation.map_update_period_s=0.1"],
-        stdout=subprocess.PIPE, stderr=subprocess.STDOUT)
+        [
+            sys.executable,
+            "-m",
+            "collabslam.cli",
+            "basestation",
+            "--scenario",
+            str(tmp_path / "scenario.json"),
+            "--out",
+            str(tmp_path),
+            "--listen",
+            endpoint,
+            "--set",
+            "protocol.max_message_bytes=100000",
+            "--set",
+            "basestation.map_update_period_s=0.1",
+        ],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+    )
     acks: list[int] = []
     corrections: list[PoseCorrection] = []
     lock = threading.Lock()
     try:
         with Bus(ZenohConfig(connect=[endpoint]), "default") as bus:
-            bus.subscribe(bus.keys.robot("r0", "ack"), KeyframeAck,
-                          lambda m, k: (lock.acquire(), acks.append(m.acked_seq), lock.release()))
-            bus.subscribe(bus.keys.robot("r0", "correction"), PoseCorrection,
-                          lambda m, k: corrections.append(m))
+            bus.subscribe(
+                bus.keys.robot("r0", "ack"),
+                KeyframeAck,
+                lambda m, k: (lock.acquire(), acks.append(m.acked_seq), lock.release()),
+            )
+            bus.subscribe(
+                bus.keys.robot("r0", "correction"),
+                PoseCorrection,
+                lambda m, k: corrections.append(m),
+            )
             alive: list[str] = []
             bus.watch_alive("basestation", lambda n, a: alive.append(n) if a else None)
             assert _wait(lambda: alive), "base station never came alive"

@@ -37,16 +37,26 @@ P7 = pose4_to_pose7([1.0, -2.0, 0.5, 0.3])
 def samples() -> list:
     scan = Scan2D.from_ranges(-2.356, 0.00436, 30.0, np.linspace(0.5, 29.0, 1081))
     return [
-        LaserScan("r0", 1.25, -2.356, 0.00436, 0.1, 30.0,
-                  np.array([1.0, np.nan, np.inf, 3.0], np.float32)),
+        LaserScan(
+            "r0", 1.25, -2.356, 0.00436, 0.1, 30.0, np.array([1.0, np.nan, np.inf, 3.0], np.float32)
+        ),
         Odometry("r0", 1.25, P7, np.array([0.5, 0.0, 0.0, 0.1])),
         Imu("r0", 1.25, np.zeros(3), np.array([0, 0, 9.81]), np.array([0, 0, 0, 1.0])),
         Altimeter("r0", 1.25, 1.02),
         VehicleCommand("r0", 1.25, 0.5, 0.0, 0.1, -0.2),
-        Keyframe("r0", 7, 1.25, P7, pose4_to_pose7([0.2, 0, 0, 0.01]), np.eye(6) * 1e-4,
-                 scan, None),
-        Keyframe("uav-2", 0, 3.0, P7, pose4_to_pose7([0, 0, 0, 0]), np.eye(6) * 1e-4,
-                 None, Cloud3D(np.random.default_rng(0).normal(size=(100, 3)).astype("f4"))),
+        Keyframe(
+            "r0", 7, 1.25, P7, pose4_to_pose7([0.2, 0, 0, 0.01]), np.eye(6) * 1e-4, scan, None
+        ),
+        Keyframe(
+            "uav-2",
+            0,
+            3.0,
+            P7,
+            pose4_to_pose7([0, 0, 0, 0]),
+            np.eye(6) * 1e-4,
+            None,
+            Cloud3D(np.random.default_rng(0).normal(size=(100, 3)).astype("f4")),
+        ),
         KeyframeAck("r0", 7),
         PoseCorrection("r0", 3, 10.0, P7),
         Goal("r0", 1, 2.0, "odom", 3, P7),

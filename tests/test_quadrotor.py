@@ -48,8 +48,9 @@ def test_speed_limits_clip_commands(hall: World) -> None:
     q = Quadrotor([3.0, 5.0, 1.0, 0.0], max_speed=1.0, max_vertical_speed=0.5, max_yaw_rate=1.0)
     fly(q, hall, [3.0, 3.0, 2.0, 0.0], 3.0)
     assert np.linalg.norm(q.velocity_world[:2]) == pytest.approx(1.0, abs=1e-3)
-    np.testing.assert_allclose(q.velocity_world[:2] / np.linalg.norm(q.velocity_world[:2]),
-                               [math.sqrt(0.5)] * 2)  # direction kept
+    np.testing.assert_allclose(
+        q.velocity_world[:2] / np.linalg.norm(q.velocity_world[:2]), [math.sqrt(0.5)] * 2
+    )  # direction kept
     assert q.velocity_world[2] == pytest.approx(0.5, abs=1e-3)
     fly(q, hall, [0.0, 0.0, 0.0, -5.0], 2.0)
     assert q.yaw_rate == pytest.approx(-1.0)

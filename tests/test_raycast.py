@@ -94,4 +94,6 @@ def test_bad_inputs_raise(corridor: np.ndarray) -> None:
     with pytest.raises(CollabSlamError):
         cast_rays(corridor, RES, (0.0, 0.0), [0.0, np.nan, 0.0], [0.0], 10.0)
     with pytest.raises(CollabSlamError):
-        cast_rays(corridor, RES, (0.0, 0.0), [0.0, 0.0, 0.0], [0.0], 10.0, blocks=block_grid(corridor[:5]))
+        cast_rays(
+            corridor, RES, (0.0, 0.0), [0.0, 0.0, 0.0], [0.0], 10.0, blocks=block_grid(corridor[:5])
+        )

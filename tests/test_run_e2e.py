@@ -24,8 +24,12 @@ OUTPUTS = ["map.pgm", "map.yaml", "map.png", "config.toml", "summary.json", "sce
 
 
 def _run(args: list[str], timeout: float = 400) -> subprocess.CompletedProcess[str]:
-    return subprocess.run([sys.executable, "-m", "collabslam.cli", "run", *args],
-                          capture_output=True, text=True, timeout=timeout)
+    return subprocess.run(
+        [sys.executable, "-m", "collabslam.cli", "run", *args],
+        capture_output=True,
+        text=True,
+        timeout=timeout,
+    )
 
 
 def _check_run(out: Path, n_robots: int) -> dict:
@@ -47,8 +51,7 @@ def _check_run(out: Path, n_robots: int) -> dict:
 
 def test_two_robots_short_tour(tmp_path: Path) -> None:
     out = tmp_path / "run"
-    res = _run(["--world", "bshape", "--robots", "2", "--out", str(out),
-                "--max-sim-time", "25"])
+    res = _run(["--world", "bshape", "--robots", "2", "--out", str(out), "--max-sim-time", "25"])
     assert res.returncode == 0, res.stderr[-3000:]
     summary = _check_run(out, 2)
     assert summary["map_accuracy"] >= 0.95
@@ -62,8 +65,20 @@ def test_unseen_world_three_robots(tmp_path: Path) -> None:
     world: GridMap = random_floor(seed=12345, width_m=18.0, height_m=14.0)
     write_map(world, tmp_path / "unseen" / "floor.yaml", "floor.pgm")
     out = tmp_path / "run"
-    res = _run(["--world", str(tmp_path / "unseen" / "floor.yaml"), "--robots", "3",
-                "--out", str(out), "--max-sim-time", "15", "--set", "sim.seed=4"])
+    res = _run(
+        [
+            "--world",
+            str(tmp_path / "unseen" / "floor.yaml"),
+            "--robots",
+            "3",
+            "--out",
+            str(out),
+            "--max-sim-time",
+            "15",
+            "--set",
+            "sim.seed=4",
+        ]
+    )
     assert res.returncode == 0, res.stderr[-3000:]
     summary = _check_run(out, 3)
     assert summary["map_accuracy"] >= 0.9
@@ -73,17 +88,33 @@ def test_dead_child_is_named(tmp_path: Path) -> None:
     """A child that dies stops the run with an error naming it."""
     out = tmp_path / "run"
     proc = subprocess.Popen(
-        [sys.executable, "-m", "collabslam.cli", "run", "--world", "rooms15", "--robots", "1",
-         "--out", str(out), "--max-sim-time", "300"],
-        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        [
+            sys.executable,
+            "-m",
+            "collabslam.cli",
+            "run",
+            "--world",
+            "rooms15",
+            "--robots",
+            "1",
+            "--out",
+            str(out),
+            "--max-sim-time",
+            "300",
+        ],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
     try:
         pid = None
         deadline = time.monotonic() + 60
         while pid is None and time.monotonic() < deadline:
             log = out / "logs" / "r0.log"
             if log.is_file() and "running" in log.read_text():
-                found = subprocess.run(["pgrep", "-f", "--", f"{out}.*--robot-id r0"],
-                                       capture_output=True, text=True).stdout.split()
+                found = subprocess.run(
+                    ["pgrep", "-f", "--", f"{out}.*--robot-id r0"], capture_output=True, text=True
+                ).stdout.split()
                 pid = int(found[0]) if found else None
             time.sleep(0.2)
         assert pid is not None, "agent r0 never started"

@@ -127,8 +127,13 @@ def test_odometry_speed_noise_is_relative() -> None:
 
 
 def test_imu_at_rest_reads_gravity() -> None:
-    imu = ImuModel(gyro_noise_std=0.0, gyro_bias=[0.01, 0.0, -0.02], accel_noise_std=0.0,
-                   accel_bias=0.0, attitude_noise_std=0.0)
+    imu = ImuModel(
+        gyro_noise_std=0.0,
+        gyro_bias=[0.01, 0.0, -0.02],
+        accel_noise_std=0.0,
+        accel_bias=0.0,
+        attitude_noise_std=0.0,
+    )
     gyro, acc, quat = imu.measure(np.zeros(3), np.zeros(3), 0.0, 0.0, 1.0, np.random.default_rng(0))
     np.testing.assert_allclose(gyro, [0.01, 0.0, -0.02])
     np.testing.assert_allclose(acc, [0.0, 0.0, GRAVITY], atol=1e-12)
@@ -156,7 +161,9 @@ def test_imu_tilted_gravity_and_attitude_noise() -> None:
 def test_imu_gyro_noise_and_accel_passthrough() -> None:
     imu = ImuModel(gyro_noise_std=0.05, gyro_bias=0.0, accel_noise_std=0.0, accel_bias=0.1)
     rng = np.random.default_rng(4)
-    gyros = np.array([imu.measure([0.0, 0.0, 0.3], [1.0, 0.0, 0.0], 0, 0, 0, rng)[0] for _ in range(500)])
+    gyros = np.array(
+        [imu.measure([0.0, 0.0, 0.3], [1.0, 0.0, 0.0], 0, 0, 0, rng)[0] for _ in range(500)]
+    )
     assert gyros[:, 2].mean() == pytest.approx(0.3, abs=0.01)
     assert gyros.std(axis=0) == pytest.approx([0.05] * 3, rel=0.15)
     _, acc, _ = imu.measure(np.zeros(3), [1.0, 0.0, 0.0], 0, 0, 0, rng)

@@ -64,8 +64,9 @@ def test_keyframe_selector_thresholds(cfg) -> None:
 def _kf(seq: int, robot: str = "r0") -> Keyframe:
     p = pose4_to_pose7([0.2 * seq, 0, 1, 0])
     scan = Scan2D.from_ranges(0.0, 0.1, 30.0, np.ones(3))
-    return Keyframe(robot, seq, 0.1 * seq, p, pose4_to_pose7([0.2, 0, 0, 0]), np.eye(6) * 1e-4,
-                    scan, None)
+    return Keyframe(
+        robot, seq, 0.1 * seq, p, pose4_to_pose7([0.2, 0, 0, 0]), np.eye(6) * 1e-4, scan, None
+    )
 
 
 def test_store_dedups_and_reorders() -> None:

@@ -104,7 +104,9 @@ def test_unknown_kind_raises() -> None:
 # ----------------------------------------------------------------------------- random
 
 
-@pytest.mark.parametrize(("seed", "size"), [(11, (20.0, 15.0)), (12, (30.0, 20.0)), (13, (12.0, 12.0))])
+@pytest.mark.parametrize(
+    ("seed", "size"), [(11, (20.0, 15.0)), (12, (30.0, 20.0)), (13, (12.0, 12.0))]
+)
 def test_random_floor_valid(seed: int, size: tuple[float, float]) -> None:
     a = random_floor(seed, *size)
     validate_world(a)
@@ -118,7 +120,9 @@ def test_random_floor_deterministic_per_seed() -> None:
     a = random_floor(5, 16.0, 12.0)
     np.testing.assert_array_equal(a.data, random_floor(5, 16.0, 12.0).data)
     assert not np.array_equal(a.data, random_floor(6, 16.0, 12.0).data)
-    np.testing.assert_array_equal(a.data, generate_world("random", 5, width_m=16.0, height_m=12.0).data)
+    np.testing.assert_array_equal(
+        a.data, generate_world("random", 5, width_m=16.0, height_m=12.0).data
+    )
 
 
 def test_random_floor_rejects_tiny_size() -> None:

@@ -21,6 +21,7 @@ from typing import Any
 import numpy as np
 
 from agent.keyframe_selector import KeyframeSelector
+from agent.local_trajectory_builder import LocalSlamResult, LocalTrajectoryBuilder
 from agent.odometry_tracker import OdometryTracker
 from agent.outbox import Outbox
 from agent.path_follower import PathFollower
@@ -31,6 +32,7 @@ from common.config import Config
 from common.geometry import pose4_compose, pose4_inverse, pose4_to_pose7, pose7_to_pose4
 from protocol import (
     Altimeter,
+    Imu,
     Keyframe,
     KeyframeAck,
     LaserScan,
@@ -62,7 +64,11 @@ class AgentNode:
         self.keys = bus.keys
         self.vehicle = vehicle if vehicle is not None else ZenohVehicle(bus, robot_id)
         a = cfg.agent
-        self.tracker = OdometryTracker()
+        self.frontend: LocalTrajectoryBuilder | OdometryTracker = (
+            LocalTrajectoryBuilder(a.local_slam, a.local_keyframe_period_s)
+            if a.local_slam.enabled
+            else OdometryTracker()
+        )
         self.selector = KeyframeSelector(a)
         self.outbox = Outbox(
             a.outbox_max, a.outbox_warn_fraction, a.resend_timeout_s, a.resend_batch
@@ -116,36 +122,36 @@ class AgentNode:
 
     def handle(self, msg: Any) -> None:
         if isinstance(msg, Odometry):
-            self.tracker.on_odometry(msg.stamp, msg.pose)
+            self.frontend.add_odometry(msg.stamp, pose7_to_pose4(msg.pose)[[0, 1, 3]])
+        elif isinstance(msg, Imu):
+            self.frontend.add_imu(msg.stamp, msg.orientation)
         elif isinstance(msg, Altimeter):
-            self.tracker.on_altitude(msg.altitude)
+            self.frontend.add_altitude(msg.stamp, msg.altitude)
         elif isinstance(msg, LaserScan):
             self.on_scan(msg)
-        # Imu: attitude is used by the scan-matching front end; nothing to do here.
 
     def on_scan(self, scan: LaserScan) -> None:
-        if self.last_scan_stamp is not None and scan.stamp <= self.last_scan_stamp:
-            if scan.stamp == self.last_scan_stamp:  # a re-sent lock-step tick: answer again
-                self._command(scan.stamp)
-            else:
-                log.error(
-                    "scan stamp %.3f is before the previous %.3f: dropped",
-                    scan.stamp,
-                    self.last_scan_stamp,
-                )
+        if self.last_scan_stamp is not None and scan.stamp == self.last_scan_stamp:
+            self._command(scan.stamp)  # a re-sent lock-step tick: answer again
+            return
+        result = self.frontend.add_scan(scan)
+        if result is None:  # rejected (time going back, too few points): logged there
+            self._command(scan.stamp)
             return
         self.last_scan_stamp = scan.stamp
         self.scans += 1
-        pose = self.tracker.T_odom_base.copy()
-        if self.selector.is_due(pose) and self.outbox.has_room():
-            self._send_keyframe(scan, pose)
+        if self.selector.is_due(result.pose) and self.outbox.has_room():
+            self._send_keyframe(scan, result)
         self._command(scan.stamp)
         if scan.stamp - self.last_state_stamp >= self.cfg.agent.state_period_s:
             self.last_state_stamp = scan.stamp
             self.publish_state(scan.stamp)
 
-    def _send_keyframe(self, scan: LaserScan, pose: np.ndarray) -> None:
+    def _send_keyframe(self, scan: LaserScan, result: LocalSlamResult) -> None:
+        pose = result.pose
         delta, cov = self.selector.cut(pose)
+        # The match covariance carries degenerate directions (a corridor) to the graph.
+        cov[np.ix_([0, 1, 5], [0, 1, 5])] += result.covariance
         kf = Keyframe(
             robot_id=self.robot_id,
             seq=self.next_seq,
@@ -170,7 +176,7 @@ class AgentNode:
                 pts = np.column_stack([self.tour_map, np.zeros((len(self.tour_map), 2))])
                 tour_odom = pose4_compose(T_odom_map, pts) if len(pts) else pts
                 self.follower.set_path(tour_odom[:, :2], keep_progress=True)
-        self.vehicle.command(stamp, *self.follower.command(self.tracker.T_odom_base))
+        self.vehicle.command(stamp, *self.follower.command(self.frontend.pose))
 
     def _resend(self) -> None:
         key = self.keys.robot(self.robot_id, "keyframe")
@@ -193,7 +199,7 @@ class AgentNode:
     def publish_state(self, stamp: float) -> None:
         with self._corr_lock:
             T_map_odom, epoch = self.T_map_odom.copy(), self.epoch
-        pose = self.tracker.T_odom_base
+        pose = self.frontend.pose
         self.bus.publish(
             self.keys.robot(self.robot_id, "state"),
             RobotState(
@@ -228,7 +234,8 @@ class AgentNode:
             "keyframes_resent": self.outbox.resent,
             "outbox_high_water": self.outbox.high_water,
             "scans": self.scans,
-            "odom_distance_m": self.tracker.distance_m,
+            "odom_distance_m": self.frontend.distance_m,
+            "scans_rejected": self.frontend.rejected_scans,
             "correction_epoch": self.epoch,
             "rejected_messages": dict(self.bus.rejected),
         }

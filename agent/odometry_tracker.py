@@ -1,43 +1,60 @@
-"""The agent's local pose T_odom_base, by odometry integration.
+"""The agent's local pose by odometry integration alone (`agent.local_slam.enabled =
+false`): the same interface as `LocalTrajectoryBuilder`, without scan matching.
 
-Each Odometry message carries the vehicle's dead-reckoned pose in the
-odometry source's own frame; the tracker composes the motion between
-consecutive messages onto its own estimate, and takes the height from the
-altimeter when one is present. (The scan-matching local trajectory builder
-replaces this as the agent's front end.)
+Each Odometry message carries the vehicle's dead-reckoned pose in the odometry
+source's own frame; the tracker composes the motion between consecutive
+messages onto its own estimate and takes the height from the altimeter.
 """
 
 from __future__ import annotations
 
 import logging
+import math
 
 import numpy as np
 
-from common.geometry import pose4_compose, pose4_inverse, pose7_to_pose4
+from agent.local_trajectory_builder import LocalSlamResult
+from common.geometry import se2_compose, se2_inverse
+from protocol import LaserScan
 
 log = logging.getLogger(__name__)
 
 
 class OdometryTracker:
     def __init__(self) -> None:
-        self.T_odom_base = np.zeros(4)  # [x, y, z, yaw]; the odom frame starts at the first pose
-        self.stamp: float | None = None
+        self.pose = np.zeros(4)  # T_odom_base [x, y, z, yaw]; odom starts at the first pose
+        self.last_stamp: float | None = None
         self.distance_m = 0.0
+        self.scans = 0
+        self.rejected_scans = 0
         self._last_odom: np.ndarray | None = None
 
-    def on_odometry(self, stamp: float, pose7: np.ndarray) -> bool:
-        """Integrate one odometry sample; returns False (and logs) if time went backwards."""
-        if self.stamp is not None and stamp < self.stamp:
-            log.error("odometry stamp %.3f is before the previous %.3f: dropped", stamp, self.stamp)
-            return False
-        pose = pose7_to_pose4(pose7)
+    def add_odometry(self, stamp: float, pose_xyyaw: np.ndarray) -> None:
+        pose = np.asarray(pose_xyyaw, dtype=np.float64)
         if self._last_odom is not None:
-            step = pose4_compose(pose4_inverse(self._last_odom), pose)
-            self.T_odom_base = pose4_compose(self.T_odom_base, step)
+            step = se2_compose(se2_inverse(self._last_odom), pose)
+            xy_yaw = se2_compose(self.pose[[0, 1, 3]], step)
+            self.pose[[0, 1, 3]] = xy_yaw
             self.distance_m += float(np.hypot(step[0], step[1]))
         self._last_odom = pose
-        self.stamp = stamp
-        return True
 
-    def on_altitude(self, altitude_m: float) -> None:
-        self.T_odom_base[2] = altitude_m
+    def add_imu(self, stamp: float, orientation_xyzw: np.ndarray) -> None:
+        """Attitude is not needed without scan matching."""
+
+    def add_altitude(self, stamp: float, altitude_m: float) -> None:
+        self.pose[2] = altitude_m
+
+    def add_scan(self, scan: LaserScan) -> LocalSlamResult | None:
+        if self.last_stamp is not None and scan.stamp <= self.last_stamp:
+            log.error(
+                "scan stamp %.3f is not after the previous %.3f: dropped",
+                scan.stamp,
+                self.last_stamp,
+            )
+            self.rejected_scans += 1
+            return None
+        self.last_stamp = scan.stamp
+        self.scans += 1
+        return LocalSlamResult(
+            scan.stamp, self.pose.copy(), np.zeros((3, 3)), math.nan, False, False, 0
+        )

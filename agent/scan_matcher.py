@@ -8,7 +8,7 @@ The local SLAM front end of the agent, as Cartographer's
    angular steps) inside a window around the prediction, exactly, by branch and
    bound over max-pooled grids (Olson 2009; Cartographer's
    `FastCorrelativeScanMatcher2D`). Score = mean cell probability of the points,
-   times Cartographer's real-time penalty exp(-w_t |dt|^2 - w_r |dyaw|^2) so that
+   times Cartographer's real-time penalty exp(-(w_t |dt| + w_r |dyaw|)^2) so that
    ties (a corridor) go to the candidate nearest the prediction.
 3. `CeresLikeRefiner` polishes the pose off the lattice: Levenberg-Marquardt with
    analytic Jacobians (numba) on the bicubic (Catmull-Rom) interpolation of the
@@ -186,7 +186,7 @@ def _penalty(d, k, win):  # type: ignore[no-untyped-def]
 
 
 @njit(cache=True)
-def _branch_and_bound(levels, flat, w, win, depth, ang_factor, lin_coef, min_score):  # type: ignore[no-untyped-def]
+def _branch_and_bound(levels, flat, w, win, depth, ang_cost, lin_coef, min_score):  # type: ignore[no-untyped-def]
     """Best (angle index, dx, dy, score) with score > min_score, or angle index -1."""
     n_ang, n = flat.shape
     step = 1 << depth
@@ -210,7 +210,8 @@ def _branch_and_bound(levels, flat, w, win, depth, ang_factor, lin_coef, min_sco
                 dy = -win + iy * step
                 px = _penalty(dx, depth, win)
                 py = _penalty(dy, depth, win)
-                f = ang_factor[a] * math.exp(-lin_coef * (px * px + py * py))
+                f = ang_cost[a] + lin_coef * math.sqrt(px * px + py * py)
+                f = math.exp(-f * f)
                 root_s[r] = f * _node_score(levels[depth], flat, a, dy * w + dx, n)
                 root_a[r] = a
                 root_x[r] = dx
@@ -249,7 +250,8 @@ def _branch_and_bound(levels, flat, w, win, depth, ang_factor, lin_coef, min_sco
                     break
                 px = _penalty(cx, kk, win)
                 py = _penalty(cy, kk, win)
-                f = ang_factor[a] * math.exp(-lin_coef * (px * px + py * py))
+                f = ang_cost[a] + lin_coef * math.sqrt(px * px + py * py)
+                f = math.exp(-f * f)
                 s = f * _node_score(levels[kk], flat, a, cy * w + cx, n)
                 # insertion sort, ascending
                 j = m
@@ -292,7 +294,7 @@ class RealTimeCorrelativeMatcher:
     `linear_window` (m) and `angular_window` (rad) are half-widths around the
     prediction. `angular_step` (rad) defaults to Cartographer's: the angle that moves
     the farthest point by one cell. `min_score`: no result at or below it.
-    `translation_delta_cost_weight` (1/m^2), `rotation_delta_cost_weight` (1/rad^2):
+    `translation_delta_cost_weight` (1/m), `rotation_delta_cost_weight` (1/rad):
     Cartographer's real-time penalty, a tie-breaker toward the prediction.
     `pyramid_margin_m`: the max-pooled pyramid is computed on a crop this much larger
     than needed and reused while the grid is unchanged and the crop still covers.
@@ -355,10 +357,10 @@ class RealTimeCorrelativeMatcher:
             depth,
         )
         flat = (cy - y0) * w + (cx - x0)
-        ang_factor = np.exp(-self.rotation_delta_cost_weight * offsets**2)
-        lin_coef = self.translation_delta_cost_weight * res * res
+        ang_cost = self.rotation_delta_cost_weight * np.abs(offsets)
+        lin_coef = self.translation_delta_cost_weight * res
         a, dx, dy, score = _branch_and_bound(
-            levels, flat, w, win, depth, ang_factor, lin_coef, self.min_score
+            levels, flat, w, win, depth, ang_cost, lin_coef, self.min_score
         )
         if a < 0:
             return None
@@ -397,14 +399,15 @@ def _bicubic(g, p_unknown, u, v):  # type: ignore[no-untyped-def]
     t = u - fu
     t2 = t * t
     t3 = t2 * t
-    wu0 = 0.5 * (-t3 + 2.0 * t2 - t)
-    wu1 = 0.5 * (3.0 * t3 - 5.0 * t2 + 2.0)
-    wu2 = 0.5 * (-3.0 * t3 + 4.0 * t2 + t)
-    wu3 = 0.5 * (t3 - t2)
-    du0 = 0.5 * (-3.0 * t2 + 4.0 * t - 1.0)
-    du1 = 0.5 * (9.0 * t2 - 10.0 * t)
-    du2 = 0.5 * (-9.0 * t2 + 8.0 * t + 1.0)
-    du3 = 0.5 * (3.0 * t2 - 2.0 * t)
+    s = 1.0 - t
+    wu0 = s * s * s / 6.0
+    wu1 = (3.0 * t3 - 6.0 * t2 + 4.0) / 6.0
+    wu2 = (-3.0 * t3 + 3.0 * t2 + 3.0 * t + 1.0) / 6.0
+    wu3 = t3 / 6.0
+    du0 = -0.5 * s * s
+    du1 = (9.0 * t2 - 12.0 * t) / 6.0
+    du2 = (-9.0 * t2 + 6.0 * t + 3.0) / 6.0
+    du3 = 0.5 * t2
     t = v - fv
     t2 = t * t
     t3 = t2 * t
@@ -414,13 +417,13 @@ def _bicubic(g, p_unknown, u, v):  # type: ignore[no-untyped-def]
     gv = 0.0
     for j in range(4):
         if j == 0:
-            wv, dv = 0.5 * (-t3 + 2.0 * t2 - t), 0.5 * (-3.0 * t2 + 4.0 * t - 1.0)
+            wv, dv = (1.0 - t) ** 3 / 6.0, -0.5 * (1.0 - t) ** 2
         elif j == 1:
-            wv, dv = 0.5 * (3.0 * t3 - 5.0 * t2 + 2.0), 0.5 * (9.0 * t2 - 10.0 * t)
+            wv, dv = (3.0 * t3 - 6.0 * t2 + 4.0) / 6.0, (9.0 * t2 - 12.0 * t) / 6.0
         elif j == 2:
-            wv, dv = 0.5 * (-3.0 * t3 + 4.0 * t2 + t), 0.5 * (-9.0 * t2 + 8.0 * t + 1.0)
+            wv, dv = (-3.0 * t3 + 3.0 * t2 + 3.0 * t + 1.0) / 6.0, (-9.0 * t2 + 6.0 * t + 3.0) / 6.0
         else:
-            wv, dv = 0.5 * (t3 - t2), 0.5 * (3.0 * t2 - 2.0 * t)
+            wv, dv = t3 / 6.0, 0.5 * t2
         yy = y + j
         if inside:
             c0 = _p(g[yy, x], p_unknown)

@@ -172,6 +172,18 @@ def cmd_run(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_eval_relations(args: argparse.Namespace) -> int:
+    from common.relations import main_eval_relations
+
+    result = main_eval_relations(args.trajectory, args.relations)
+    text = json.dumps(result, indent=1)
+    if args.json:
+        Path(args.json).parent.mkdir(parents=True, exist_ok=True)
+        Path(args.json).write_text(text)
+    print(text)
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="collabslam", description=__doc__)
     p.add_argument("--version", action="store_true", help="print versions and check imports")
@@ -232,6 +244,13 @@ def build_parser() -> argparse.ArgumentParser:
     sp.add_argument("--out", default="runs/latest")
     sp.add_argument("--max-sim-time", type=float, default=300.0, help="seconds of sim time")
     sp.set_defaults(func=cmd_run)
+    sp = sub.add_parser("eval", help="score results against references")
+    ev = sp.add_subparsers(dest="eval_command", required=True)
+    e = ev.add_parser("relations", help="Kuemmerle et al. relation metric of a TUM trajectory")
+    e.add_argument("trajectory", help="estimated trajectory (TUM; stamps = the log's)")
+    e.add_argument("relations", help="relations file (t1 t2 dx dy dz droll dpitch dyaw)")
+    e.add_argument("--json", help="also write the numbers to this file")
+    e.set_defaults(func=cmd_eval_relations)
     return p
 
 

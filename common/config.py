@@ -92,6 +92,38 @@ class SimConfig:
 
 
 @dataclass
+class LocalSlamConfig:
+    """The agent's 2.5-D local SLAM (Cartographer local trajectory builder defaults)."""
+
+    enabled: bool = True  # false: odometry integration only
+    min_range_m: float = 0.1  # m, closer returns dropped
+    max_range_m: float = 30.0  # m, farther returns dropped (UTM-30LX range)
+    missing_data_ray_length_m: float = 5.0  # m, no-return beams clear free space this far
+    voxel_filter_size_m: float = 0.025  # m, points inserted into submaps
+    adaptive_max_length_m: float = 0.5  # m, adaptive voxel filter for matching
+    adaptive_min_num_points: int = 200
+    min_num_points: int = 20  # fewer usable points: the scan is not matched
+    resolution_m: float = 0.05  # m, submap cells
+    scans_per_submap: int = 90  # local keyframes per submap (Cartographer num_range_data)
+    p_hit: float = 0.55
+    p_miss: float = 0.49
+    use_correlative: bool = True  # real-time correlative search before refinement
+    linear_search_window_m: float = 0.3  # m
+    angular_search_window_deg: float = 20.0  # deg
+    translation_weight: float = 0.1  # refiner prior weight (1/m)
+    rotation_weight: float = 0.1  # refiner prior weight (1/rad)
+    min_match_score: float = 0.3  # mean cell probability below which a match is rejected
+    motion_filter_min_distance_m: float = 0.05  # m since the last local keyframe ...
+    motion_filter_min_angle_deg: float = 1.0  # deg ...
+    motion_filter_max_time_s: float = 5.0  # s ... or this long: insert anyway
+    use_odometry: bool = True  # predict with odometry (else constant velocity)
+    use_imu_attitude: bool = True  # project the planar scan with the IMU's roll and pitch
+    floor_margin_m: float = 0.2  # m: projected points this close to the floor are dropped
+    match_sigma_per_m: float = 0.005  # m of keyframe-delta std per metre (scan matching)
+    match_sigma_yaw_per_m: float = 0.002  # rad of keyframe-delta yaw std per metre
+
+
+@dataclass
 class AgentConfig:
     keyframe_distance_m: float = 0.2  # m, seed 002: new base-station keyframe every 0.2 m
     keyframe_angle_rad: float = 0.1  # rad, ... or every 0.1 rad
@@ -111,6 +143,7 @@ class AgentConfig:
     yaw_gain: float = 1.5  # 1/s, heading controller gain
     state_period_s: float = 0.5  # s sim time between RobotState messages
     drain_timeout_s: float = 15.0  # s wall: on shutdown wait this long for acks
+    local_slam: LocalSlamConfig = field(default_factory=LocalSlamConfig)
 
 
 @dataclass
@@ -269,6 +302,12 @@ def validate(cfg: Config) -> None:
         ("agent.cruise_speed_mps", cfg.agent.cruise_speed_mps),
         ("agent.odom_sigma_min", cfg.agent.odom_sigma_min),
         ("map.resolution_m", cfg.map.resolution_m),
+        ("agent.local_slam.resolution_m", cfg.agent.local_slam.resolution_m),
+        ("agent.local_slam.max_range_m", cfg.agent.local_slam.max_range_m),
+        ("agent.local_slam.scans_per_submap", cfg.agent.local_slam.scans_per_submap),
+        ("agent.local_slam.voxel_filter_size_m", cfg.agent.local_slam.voxel_filter_size_m),
+        ("agent.local_slam.adaptive_max_length_m", cfg.agent.local_slam.adaptive_max_length_m),
+        ("agent.local_slam.min_num_points", cfg.agent.local_slam.min_num_points),
         ("basestation.prior_sigma_xy_m", cfg.basestation.prior_sigma_xy_m),
         ("basestation.prior_sigma_yaw_rad", cfg.basestation.prior_sigma_yaw_rad),
         ("protocol.max_message_bytes", cfg.protocol.max_message_bytes),
@@ -282,6 +321,13 @@ def validate(cfg: Config) -> None:
         _prob(f"map.{key}", getattr(cfg.map, key))
     if not cfg.map.p_miss < 0.5 < cfg.map.p_hit:
         raise ConfigError("map.p_hit / map.p_miss: expected p_miss < 0.5 < p_hit")
+    ls = cfg.agent.local_slam
+    if not 0.5 < ls.p_hit < 1.0 or not 0.0 < ls.p_miss < 0.5:
+        raise ConfigError("agent.local_slam.p_hit / p_miss: expected 0 < p_miss < 0.5 < p_hit < 1")
+    if not 0 <= ls.min_range_m < ls.max_range_m:
+        raise ConfigError("agent.local_slam.min_range_m: expected 0 <= min_range_m < max_range_m")
+    if not 0.0 <= ls.min_match_score < 1.0:
+        raise ConfigError("agent.local_slam.min_match_score: expected a value in [0, 1)")
     if not 0.0 < cfg.agent.outbox_warn_fraction <= 1.0:
         raise ConfigError("agent.outbox_warn_fraction: expected a value in (0, 1]")
 

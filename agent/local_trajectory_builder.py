@@ -1,0 +1,147 @@
+"""The agent's local SLAM (Cartographer's local trajectory builder, seed 002 §1.1).
+
+Per scan: preprocess (range limits, NaN/inf dropped, IMU roll/pitch
+projection, voxel filters), predict the pose from odometry, match the scan
+against the older active submap (real-time correlative search + refinement on
+the smoothed grid), and, when the motion filter agrees (a local keyframe every
+0.25 s), insert it into both active submaps. Height comes from the altimeter.
+No loop closing: this is the smooth, drifting `odom` pose the drone flies on.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from agent.motion_filter import MotionFilter
+from agent.pose_extrapolator import PoseExtrapolator
+from agent.scan_matcher import CeresLikeRefiner, RealTimeCorrelativeMatcher, ScanMatcher
+from agent.scan_preprocessor import ScanPreprocessor
+from agent.submaps import ActiveSubmaps
+from common.config import LocalSlamConfig
+from common.geometry import quat_to_rpy, se2_compose, se2_inverse, wrap_angle
+from protocol import LaserScan
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class LocalSlamResult:
+    stamp: float
+    pose: np.ndarray  # T_odom_base [x, y, z, yaw]
+    covariance: np.ndarray  # 3x3 [x, y, yaw] of the match, odom frame (m, rad)
+    score: float  # mean cell probability of the matched points (nan: not matched)
+    matched: bool
+    inserted: bool
+    num_points: int
+
+
+class LocalTrajectoryBuilder:
+    def __init__(self, cfg: LocalSlamConfig, local_keyframe_period_s: float = 0.25) -> None:
+        self.cfg = cfg
+        self.preprocessor = ScanPreprocessor(cfg)
+        self.extrapolator = PoseExtrapolator(cfg.use_odometry)
+        self.motion_filter = MotionFilter(
+            local_keyframe_period_s,
+            cfg.motion_filter_min_distance_m,
+            math.radians(cfg.motion_filter_min_angle_deg),
+            cfg.motion_filter_max_time_s,
+        )
+        self.submaps = ActiveSubmaps(
+            cfg.resolution_m, cfg.scans_per_submap, p_hit=cfg.p_hit, p_miss=cfg.p_miss
+        )
+        self.matcher = ScanMatcher(
+            RealTimeCorrelativeMatcher(
+                linear_window=cfg.linear_search_window_m,
+                angular_window=math.radians(cfg.angular_search_window_deg),
+            ),
+            CeresLikeRefiner(
+                translation_weight=cfg.translation_weight, rotation_weight=cfg.rotation_weight
+            ),
+            use_correlative=cfg.use_correlative,
+            min_num_points=cfg.min_num_points,
+        )
+        self.roll = 0.0
+        self.pitch = 0.0
+        self.altitude: float | None = None
+        self.last_stamp: float | None = None
+        self.pose = np.zeros(4)  # latest T_odom_base [x, y, z, yaw]
+        self.scans = 0
+        self.matched = 0
+        self.rejected_scans = 0
+        self.distance_m = 0.0
+
+    # --- other sensors ------------------------------------------------------------------
+    def add_odometry(self, stamp: float, pose_xyyaw: np.ndarray) -> None:
+        self.extrapolator.add_odometry(pose_xyyaw)
+
+    def add_imu(self, stamp: float, orientation_xyzw: np.ndarray) -> None:
+        if self.cfg.use_imu_attitude:
+            self.roll, self.pitch, _ = quat_to_rpy(orientation_xyzw)
+
+    def add_altitude(self, stamp: float, altitude_m: float) -> None:
+        self.altitude = float(altitude_m)
+        self.pose[2] = self.altitude
+
+    # --- scans --------------------------------------------------------------------------
+    def add_scan(self, scan: LaserScan) -> LocalSlamResult | None:
+        """Process one scan; None if it was rejected (time going back, too few points)."""
+        if self.last_stamp is not None and scan.stamp <= self.last_stamp:
+            log.error(
+                "scan stamp %.3f is not after the previous %.3f: dropped",
+                scan.stamp,
+                self.last_stamp,
+            )
+            self.rejected_scans += 1
+            return None
+        prep = self.preprocessor.prepare(
+            scan.angle_min,
+            scan.angle_increment,
+            scan.range_max,
+            scan.ranges,
+            self.roll,
+            self.pitch,
+            self.altitude,
+        )
+        if len(prep.points) < self.cfg.min_num_points:
+            log.warning(
+                "scan at %.3f has %d usable points (< %d): skipped",
+                scan.stamp,
+                len(prep.points),
+                self.cfg.min_num_points,
+            )
+            self.rejected_scans += 1
+            return None
+        self.last_stamp = scan.stamp
+        predicted = self.extrapolator.predict(scan.stamp)
+        pose2, cov, score, matched = predicted, np.diag([0.1, 0.1, 0.05]) ** 2, math.nan, False
+        submap = self.submaps.matching_submap()
+        if submap is not None:
+            m = self.matcher.match(submap.grid, prep.match_points, submap.to_submap(predicted))
+            if m.converged and m.score >= self.cfg.min_match_score:
+                pose2, score, matched = submap.to_local(m.pose), m.score, True
+                c, s = math.cos(submap.T_local_submap[2]), math.sin(submap.T_local_submap[2])
+                R = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+                cov = R @ m.covariance @ R.T
+                self.matched += 1
+            else:
+                log.debug(
+                    "scan at %.3f not matched (score %.2f): using the prediction",
+                    scan.stamp,
+                    m.score,
+                )
+        step = se2_compose(se2_inverse(self.pose[[0, 1, 3]]), pose2)
+        if self.scans:
+            self.distance_m += float(np.hypot(step[0], step[1]))
+        self.extrapolator.add_pose(scan.stamp, pose2)
+        inserted = self.motion_filter.accept(scan.stamp, pose2)
+        if inserted:
+            self.submaps.insert(pose2, prep.points, prep.miss_points)
+        self.scans += 1
+        self.pose = np.array([pose2[0], pose2[1], self.pose[2], float(wrap_angle(pose2[2]))])
+        return LocalSlamResult(
+            scan.stamp, self.pose.copy(), cov, score, matched, inserted, len(prep.match_points)
+        )

@@ -275,11 +275,6 @@ def _branch_and_bound(levels, flat, w, win, depth, ang_cost, lin_coef, min_score
     return best_a, best_x, best_y, best_s
 
 
-def _unknown(grid: ProbabilityGrid, unknown_probability: float | None) -> float:
-    """What a never-observed cell reads as (default: the grid's min probability)."""
-    return grid.min_probability if unknown_probability is None else unknown_probability
-
-
 @dataclass(frozen=True)
 class CorrelativeResult:
     """Best lattice pose T_submap_sensor [x, y, yaw] and its (penalized) score in [0, 1]."""
@@ -309,7 +304,7 @@ class RealTimeCorrelativeMatcher:
         translation_delta_cost_weight: float = 0.1,
         rotation_delta_cost_weight: float = 0.1,
         pyramid_margin_m: float = 0.5,
-        unknown_probability: float | None = None,
+        unknown_probability: float = 0.5,
     ) -> None:
         if not (linear_window >= 0.0 and angular_window >= 0.0):
             raise ConfigError("search windows must be >= 0")
@@ -322,7 +317,7 @@ class RealTimeCorrelativeMatcher:
         self.translation_delta_cost_weight = float(translation_delta_cost_weight)
         self.rotation_delta_cost_weight = float(rotation_delta_cost_weight)
         self.pyramid_margin_m = float(pyramid_margin_m)
-        self.unknown_probability = unknown_probability
+        self.unknown_probability = _check_probability(unknown_probability)
         self._cache: tuple | None = None  # (grid ref, version, x0, y0, w, h, depth, levels)
 
     def match(
@@ -379,7 +374,7 @@ class RealTimeCorrelativeMatcher:
         m = int(math.ceil(self.pyramid_margin_m / grid.resolution))
         x0, y0 = int(lx) - m, int(ly) - m
         w, h = int(hx) + m - x0, int(hy) + m - y0
-        levels = _build_levels(grid, x0, y0, w, h, depth, _unknown(grid, self.unknown_probability))
+        levels = _build_levels(grid, x0, y0, w, h, depth, self.unknown_probability)
         self._cache = (weakref.ref(grid), grid.version, x0, y0, w, h, depth, levels)
         return x0, y0, w, levels
 
@@ -399,15 +394,14 @@ def _bicubic(g, p_unknown, u, v):  # type: ignore[no-untyped-def]
     t = u - fu
     t2 = t * t
     t3 = t2 * t
-    s = 1.0 - t
-    wu0 = s * s * s / 6.0
-    wu1 = (3.0 * t3 - 6.0 * t2 + 4.0) / 6.0
-    wu2 = (-3.0 * t3 + 3.0 * t2 + 3.0 * t + 1.0) / 6.0
-    wu3 = t3 / 6.0
-    du0 = -0.5 * s * s
-    du1 = (9.0 * t2 - 12.0 * t) / 6.0
-    du2 = (-9.0 * t2 + 6.0 * t + 3.0) / 6.0
-    du3 = 0.5 * t2
+    wu0 = 0.5 * (-t3 + 2.0 * t2 - t)
+    wu1 = 0.5 * (3.0 * t3 - 5.0 * t2 + 2.0)
+    wu2 = 0.5 * (-3.0 * t3 + 4.0 * t2 + t)
+    wu3 = 0.5 * (t3 - t2)
+    du0 = 0.5 * (-3.0 * t2 + 4.0 * t - 1.0)
+    du1 = 0.5 * (9.0 * t2 - 10.0 * t)
+    du2 = 0.5 * (-9.0 * t2 + 8.0 * t + 1.0)
+    du3 = 0.5 * (3.0 * t2 - 2.0 * t)
     t = v - fv
     t2 = t * t
     t3 = t2 * t
@@ -417,13 +411,13 @@ def _bicubic(g, p_unknown, u, v):  # type: ignore[no-untyped-def]
     gv = 0.0
     for j in range(4):
         if j == 0:
-            wv, dv = (1.0 - t) ** 3 / 6.0, -0.5 * (1.0 - t) ** 2
+            wv, dv = 0.5 * (-t3 + 2.0 * t2 - t), 0.5 * (-3.0 * t2 + 4.0 * t - 1.0)
         elif j == 1:
-            wv, dv = (3.0 * t3 - 6.0 * t2 + 4.0) / 6.0, (9.0 * t2 - 12.0 * t) / 6.0
+            wv, dv = 0.5 * (3.0 * t3 - 5.0 * t2 + 2.0), 0.5 * (9.0 * t2 - 10.0 * t)
         elif j == 2:
-            wv, dv = (-3.0 * t3 + 3.0 * t2 + 3.0 * t + 1.0) / 6.0, (-9.0 * t2 + 6.0 * t + 3.0) / 6.0
+            wv, dv = 0.5 * (-3.0 * t3 + 4.0 * t2 + t), 0.5 * (-9.0 * t2 + 8.0 * t + 1.0)
         else:
-            wv, dv = t3 / 6.0, 0.5 * t2
+            wv, dv = 0.5 * (t3 - t2), 0.5 * (3.0 * t2 - 2.0 * t)
         yy = y + j
         if inside:
             c0 = _p(g[yy, x], p_unknown)
@@ -628,7 +622,7 @@ class CeresLikeRefiner:
         step_tolerance_m: float = 1e-4,
         step_tolerance_rad: float = 1e-4,
         cost_tolerance: float = 1e-6,
-        unknown_probability: float | None = None,
+        unknown_probability: float = 0.5,
     ) -> None:
         if occupied_space_weight <= 0.0 or translation_weight < 0.0 or rotation_weight < 0.0:
             raise ConfigError("refiner weights must be >= 0 (occupied_space_weight > 0)")
@@ -641,7 +635,7 @@ class CeresLikeRefiner:
         self.step_tolerance_m = float(step_tolerance_m)
         self.step_tolerance_rad = float(step_tolerance_rad)
         self.cost_tolerance = float(cost_tolerance)
-        self.unknown_probability = unknown_probability
+        self.unknown_probability = _check_probability(unknown_probability)
 
     def refine(
         self,
@@ -657,7 +651,7 @@ class CeresLikeRefiner:
             raise CollabSlamError(f"refinement needs >= 3 finite points, got {len(pts)}")
         pose0 = np.asarray(initial_pose, dtype=np.float64).reshape(3).copy()
         prior = pose0 if prior_pose is None else np.asarray(prior_pose, np.float64).reshape(3)
-        g, p_unknown = grid.data, _unknown(grid, self.unknown_probability)
+        g, p_unknown = grid.data, self.unknown_probability
         ox, oy = (float(v) for v in grid.origin_xy)
         res = grid.resolution
         n = len(pts)

@@ -184,6 +184,24 @@ def cmd_eval_relations(args: argparse.Namespace) -> int:
     return 0
 
 
+def _default_data_dir() -> Path:
+    """../shared/data next to the repository (where the shared real data lives)."""
+    return Path(__file__).resolve().parents[2] / "shared" / "data"
+
+
+def cmd_bench(args: argparse.Namespace) -> int:
+    import importlib
+
+    cfg = _load_cfg(args)
+    module = importlib.import_module(f"benchmarks.{args.bench_name.replace('-', '_')}")
+    out = Path(args.json)
+    result = module.run(cfg, out.parent / out.stem, Path(args.data_dir), **args.bench_kwargs(args))
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(json.dumps(result, indent=1))
+    print(json.dumps(result, indent=1))
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="collabslam", description=__doc__)
     p.add_argument("--version", action="store_true", help="print versions and check imports")
@@ -244,6 +262,19 @@ def build_parser() -> argparse.ArgumentParser:
     sp.add_argument("--out", default="runs/latest")
     sp.add_argument("--max-sim-time", type=float, default=300.0, help="seconds of sim time")
     sp.set_defaults(func=cmd_run)
+    sp = sub.add_parser("bench", help="benchmarks (JSON out)")
+    bn = sp.add_subparsers(dest="bench_name", required=True)
+    b = bn.add_parser(
+        "local-slam",
+        help="local SLAM speed (sim, 1081 beams) and accuracy (sim drift, Intel/ACES relations)",
+    )
+    common(b, zenoh=False)
+    b.add_argument("--json", required=True, help="output JSON file")
+    b.add_argument("--world", default="floor30x25")
+    b.add_argument("--length", type=float, default=220.0, help="tour length (m)")
+    b.add_argument("--data-dir", default=str(_default_data_dir()))
+    b.set_defaults(func=cmd_bench, bench_kwargs=lambda a: {"world": a.world, "length_m": a.length})
+
     sp = sub.add_parser("eval", help="score results against references")
     ev = sp.add_subparsers(dest="eval_command", required=True)
     e = ev.add_parser("relations", help="Kuemmerle et al. relation metric of a TUM trajectory")

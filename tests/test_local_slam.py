@@ -1,0 +1,145 @@
+"""The agent's local SLAM front end: preprocessing, bad input, accuracy on a
+simulated flight, and a replayed piece of a real log reaching a base station."""
+
+from __future__ import annotations
+
+import json
+import logging
+import signal
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from agent.local_trajectory_builder import LocalTrajectoryBuilder
+from agent.scan_preprocessor import ScanPreprocessor
+from benchmarks.local_slam import run_local_slam
+from benchmarks.sensor_recording import record_tour
+from common.drift_metrics import drift_percent
+from common.metrics import ate_rmse
+from common.trajectory_io import Trajectory
+from protocol import LaserScan, Odometry
+
+
+def test_preprocessor_drops_invalid_returns(cfg) -> None:
+    pre = ScanPreprocessor(cfg.agent.local_slam)
+    r = np.array([1.0, np.nan, np.inf, -np.inf, 0.01, 2.0, 30.0, 45.0], np.float32)
+    p = pre.prepare(-0.5, 0.1, 30.0, r)
+    assert len(p.points) == 2  # 1.0 and 2.0 only
+    assert np.allclose(np.hypot(*p.points.T), [1.0, 2.0], atol=1e-6)
+    assert len(p.miss_points) == 3  # 30.0 (= range_max), 45.0 and +inf: no return
+    assert np.allclose(np.hypot(*p.miss_points.T), cfg.agent.local_slam.missing_data_ray_length_m)
+    assert p.dropped_invalid == 3  # NaN, -inf, too close
+
+
+def test_preprocessor_levels_a_tilted_scan(cfg) -> None:
+    pre = ScanPreprocessor(cfg.agent.local_slam)
+    # A wall 2 m ahead seen by a laser pitched 10 deg nose-down from 1 m altitude: the
+    # beam along x travels 2/cos(10 deg) before hitting it.
+    pitch = np.radians(10.0)
+    r = np.array([2.0 / np.cos(pitch)], np.float32)
+    flat = pre.prepare(0.0, 0.1, 30.0, r)
+    level = pre.prepare(0.0, 0.1, 30.0, r, roll=0.0, pitch=pitch, altitude=1.0)
+    assert flat.points[0, 0] == pytest.approx(2.0 / np.cos(pitch), abs=1e-6)
+    assert level.points[0, 0] == pytest.approx(2.0, abs=1e-6)
+    # Pitched 60 deg down from 1 m, a 1.5 m beam would end below the floor: dropped.
+    steep = pre.prepare(
+        0.0, 0.1, 30.0, np.array([1.5], np.float32), pitch=np.radians(60), altitude=1.0
+    )
+    assert len(steep.points) == 0
+
+
+def _scan(stamp: float, ranges: np.ndarray) -> LaserScan:
+    return LaserScan(
+        "r0", stamp, -np.pi / 2, np.pi / (len(ranges) - 1), 0.1, 30.0, ranges.astype(np.float32)
+    )
+
+
+def test_bad_scans_are_rejected_without_crashing(cfg, caplog) -> None:
+    b = LocalTrajectoryBuilder(cfg.agent.local_slam)
+    room = 3.0 + np.abs(np.sin(np.linspace(0, 6, 361)))
+    caplog.set_level(logging.WARNING)
+    assert b.add_scan(_scan(1.0, np.full(361, np.nan))) is None
+    assert b.add_scan(_scan(1.1, np.full(361, np.inf))) is None
+    assert "usable points" in caplog.text
+    assert b.add_scan(_scan(1.2, room)) is not None
+    assert b.add_scan(_scan(1.1, room)) is None  # time going backwards
+    assert b.add_scan(_scan(1.2, room)) is None  # repeated stamp
+    assert "not after the previous" in caplog.text
+    assert b.add_scan(_scan(1.3, room)) is not None
+    assert b.rejected_scans == 4 and b.scans == 2
+
+
+def test_local_slam_beats_odometry_on_a_simulated_flight(cfg) -> None:
+    rec = record_tour(cfg, "rooms15", length_m=25.0, seed=3)
+    traj, scans, _ = run_local_slam(cfg, rec.messages)
+    assert scans == rec.scans
+    odo = [m for m in rec.messages if isinstance(m, Odometry)]
+    odo_traj = Trajectory(
+        np.array([m.stamp for m in odo]),
+        np.array([m.pose[:3] for m in odo]),
+        np.array([m.pose[3:] for m in odo]),
+    )
+    slam_drift = drift_percent(traj, rec.ground_truth, align_first=True)
+    odo_drift = drift_percent(odo_traj, rec.ground_truth, align_first=True)
+    assert slam_drift < 1.0
+    assert slam_drift < odo_drift
+    # Known start: put the estimate in the world frame and compare directly.
+    assert ate_rmse(traj, rec.ground_truth, align=True) < 0.1
+
+
+def test_replayed_intel_piece_reaches_the_base_station(
+    tmp_path: Path, endpoint: str, shared_data: Path
+) -> None:
+    log = shared_data / "carmen" / "intel.clf.bz2"
+    base = subprocess.Popen(
+        [
+            sys.executable,
+            "-m",
+            "collabslam.cli",
+            "basestation",
+            "--out",
+            str(tmp_path / "base"),
+            "--listen",
+            endpoint,
+        ],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+    )
+    try:
+        agent = subprocess.run(
+            [
+                sys.executable,
+                "-m",
+                "collabslam.cli",
+                "agent",
+                "--robot-id",
+                "intel0",
+                "--replay",
+                str(log),
+                "--segment",
+                "976052857:976052917",
+                "--connect",
+                endpoint,
+                "--out",
+                str(tmp_path / "agent"),
+            ],
+            capture_output=True,
+            text=True,
+            timeout=240,
+        )
+        assert agent.returncode == 0, agent.stderr[-3000:]
+        stats = json.loads((tmp_path / "agent" / "agents" / "intel0.json").read_text())
+        assert stats["keyframes_sent"] > 20
+        assert stats["keyframes_acked"] == stats["keyframes_sent"]
+        base.send_signal(signal.SIGINT)
+        out, _ = base.communicate(timeout=120)
+    finally:
+        if base.poll() is None:
+            base.kill()
+    assert base.returncode == 0, out.decode()[-3000:]
+    bstats = json.loads((tmp_path / "base" / "basestation.json").read_text())
+    assert bstats["robots"]["intel0"]["keyframes_in_graph"] == stats["keyframes_sent"]
+    assert (tmp_path / "base" / "map.png").is_file()

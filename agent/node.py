@@ -30,6 +30,7 @@ from agent.vehicle import NullVehicle, ZenohVehicle
 from common.bus import Bus
 from common.config import Config
 from common.geometry import pose4_compose, pose4_inverse, pose4_to_pose7, pose7_to_pose4
+from common.trajectory_io import Trajectory, write_tum
 from protocol import (
     Altimeter,
     Imu,
@@ -89,6 +90,7 @@ class AgentNode:
         self.last_scan_stamp: float | None = None
         self.last_state_stamp = -np.inf
         self.scans = 0
+        self.local_trajectory: list[tuple[float, np.ndarray]] = []  # every scan, odom frame
 
     # --- wiring -------------------------------------------------------------------------
     def start(self) -> None:
@@ -140,6 +142,7 @@ class AgentNode:
             return
         self.last_scan_stamp = scan.stamp
         self.scans += 1
+        self.local_trajectory.append((scan.stamp, result.pose))
         if self.selector.is_due(result.pose) and self.outbox.has_room():
             self._send_keyframe(scan, result)
         self._command(scan.stamp)
@@ -240,6 +243,16 @@ class AgentNode:
             "rejected_messages": dict(self.bus.rejected),
         }
 
-    def write_stats(self, path: str | Path) -> None:
-        Path(path).parent.mkdir(parents=True, exist_ok=True)
-        Path(path).write_text(json.dumps(self.stats(), indent=1))
+    def write_outputs(self, out_dir: str | Path) -> None:
+        """agents/<id>.json (statistics) and local_trajectories/<id>.tum (every scan's
+        T_odom_base, the agent's own frame)."""
+        out = Path(out_dir)
+        (out / "agents").mkdir(parents=True, exist_ok=True)
+        (out / "agents" / f"{self.robot_id}.json").write_text(json.dumps(self.stats(), indent=1))
+        if self.local_trajectory:
+            stamps = np.array([t for t, _ in self.local_trajectory])
+            poses = np.array([p for _, p in self.local_trajectory])
+            write_tum(
+                out / "local_trajectories" / f"{self.robot_id}.tum",
+                Trajectory.from_pose4(stamps, poses),
+            )

@@ -8,14 +8,16 @@ Conventions (same as `common.occupancy_grid` / `common.map_io.GridMap`):
 
 Each cell stores an occupancy probability (float32) clamped to
 [min_probability, max_probability] (Cartographer: [0.1, 0.9]); the value 0 marks a
-cell never observed ("unknown"). Scan matchers read unknown cells as
-`min_probability`, as Cartographer does (unknown correspondence cost 0.9).
+cell never observed ("unknown"). What a matcher reads there is its choice:
+`agent.scan_matcher` uses 0.5 by default, Cartographer uses min_probability.
 
 Insertion (Cartographer's `ProbabilityGridRangeDataInserter2D`): every hit cell is
 updated with the odds of `p_hit` (an unknown cell becomes `p_hit`), then every cell
-the ray from the sensor to the hit crosses (exact grid traversal, end cell excluded)
-with the odds of `p_miss`. Each cell is updated at most once per scan and hits win
-over misses: a wall cell hit by one beam is not cleared by a grazing neighbour beam.
+the ray from the sensor to the hit crosses (exact Amanatides-Woo traversal, end cell
+excluded) with the odds of `p_miss`. Each cell is updated at most once per scan and
+hits win over misses: a wall cell hit by one beam is not cleared by a grazing
+neighbour beam. The grid grows (by whole cells, plus `grow_margin_m`) to hold every
+scan; `version` counts changes so matchers can cache what they derive from it.
 """
 
 from __future__ import annotations
@@ -41,8 +43,8 @@ def _update(p: float, odds: float, p_min: float, p_max: float) -> float:
     if p == 0.0:
         q = odds / (1.0 + odds)
     else:
-        o = p / (1.0 - p) * odds
-        q = o / (1.0 + o)
+        o = p * odds  # odds(q) = odds(p) * odds  <=>  q = p odds / (1 - p + p odds)
+        q = o / (1.0 - p + o)
     return min(max(q, p_min), p_max)
 
 
@@ -66,48 +68,44 @@ def _insert_scan(
     `misses_uv` are ray ends without a return: their whole ray is free space.
     """
     ny, nx = prob.shape
+    sid = np.uint32(scan_id)
     for k in range(hits_uv.shape[0]):
         ix = int(math.floor(hits_uv[k, 0]))
         iy = int(math.floor(hits_uv[k, 1]))
-        if 0 <= ix < nx and 0 <= iy < ny and stamp[iy, ix] != scan_id:
-            stamp[iy, ix] = scan_id
+        if 0 <= ix < nx and 0 <= iy < ny and stamp[iy, ix] != sid:
+            stamp[iy, ix] = sid
             prob[iy, ix] = _update(prob[iy, ix], hit_odds, p_min, p_max)
     n_hits = hits_uv.shape[0] if miss_rays else 0
     for k in range(n_hits + misses_uv.shape[0]):
         if k < n_hits:
             eu = hits_uv[k, 0]
             ev = hits_uv[k, 1]
-            include_end = False
         else:
             eu = misses_uv[k - n_hits, 0]
             ev = misses_uv[k - n_hits, 1]
-            include_end = True
         # Amanatides-Woo traversal of every cell the segment crosses.
         ix = int(math.floor(su))
         iy = int(math.floor(sv))
-        ex = int(math.floor(eu))
-        ey = int(math.floor(ev))
         du = eu - su
         dv = ev - sv
         step_x = 1 if du > 0.0 else -1
         step_y = 1 if dv > 0.0 else -1
-        inv_du = 1.0 / abs(du) if du != 0.0 else 1e30
-        inv_dv = 1.0 / abs(dv) if dv != 0.0 else 1e30
-        t_max_x = ((ix + 1.0 - su) if du > 0.0 else (su - ix)) * inv_du
-        t_max_y = ((iy + 1.0 - sv) if dv > 0.0 else (sv - iy)) * inv_dv
-        n = abs(ex - ix) + abs(ey - iy)
-        for _ in range(n + 1):
-            if ix == ex and iy == ey and not include_end:
-                break
-            if 0 <= ix < nx and 0 <= iy < ny and stamp[iy, ix] != scan_id:
-                stamp[iy, ix] = scan_id
+        # t (0 at the sensor, 1 at the end) between / to the next column and row boundary
+        inv_du = 1.0 / abs(du) if du != 0.0 else math.inf
+        inv_dv = 1.0 / abs(dv) if dv != 0.0 else math.inf
+        t_x = ((ix + 1.0 - su) if du > 0.0 else (su - ix)) * inv_du if du != 0.0 else math.inf
+        t_y = ((iy + 1.0 - sv) if dv > 0.0 else (sv - iy)) * inv_dv if dv != 0.0 else math.inf
+        # cells before the end cell; a miss ray clears its end cell too
+        n = abs(int(math.floor(eu)) - ix) + abs(int(math.floor(ev)) - iy) + (k >= n_hits)
+        for _ in range(n):
+            if 0 <= ix < nx and 0 <= iy < ny and stamp[iy, ix] != sid:
+                stamp[iy, ix] = sid
                 prob[iy, ix] = _update(prob[iy, ix], miss_odds, p_min, p_max)
-            if t_max_x < t_max_y:
-                t_max_x += inv_du
-                ix += step_x
-            else:
-                t_max_y += inv_dv
-                iy += step_y
+            along_x = t_x < t_y  # branch-free stepping
+            t_x += inv_du if along_x else 0.0
+            t_y += 0.0 if along_x else inv_dv
+            ix += step_x if along_x else 0
+            iy += 0 if along_x else step_y
 
 
 def _odds(p: float) -> float:
@@ -267,7 +265,7 @@ class ProbabilityGrid:
             return np.zeros((0, 2))
         if p.ndim != 2 or p.shape[1] != 2:
             raise CollabSlamError(f"{name} must have shape (N, 2), got {p.shape}")
-        finite = np.isfinite(p).all(axis=1)
+        finite = np.isfinite(p[:, 0] + p[:, 1])  # NaN and +-inf propagate through the sum
         if not finite.all():
             logger.debug("%s: skipping %d non-finite points", name, int((~finite).sum()))
             p = p[finite]

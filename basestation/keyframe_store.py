@@ -25,12 +25,37 @@ class RobotKeyframes:
     stamps: list[float] = field(default_factory=list)
     poses_odom: list[np.ndarray] = field(default_factory=list)  # T_odom_base [x, y, z, yaw]
     keyframes: list[Keyframe] = field(default_factory=list)
+    points: list[np.ndarray] = field(default_factory=list)  # (N, 2) body-frame scan points
+    var_cumsum: list[np.ndarray] = field(default_factory=list)  # running [var_xy, var_yaw]
     held: dict[int, Keyframe] = field(default_factory=dict)
     duplicates: int = 0
+
+    def chain_covariance(self, i: int, j: int, distance: float) -> np.ndarray:
+        """Approximate 3x3 covariance of node j relative to node i along the chain:
+        summed per-keyframe variances, plus heading uncertainty times distance."""
+        i, j = min(i, j), max(i, j)
+        v = self.var_cumsum[j] - self.var_cumsum[i]
+        var_xy = v[0] + 0.5 * v[1] * distance**2 + 1e-6
+        return np.diag([var_xy, var_xy, v[1] + 1e-8])
 
     @property
     def next_seq(self) -> int:
         return len(self.keyframes)
+
+
+def scan_points(kf: Keyframe, voxel_m: float = 0.05) -> np.ndarray:
+    """A keyframe's returns as (N, 2) points in its body frame, one per voxel."""
+    if kf.scan2d is None:
+        return np.zeros((0, 2))
+    r = kf.scan2d.ranges()
+    a = kf.scan2d.angles()
+    ok = np.isfinite(r)
+    pts = np.column_stack([r[ok] * np.cos(a[ok]), r[ok] * np.sin(a[ok])]).astype(np.float64)
+    if len(pts) == 0:
+        return pts
+    keys = np.floor(pts / voxel_m).astype(np.int64)
+    _, first = np.unique(keys[:, 0] * 1_000_003 + keys[:, 1], return_index=True)
+    return pts[np.sort(first)]
 
 
 class KeyframeStore:
@@ -75,6 +100,13 @@ class KeyframeStore:
                 )
             r.stamps.append(k.stamp)
             r.poses_odom.append(pose7_to_pose4(k.pose_odom))
+            r.points.append(scan_points(k))
+            c = k.delta_cov
+            prev = r.var_cumsum[-1] if r.var_cumsum else np.zeros(2)
+            r.var_cumsum.append(
+                prev
+                + (np.zeros(2) if k.seq == 0 else np.array([0.5 * (c[0, 0] + c[1, 1]), c[5, 5]]))
+            )
             r.keyframes.append(k)
         return ready
 

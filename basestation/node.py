@@ -1,12 +1,13 @@
 """The base-station daemon.
 
-Receives every robot's keyframes, admits them in order per robot, adds them
-to one iSAM2 pose graph (one chain per robot), acknowledges them once they are
-in the graph, publishes each robot's T_map_odom after every optimization, and
-keeps the global occupancy grid up to date. At shutdown it writes the map,
-the trajectories and its statistics.
+Receives every robot's keyframes, hands them to global SLAM (in order per robot,
+one iSAM2 graph, loop closures and inter-robot constraints), acknowledges them
+once they are in the graph, publishes each robot's T_map_odom after every
+optimization, and keeps the global occupancy grid up to date. At shutdown it
+writes the map, the trajectories and its statistics.
 
-Threads: Zenoh callbacks only enqueue; everything else runs on `run()`'s thread.
+Threads: Zenoh callbacks only enqueue; the constraint builder verifies matches on
+its own worker; everything else runs on `run()`'s thread.
 """
 
 from __future__ import annotations
@@ -21,16 +22,15 @@ from typing import Any
 
 import numpy as np
 
-from basestation.keyframe_store import KeyframeStore
+from basestation.global_slam import GlobalSlam
 from basestation.map_builder import MapBuilder
-from basestation.pose_graph import PoseGraph
 from common.bus import Bus
 from common.config import Config
-from common.geometry import pose4_to_pose7, quat_to_yaw, se2_compose, se2_inverse
+from common.geometry import pose4_to_pose7
 from common.map_io import write_map
 from common.picture import render_map_picture
 from common.scenario import Scenario
-from common.trajectory_io import Trajectory, write_tum
+from common.trajectory_io import write_tum
 from protocol import Keyframe, KeyframeAck, PoseCorrection, RobotState
 
 log = logging.getLogger(__name__)
@@ -41,26 +41,22 @@ class BaseStationNode:
         self.cfg = cfg
         self.bus = bus
         self.keys = bus.keys
-        b = cfg.basestation
-        self.graph = PoseGraph(
-            relinearize_threshold=b.relinearize_threshold,
-            relinearize_skip=b.relinearize_skip,
-            prior_sigmas=(b.prior_sigma_xy_m, b.prior_sigma_xy_m, b.prior_sigma_yaw_rad),
-        )
-        self.store = KeyframeStore(b.reorder_window)
+        # With a scenario the roster is closed (other robot ids are dropped). Its start
+        # poses are used when basestation.known_start_poses is true; otherwise only the
+        # first robot's (it defines the map frame) and the others are found by matching.
+        starts: dict[str, np.ndarray] = {}
+        self.roster: set[str] | None = None
+        if scenario is not None:
+            self.roster = set(scenario.robot_ids)
+            starts = {r.robot_id: r.start_pose for r in scenario.robots}
+            if not cfg.basestation.known_start_poses:
+                starts = dict(list(starts.items())[:1])
+        self.slam = GlobalSlam(cfg, starts)
         self.map = MapBuilder(cfg.map)
         self.inbox: queue.Queue[Keyframe] = queue.Queue()
         self.states: dict[str, RobotState] = {}
-        # With a scenario the roster is closed (other robot ids are dropped) and start
-        # poses are known; without one, any robot may join with a floating chain.
-        self.known_starts: dict[str, np.ndarray] = {}
-        self.roster: set[str] | None = None
-        if scenario is not None:
-            self.known_starts = {r.robot_id: r.start_pose for r in scenario.robots}
-            self.roster = set(self.known_starts)
         self.epoch = 0
         self.unknown_robot_drops = 0
-        self.update_ms: list[float] = []
         self._last_map = 0.0
         self._map_dirty = False
         self._lock = threading.Lock()
@@ -87,7 +83,7 @@ class BaseStationNode:
             self.step(timeout=0.05)
 
     def step(self, timeout: float = 0.0) -> int:
-        """Process one batch of received keyframes; returns how many were admitted."""
+        """Process one batch of keyframes and verified constraints; returns #admitted."""
         batch: list[Keyframe] = []
         try:
             batch.append(
@@ -98,6 +94,8 @@ class BaseStationNode:
         except queue.Empty:
             pass
         admitted = self.process(batch) if batch else 0
+        if self.slam.integrate_constraints():
+            self._optimized()
         now = time.monotonic()
         if self._map_dirty and now - self._last_map >= self.cfg.basestation.map_update_period_s:
             self.refresh_map()
@@ -120,109 +118,56 @@ class BaseStationNode:
                     )
                 continue
             touched.add(rid)
-            for k in self.store.admit(kf):
-                self._add_to_graph(k)
-                admitted += 1
+            admitted += self.slam.admit(kf)
         if admitted:
-            t0 = time.perf_counter()
-            self.graph.update()
-            self.update_ms.append((time.perf_counter() - t0) * 1e3)
-            self._map_dirty = True
+            self._optimized()
+            self.slam.search_constraints()
         for rid in touched:  # ack admitted and duplicate keyframes alike
-            acked = self.store.acked_seq(rid)
+            acked = self.slam.store.acked_seq(rid)
             if acked >= 0:
                 self.bus.publish(self.keys.robot(rid, "ack"), KeyframeAck(rid, acked))
-        if admitted:
-            self.publish_corrections()
         return admitted
 
-    def _add_to_graph(self, kf: Keyframe) -> None:
-        rid = kf.robot_id
-        if kf.seq == 0:
-            start = self.known_starts.get(rid)  # None: unknown start, floating chain
-            self.graph.add_robot(rid, start)
-            self.graph.add_node(rid, 0, None, None, initial_guess=start)
-            return
-        d = kf.delta
-        delta = np.array([d[0], d[1], float(quat_to_yaw(d[3:7]))])
-        cov = kf.delta_cov[np.ix_([0, 1, 5], [0, 1, 5])]
-        self.graph.add_node(rid, kf.seq, delta, cov)
+    def _optimized(self) -> None:
+        self.slam.optimize()
+        self._map_dirty = True
+        self.publish_corrections()
 
     def publish_corrections(self) -> None:
         self.epoch += 1
         stamp = time.time()
-        for rid, r in self.store.robots.items():
-            if not r.keyframes or self.graph.latest_index(rid) is None:
+        for rid in self.slam.graph.robots():
+            T = self.slam.T_map_odom(rid)
+            if T is None:
                 continue
-            idx = self.graph.latest_index(rid)
-            T_map_base = self.graph.pose(rid, idx)
-            T_odom_base = r.poses_odom[idx][[0, 1, 3]]
-            T_map_odom = se2_compose(T_map_base, se2_inverse(T_odom_base))
             self.bus.publish(
                 self.keys.robot(rid, "correction"),
-                PoseCorrection(
-                    rid,
-                    self.epoch,
-                    stamp,
-                    pose4_to_pose7([T_map_odom[0], T_map_odom[1], 0.0, T_map_odom[2]]),
-                ),
+                PoseCorrection(rid, self.epoch, stamp, pose4_to_pose7([T[0], T[1], 0.0, T[2]])),
             )
 
-    def _all_keyframes(self) -> tuple[list[tuple[str, int]], list[Any], np.ndarray]:
-        keys, scans, poses = [], [], []
-        for rid, r in self.store.robots.items():
-            n = self.graph.num_nodes(rid) if rid in self.graph.robots() else 0
-            if n == 0:
-                continue
-            est = self.graph.poses(rid)
-            for i in range(n):
-                if r.keyframes[i].scan2d is not None:
-                    keys.append((rid, i))
-                    scans.append(r.keyframes[i].scan2d)
-                    poses.append(est[i])
-        return keys, scans, np.array(poses).reshape(-1, 3)
-
     def refresh_map(self) -> None:
-        keys, scans, poses = self._all_keyframes()
-        self.map.update(keys, scans, poses)
+        self.map.update(*self.slam.map_keyframes())
         self._map_dirty = False
 
-    def drain(self) -> None:
-        """Process everything already received."""
-        while self.step(timeout=0.0) or not self.inbox.empty():
-            pass
+    def drain(self, timeout_s: float = 60.0) -> None:
+        """Process everything already received, and pending verifications."""
+        deadline = time.monotonic() + timeout_s
+        while time.monotonic() < deadline:
+            busy = self.step(timeout=0.0) or not self.inbox.empty() or not self.slam.idle()
+            if not busy:
+                if not self.slam.integrate_constraints():
+                    break
+                self._optimized()
+            time.sleep(0.01)
+        self.slam.close()
 
     # --- outputs ------------------------------------------------------------------------
-    def trajectories(self) -> dict[str, Trajectory]:
-        out = {}
-        for rid, r in self.store.robots.items():
-            if rid not in self.graph.robots() or self.graph.num_nodes(rid) == 0:
-                continue
-            est = self.graph.poses(rid)
-            z = np.array([p[2] for p in r.poses_odom[: len(est)]])
-            poses4 = np.column_stack([est[:, 0], est[:, 1], z, est[:, 2]])
-            out[rid] = Trajectory.from_pose4(np.array(r.stamps[: len(est)]), poses4)
-        return out
-
     def stats(self) -> dict[str, Any]:
-        upd = np.array(self.update_ms) if self.update_ms else np.zeros(1)
         return {
-            "robots": {
-                rid: {
-                    "keyframes_in_graph": self.graph.num_nodes(rid)
-                    if rid in self.graph.robots()
-                    else 0,
-                    "duplicates": r.duplicates,
-                    "held_out_of_order": len(r.held),
-                }
-                for rid, r in self.store.robots.items()
-            },
+            **self.slam.stats(),
             "unknown_robot_drops": self.unknown_robot_drops,
             "rejected_messages": dict(self.bus.rejected),
             "correction_epoch": self.epoch,
-            "isam2_updates": len(self.update_ms),
-            "isam2_update_ms_p50": float(np.percentile(upd, 50)),
-            "isam2_update_ms_p95": float(np.percentile(upd, 95)),
             "map_full_renders": self.map.full_renders,
         }
 
@@ -230,18 +175,19 @@ class BaseStationNode:
         out = Path(out_dir)
         out.mkdir(parents=True, exist_ok=True)
         self.refresh_map()
-        trajs = self.trajectories()
+        trajs = self.slam.trajectories()
         for rid, traj in trajs.items():
             write_tum(out / "trajectories" / f"{rid}.tum", traj)
         grid = self.map.gridmap()
+        on_map = {rid: t for rid, t in trajs.items() if self.slam.graph.is_anchored(rid)}
         if grid is not None:
             write_map(grid, out / "map.yaml", "map.pgm")
             render_map_picture(
                 out / "map.png",
                 grid,
-                trajectories={rid: t.positions[:, :2] for rid, t in trajs.items()},
-                robots={rid: t.poses_se2()[-1] for rid, t in trajs.items() if len(t)},
-                title=f"collabslam map: {len(trajs)} robots",
+                trajectories={rid: t.positions[:, :2] for rid, t in on_map.items()},
+                robots={rid: t.poses_se2()[-1] for rid, t in on_map.items() if len(t)},
+                title=f"collabslam map: {len(on_map)} of {len(trajs)} robots on the map",
             )
         (out / "basestation.json").write_text(json.dumps(self.stats(), indent=1))
         log.info("outputs written to %s", out)

@@ -341,6 +341,18 @@ class PoseGraph:
     def robots(self) -> list[str]:
         return list(self._chains)
 
+    def components(self) -> list[list[str]]:
+        """Robots grouped by inter-robot constraints (including pending ones); within a
+        group, poses share one frame. Robots with no node yet are not listed."""
+        return self._components()
+
+    def is_anchored(self, robot_id: str) -> bool:
+        """True if the robot's group contains a robot with a known start (the map frame)."""
+        for comp in self._components():
+            if robot_id in comp:
+                return any(self._chains[r].T_map_first is not None for r in comp)
+        return False
+
     def latest_index(self, robot_id: str) -> int | None:
         size = self._chain(robot_id).size
         return size - 1 if size else None

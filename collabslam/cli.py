@@ -119,7 +119,7 @@ def cmd_agent(args: argparse.Namespace) -> int:
         node.run(source, stop)
         node.drain(cfg.agent.drain_timeout_s)
         if args.out:
-            node.write_stats(Path(args.out) / "agents" / f"{args.robot_id}.json")
+            node.write_outputs(Path(args.out))
     return 0
 
 
@@ -181,6 +181,17 @@ def cmd_eval_relations(args: argparse.Namespace) -> int:
         Path(args.json).parent.mkdir(parents=True, exist_ok=True)
         Path(args.json).write_text(text)
     print(text)
+    return 0
+
+
+def cmd_eval_carmen(args: argparse.Namespace) -> int:
+    from collabslam.eval_carmen import eval_carmen
+
+    cfg = _load_cfg(args)
+    result = eval_carmen(
+        cfg, Path(args.log), Path(args.relations), args.robots, Path(args.json), args.log_level
+    )
+    print(json.dumps(result, indent=1))
     return 0
 
 
@@ -274,6 +285,20 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--length", type=float, default=220.0, help="tour length (m)")
     b.add_argument("--data-dir", default=str(_default_data_dir()))
     b.set_defaults(func=cmd_bench, bench_kwargs=lambda a: {"world": a.world, "length_m": a.length})
+    b = bn.add_parser(
+        "backend",
+        help="iSAM2 fed node by node vs. batch LM on 3-robot g2o graphs (M3500, city10000)",
+    )
+    common(b, zenoh=False)
+    b.add_argument("--json", required=True, help="output JSON file")
+    b.add_argument("--data-dir", default=str(_default_data_dir()))
+    b.add_argument(
+        "--sizes",
+        type=lambda text: tuple(int(n) for n in text.split(",")),
+        default="500,2000,10000",
+        help="comma list of graph sizes in nodes (<= 3500: M3500 prefix, else city10000)",
+    )
+    b.set_defaults(func=cmd_bench, bench_kwargs=lambda a: {"sizes": a.sizes})
 
     sp = sub.add_parser("eval", help="score results against references")
     ev = sp.add_subparsers(dest="eval_command", required=True)
@@ -282,6 +307,17 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("relations", help="relations file (t1 t2 dx dy dz droll dpitch dyaw)")
     e.add_argument("--json", help="also write the numbers to this file")
     e.set_defaults(func=cmd_eval_relations)
+    e = ev.add_parser(
+        "carmen",
+        help="split a CARMEN log into K robots, run agents and the base "
+        "station over Zenoh, score the merged trajectory with a relations file",
+    )
+    common(e, zenoh=False)
+    e.add_argument("log", help="CARMEN .clf or .clf.bz2")
+    e.add_argument("--relations", required=True)
+    e.add_argument("--robots", type=int, default=3)
+    e.add_argument("--json", required=True, help="output JSON; outputs go next to it")
+    e.set_defaults(func=cmd_eval_carmen)
     return p
 
 

@@ -13,43 +13,29 @@ from __future__ import annotations
 
 import json
 import logging
-import os
 import signal
-import socket
-import subprocess
-import sys
 import threading
 import time
-from dataclasses import dataclass
 from pathlib import Path
-from typing import IO, Any
+from typing import Any
 
+from collabslam.supervisor import Child, ProcessGroup, free_port
 from common.bus import endpoint
 from common.config import Config, dump_config
 from common.errors import ProcessError
 from common.scenario import RobotScenario, Scenario, write_scenario
-from simulation.tours import plan_tours, start_poses
+from simulation.tours import plan_tours, spread_start_poses, start_poses
 from simulation.world import World, resolve_world
 
 log = logging.getLogger(__name__)
 
 
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
-
-
-@dataclass
-class Child:
-    name: str
-    proc: subprocess.Popen[bytes]
-    log_file: IO[bytes]
-
-
 def make_scenario(cfg: Config, world_yaml: Path, n_robots: int) -> Scenario:
     world = World.load(str(world_yaml))
-    starts = start_poses(world, n_robots, seed=cfg.sim.seed, spacing=cfg.sim.start_spacing_m)
+    if cfg.sim.start_apart:
+        starts = spread_start_poses(world, n_robots, seed=cfg.sim.seed)
+    else:
+        starts = start_poses(world, n_robots, seed=cfg.sim.seed, spacing=cfg.sim.start_spacing_m)
     tours = plan_tours(world, starts, seed=cfg.sim.seed, length_m=cfg.sim.tour_length_m)
     robots = [RobotScenario(f"r{i}", starts[i], tours[i]) for i in range(n_robots)]
     return Scenario(str(world_yaml.resolve()), robots, cfg.sim.seed)
@@ -72,28 +58,8 @@ class Launcher:
         self.n_robots = n_robots
         self.out = out
         self.max_sim_time = max_sim_time
-        self.log_level = log_level
-        self.children: list[Child] = []
+        self.group = ProcessGroup(out, log_level)
         self.stop = threading.Event()
-
-    def _spawn(self, name: str, args: list[str]) -> Child:
-        logs = self.out / "logs"
-        logs.mkdir(parents=True, exist_ok=True)
-        f = open(logs / f"{name}.log", "wb")  # noqa: SIM115 - closed in _close_logs
-        cmd = [sys.executable, "-m", "collabslam.cli", "--log-level", self.log_level, *args]
-        env = dict(os.environ, PYTHONUNBUFFERED="1")
-        proc = subprocess.Popen(
-            cmd,
-            stdout=f,
-            stderr=subprocess.STDOUT,
-            env=env,
-            stdin=subprocess.DEVNULL,
-            start_new_session=True,
-        )
-        child = Child(name, proc, f)
-        self.children.append(child)
-        log.info("started %s (pid %d)", name, proc.pid)
-        return child
 
     def run(self) -> dict[str, Any]:
         t0 = time.monotonic()
@@ -110,9 +76,10 @@ class Launcher:
             str(self.out),
         ]
         base_ep, sim_ep = endpoint(free_port()), endpoint(free_port())
+        g = self.group
         try:
-            base = self._spawn("basestation", ["basestation", *common, "--listen", base_ep])
-            sim = self._spawn(
+            base = g.spawn("basestation", ["basestation", *common, "--listen", base_ep])
+            sim = g.spawn(
                 "sim",
                 [
                     "sim",
@@ -126,7 +93,7 @@ class Launcher:
                 ],
             )
             agents = [
-                self._spawn(
+                g.spawn(
                     r.robot_id,
                     [
                         "agent",
@@ -144,11 +111,11 @@ class Launcher:
             self._supervise_until(sim, [base, *agents])
             for a in agents:
                 a.proc.send_signal(signal.SIGINT)
-            self._wait(agents, self.cfg.agent.drain_timeout_s + 30.0)
+            g.wait(agents, self.cfg.agent.drain_timeout_s + 30.0)
             base.proc.send_signal(signal.SIGINT)
-            self._wait([base], 300.0)
+            g.wait([base], 300.0)
         finally:
-            self._terminate_all()
+            g.terminate_all()
         from collabslam.summary import build_summary
 
         summary = build_summary(
@@ -163,39 +130,12 @@ class Launcher:
             if self.stop.is_set():
                 log.info("interrupted: stopping the simulator")
                 sim.proc.send_signal(signal.SIGINT)
-                self._wait([sim], 30.0)
+                self.group.wait([sim], 30.0)
                 return
             rc = sim.proc.poll()
             if rc is not None:
                 if rc != 0:
-                    raise ProcessError(self._died(sim, rc))
+                    raise ProcessError(self.group.died(sim, rc))
                 return
-            for c in others:
-                rc = c.proc.poll()
-                if rc is not None:
-                    raise ProcessError(self._died(c, rc))
+            self.group.check(others)
             time.sleep(0.2)
-
-    def _died(self, c: Child, rc: int) -> str:
-        return (
-            f"{c.name} (pid {c.proc.pid}) exited with code {rc}; "
-            f"see {self.out / 'logs' / (c.name + '.log')}"
-        )
-
-    def _wait(self, children: list[Child], timeout: float) -> None:
-        deadline = time.monotonic() + timeout
-        for c in children:
-            try:
-                rc = c.proc.wait(max(0.1, deadline - time.monotonic()))
-            except subprocess.TimeoutExpired:
-                raise ProcessError(f"{c.name} did not stop within {timeout:.0f} s") from None
-            if rc != 0:
-                raise ProcessError(self._died(c, rc))
-
-    def _terminate_all(self) -> None:
-        for c in self.children:
-            if c.proc.poll() is None:
-                log.warning("killing %s", c.name)
-                c.proc.kill()
-                c.proc.wait()
-            c.log_file.close()

@@ -262,6 +262,34 @@ def start_poses(
     return np.column_stack([pos, np.full(n_robots, yaw)])
 
 
+def spread_start_poses(
+    world: World, n_robots: int, seed: int, clearance: float = 0.6
+) -> NDArray[np.float64]:
+    """(n_robots, 3) start poses far apart (farthest-point sampling in path distance
+    over the largest free region) with random headings: the "unknown start poses"
+    case, where no robot starts near another or facing the same way."""
+    if n_robots < 1:
+        raise ConfigError(f"n_robots must be >= 1, got {n_robots}")
+    rng = np.random.default_rng(seed)
+    planner = _GridPlanner(world, clearance)
+    labels, n = ndimage.label(planner.trav)
+    if n == 0:
+        raise CollabSlamError(f"world has no free cell {clearance} m away from walls")
+    sizes = np.bincount(labels.ravel())[1:]
+    comp = (labels == int(np.argmax(sizes)) + 1).ravel()
+    cells = np.flatnonzero(comp)
+    chosen = [int(cells[rng.integers(cells.size)])]
+    nearest = np.full(comp.size, np.inf)
+    for _ in range(1, n_robots):
+        planner.run([chosen[-1]])
+        nearest = np.minimum(nearest, planner.dist)
+        score = np.where(comp & np.isfinite(nearest), nearest, -1.0)
+        chosen.append(int(np.argmax(score)))
+    pos = planner.centres(np.array(chosen))
+    yaw = rng.uniform(-math.pi, math.pi, n_robots)
+    return np.column_stack([pos, yaw])
+
+
 def plan_tours(
     world: World,
     starts: ArrayLike,

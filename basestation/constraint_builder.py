@@ -1,0 +1,164 @@
+"""Finds loop-closure and inter-robot candidates and verifies them by scan matching.
+
+Candidates (seed 002 §1.1, eq. 2): for a new node, nodes within `search_radius_m`
+and `search_angle_rad` in the same map frame (the same graph component). The
+nearest node of every other robot gives an inter-robot candidate; the nearest
+node of the same robot at least `loop_min_index_gap` keyframes back gives a
+loop-closure candidate. A robot whose chain is not connected to the map yet
+gets a global search of its latest scan against the whole map every
+`global_search_every` keyframes (its start pose is unknown).
+
+Verification runs on one worker thread: the main thread packs each job with
+everything it needs (target scans already in the target node's frame, the
+query points, the guess), so the worker never touches the graph. The worker
+keeps to `max_candidates_per_s`; the queue keeps the newest `max_queue` jobs.
+"""
+
+from __future__ import annotations
+
+import collections
+import logging
+import math
+import threading
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+from basestation.scan_verifier import ScanVerifier, VerifiedMatch
+from common.config import ConstraintConfig
+from common.geometry import se2_between, wrap_angle
+
+log = logging.getLogger(__name__)
+
+NodeKey = tuple[str, int]
+
+
+@dataclass(frozen=True)
+class Job:
+    kind: str  # "loop" | "inter" | "global"
+    a: NodeKey  # target node (its frame is the target frame; for "global": a map node)
+    b: NodeKey  # query node
+    T_a_b_guess: np.ndarray  # for "global": unused
+    target_scans: list[np.ndarray]  # points in frame a (for "global": in the map frame)
+    query_points: np.ndarray  # points in frame b
+    target_origins: list[np.ndarray] | None = None  # sensor pose of each target scan
+    target_key: object = None  # cache key of the target (global map version)
+
+
+@dataclass(frozen=True)
+class Verified:
+    job: Job
+    match: VerifiedMatch  # T_a_b (for "global": T_map_b)
+
+
+def find_candidates(
+    cfg: ConstraintConfig, new: NodeKey, poses: dict[str, np.ndarray], component: list[str]
+) -> list[tuple[str, NodeKey]]:
+    """(kind, target node) pairs for `new`, searching robots of its component only.
+
+    poses: robot -> (N, 3) current estimates (same frame within the component).
+    """
+    rid, idx = new
+    p = poses[rid][idx]
+    out: list[tuple[str, NodeKey]] = []
+    for other in component:
+        P = poses[other]
+        if other == rid:
+            P = P[: max(0, idx - cfg.loop_min_index_gap)]
+        if len(P) == 0:
+            continue
+        d = np.hypot(P[:, 0] - p[0], P[:, 1] - p[1])
+        ok = (d < cfg.search_radius_m) & (np.abs(wrap_angle(P[:, 2] - p[2])) < cfg.search_angle_rad)
+        if not ok.any():
+            continue
+        j = int(np.flatnonzero(ok)[np.argmin(d[ok])])
+        out.append(("loop" if other == rid else "inter", (other, j)))
+    return out
+
+
+class ConstraintBuilder:
+    def __init__(self, cfg: ConstraintConfig, verifier: ScanVerifier | None = None) -> None:
+        self.cfg = cfg
+        self.verifier = verifier or ScanVerifier(
+            linear_window=cfg.linear_window_m,
+            angular_window=math.radians(cfg.angular_window_deg),
+            min_score=cfg.min_score,
+            min_overlap=cfg.min_overlap,
+            max_corr_dist=cfg.max_corr_dist_m,
+        )
+        self._jobs: collections.deque[Job] = collections.deque(maxlen=cfg.max_queue)
+        self._results: list[Verified] = []
+        self._lock = threading.Lock()
+        self._wake = threading.Event()
+        self._stop = threading.Event()
+        self._global_target: tuple[object, object] | None = None  # (key, Target)
+        self.stats = collections.Counter()
+        self._busy = False
+        self._thread = threading.Thread(target=self._work, name="constraint-builder", daemon=True)
+        self._thread.start()
+
+    def submit(self, job: Job) -> None:
+        with self._lock:
+            if len(self._jobs) == self._jobs.maxlen:
+                self.stats["dropped"] += 1
+            self._jobs.append(job)
+            self.stats[f"submitted_{job.kind}"] += 1
+        self._wake.set()
+
+    def results(self) -> list[Verified]:
+        with self._lock:
+            out, self._results = self._results, []
+        return out
+
+    def idle(self) -> bool:
+        with self._lock:
+            return not self._jobs and not self._busy
+
+    def close(self) -> None:
+        self._stop.set()
+        self._wake.set()
+        self._thread.join(timeout=10)
+
+    def _work(self) -> None:
+        period = 1.0 / self.cfg.max_candidates_per_s
+        while not self._stop.is_set():
+            with self._lock:
+                job = self._jobs.popleft() if self._jobs else None
+                self._busy = job is not None
+            if job is None:
+                self._wake.wait(0.1)
+                self._wake.clear()
+                continue
+            t0 = time.monotonic()
+            try:
+                match = self._verify(job)
+            except Exception:
+                log.exception("verification of %s failed", job.kind)
+                match = None
+            with self._lock:
+                self.stats[f"verified_{job.kind}" if match else f"failed_{job.kind}"] += 1
+                if match is not None:
+                    self._results.append(Verified(job, match))
+                self._busy = False
+            rest = period - (time.monotonic() - t0)
+            if rest > 0:
+                self._stop.wait(rest)
+
+    def _verify(self, job: Job) -> VerifiedMatch | None:
+        v = self.verifier
+        if job.kind == "global":
+            if self._global_target is None or self._global_target[0] != job.target_key:
+                self._global_target = (
+                    job.target_key,
+                    v.build_target(job.target_scans, job.target_origins),
+                )
+            return v.global_search(
+                self._global_target[1], job.query_points, min_score=self.cfg.global_min_score
+            )
+        target = v.build_target(job.target_scans, job.target_origins)
+        return v.verify(target, job.query_points, job.T_a_b_guess)
+
+
+def relative_guess(poses: dict[str, np.ndarray], a: NodeKey, b: NodeKey) -> np.ndarray:
+    return se2_between(poses[a[0]][a[1]], poses[b[0]][b[1]])

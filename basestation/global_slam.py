@@ -1,0 +1,243 @@
+"""The base station's global SLAM: keyframes -> pose graph, constraints, estimates.
+
+Owns the per-robot keyframe store, the iSAM2 pose graph, the constraint
+builder (candidate search + verification worker) and the loop-closure manager
+(PCM + robust factors). The node around it only moves messages.
+
+Anchoring: a robot with a known start pose is tied to the map there. Without
+any known start, the first robot to send a keyframe defines the map frame
+(its odom frame at its first keyframe). Every other robot's chain floats in its
+own frame until verified inter-robot constraints join it to the map; until
+then it gets no correction and is left out of the map.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from typing import Any
+
+import numpy as np
+
+from basestation.constraint_builder import ConstraintBuilder, Job, find_candidates
+from basestation.keyframe_store import KeyframeStore
+from basestation.loop_closure_manager import LoopClosureManager
+from basestation.pose_graph import PoseGraph
+from common.config import Config
+from common.geometry import quat_to_yaw, se2_between, se2_compose, se2_inverse, se2_transform_points
+from common.trajectory_io import Trajectory
+from protocol import Keyframe
+
+log = logging.getLogger(__name__)
+
+NodeKey = tuple[str, int]
+
+
+class GlobalSlam:
+    def __init__(self, cfg: Config, known_starts: dict[str, np.ndarray] | None = None) -> None:
+        self.cfg = cfg
+        b = cfg.basestation
+        self.graph = PoseGraph(
+            relinearize_threshold=b.relinearize_threshold,
+            relinearize_skip=b.relinearize_skip,
+            prior_sigmas=(b.prior_sigma_xy_m, b.prior_sigma_xy_m, b.prior_sigma_yaw_rad),
+        )
+        self.store = KeyframeStore(b.reorder_window)
+        self.known_starts = dict(known_starts or {})
+        self.cc = b.constraints
+        self.builder = ConstraintBuilder(self.cc) if self.cc.enabled else None
+        self.loops = LoopClosureManager(self.graph, self.cc, self._chain_covariance)
+        self.update_ms: list[float] = []
+        self._new_nodes: list[NodeKey] = []
+
+    # --- keyframes ----------------------------------------------------------------------
+    def admit(self, kf: Keyframe) -> int:
+        """Offer a keyframe; returns how many keyframes entered the graph (0 or more)."""
+        ready = self.store.admit(kf)
+        for k in ready:
+            self._add_node(k)
+        return len(ready)
+
+    def _add_node(self, kf: Keyframe) -> None:
+        rid = kf.robot_id
+        if kf.seq == 0:
+            start = self.known_starts.get(rid)
+            if start is None and not self.known_starts and not self.graph.robots():
+                start = np.zeros(3)  # the first robot defines the map frame
+                self.known_starts[rid] = start
+                log.info("robot %s defines the map frame", rid)
+            self.graph.add_robot(rid, start)
+            self.graph.add_node(rid, 0, None, None, initial_guess=start)
+        else:
+            d = kf.delta
+            delta = np.array([d[0], d[1], float(quat_to_yaw(d[3:7]))])
+            cov = kf.delta_cov[np.ix_([0, 1, 5], [0, 1, 5])]
+            self.graph.add_node(rid, kf.seq, delta, cov)
+        self._new_nodes.append((rid, kf.seq))
+
+    def optimize(self) -> None:
+        t0 = time.perf_counter()
+        self.graph.update()
+        self.update_ms.append((time.perf_counter() - t0) * 1e3)
+
+    # --- constraints --------------------------------------------------------------------
+    def _chain_covariance(self, robot: str, i: int, j: int) -> np.ndarray:
+        P = self.graph.poses(robot)
+        dist = float(np.hypot(*(P[j, :2] - P[i, :2])))
+        return self.store.robot(robot).chain_covariance(i, j, dist)
+
+    def _points_in(
+        self, frame: NodeKey, nodes: list[NodeKey], poses: dict[str, np.ndarray]
+    ) -> tuple[list[np.ndarray], list[np.ndarray]]:
+        """The nodes' scan points and sensor poses in the frame of node `frame`."""
+        T_w_f = poses[frame[0]][frame[1]]
+        points, origins = [], []
+        for rid, i in nodes:
+            T_f_n = se2_between(T_w_f, poses[rid][i])
+            points.append(se2_transform_points(T_f_n, self.store.robot(rid).points[i]))
+            origins.append(T_f_n)
+        return points, origins
+
+    def _neighbours(self, key: NodeKey, k: int) -> list[NodeKey]:
+        rid, i = key
+        n = len(self.store.robot(rid).points)
+        return [(rid, j) for j in range(max(0, i - k), min(n, i + k + 1))]
+
+    def search_constraints(self) -> None:
+        """Queue verification jobs for the nodes added since the last call."""
+        new, self._new_nodes = self._new_nodes, []
+        if self.builder is None or not new:
+            return
+        components = self.graph.components()
+        comp_of = {r: c for c in components for r in c}
+        poses = {r: self.graph.poses(r) for r in self.graph.robots() if r in comp_of}
+        k = self.cc.target_neighbours
+        for key in new:
+            comp = comp_of.get(key[0])
+            if comp is None:
+                continue
+            query = np.vstack(self._points_in(key, self._neighbours(key, 1), poses)[0])
+            for kind, target in find_candidates(self.cc, key, poses, comp):
+                scans, origins = self._points_in(target, self._neighbours(target, k), poses)
+                guess = se2_between(poses[target[0]][target[1]], poses[key[0]][key[1]])
+                self.builder.submit(Job(kind, target, key, guess, scans, query, origins))
+            if not self.graph.is_anchored(key[0]) and key[1] % self.cc.global_search_every == 0:
+                self._submit_global(key, poses)
+
+    def _submit_global(self, key: NodeKey, poses: dict[str, np.ndarray]) -> None:
+        anchored = [r for r in poses if self.graph.is_anchored(r)]
+        if not anchored:
+            return
+        n_anchored = sum(len(poses[r]) for r in anchored)
+        nodes = [(r, i) for r in anchored for i in range(len(poses[r]))]
+        map_scans = [
+            se2_transform_points(poses[r][i], self.store.robot(r).points[i]) for r, i in nodes
+        ]
+        origins = [poses[r][i] for r, i in nodes]
+        query = np.vstack(self._points_in(key, self._neighbours(key, 1), poses)[0])
+        self.builder.submit(
+            Job(
+                "global",
+                key,
+                key,
+                np.zeros(3),
+                map_scans,
+                query,
+                origins,
+                target_key=n_anchored // 50,
+            )
+        )
+
+    def integrate_constraints(self) -> int:
+        """Hand verified matches to the loop-closure manager; returns how many arrived."""
+        if self.builder is None:
+            return 0
+        results = self.builder.results()
+        for v in results:
+            job, m = v.job, v.match
+            if job.kind == "global":
+                a = self._nearest_anchored(m.T_a_b)
+                if a is None:
+                    continue
+                T_a_b = se2_between(self.graph.pose(*a), m.T_a_b)
+                self.loops.add(a, job.b, T_a_b, m.covariance, "inter")
+            else:
+                self.loops.add(job.a, job.b, m.T_a_b, m.covariance, job.kind)
+        return len(results)
+
+    def _nearest_anchored(self, T_map_b: np.ndarray) -> NodeKey | None:
+        best, best_d = None, np.inf
+        for r in self.graph.robots():
+            if not self.graph.is_anchored(r) or self.graph.num_nodes(r) == 0:
+                continue
+            P = self.graph.poses(r)
+            d = np.hypot(P[:, 0] - T_map_b[0], P[:, 1] - T_map_b[1])
+            i = int(np.argmin(d))
+            if d[i] < best_d:
+                best, best_d = (r, i), float(d[i])
+        return best
+
+    def idle(self) -> bool:
+        return self.builder is None or self.builder.idle()
+
+    def close(self) -> None:
+        if self.builder is not None:
+            self.builder.close()
+
+    # --- estimates ----------------------------------------------------------------------
+    def T_map_odom(self, rid: str) -> np.ndarray | None:
+        """[x, y, yaw] at the robot's latest keyframe, None while it is not on the map."""
+        idx = self.graph.latest_index(rid)
+        if idx is None or not self.graph.is_anchored(rid):
+            return None
+        T_odom_base = self.store.robot(rid).poses_odom[idx][[0, 1, 3]]
+        return se2_compose(self.graph.pose(rid, idx), se2_inverse(T_odom_base))
+
+    def map_keyframes(self) -> tuple[list[NodeKey], list[Any], np.ndarray]:
+        """Keyframes of robots on the map, with scans and optimized poses."""
+        keys, scans, poses = [], [], []
+        for rid, r in self.store.robots.items():
+            n = self.graph.num_nodes(rid) if rid in self.graph.robots() else 0
+            if n == 0 or not self.graph.is_anchored(rid):
+                continue
+            est = self.graph.poses(rid)
+            for i in range(n):
+                if r.keyframes[i].scan2d is not None:
+                    keys.append((rid, i))
+                    scans.append(r.keyframes[i].scan2d)
+                    poses.append(est[i])
+        return keys, scans, np.array(poses).reshape(-1, 3)
+
+    def trajectories(self) -> dict[str, Trajectory]:
+        out = {}
+        for rid, r in self.store.robots.items():
+            if rid not in self.graph.robots() or self.graph.num_nodes(rid) == 0:
+                continue
+            est = self.graph.poses(rid)
+            z = np.array([p[2] for p in r.poses_odom[: len(est)]])
+            poses4 = np.column_stack([est[:, 0], est[:, 1], z, est[:, 2]])
+            out[rid] = Trajectory.from_pose4(np.array(r.stamps[: len(est)]), poses4)
+        return out
+
+    def stats(self) -> dict[str, Any]:
+        upd = np.array(self.update_ms) if self.update_ms else np.zeros(1)
+        out: dict[str, Any] = {
+            "robots": {
+                rid: {
+                    "keyframes_in_graph": self.graph.num_nodes(rid)
+                    if rid in self.graph.robots()
+                    else 0,
+                    "duplicates": r.duplicates,
+                    "held_out_of_order": len(r.held),
+                    "anchored": rid in self.graph.robots() and self.graph.is_anchored(rid),
+                }
+                for rid, r in self.store.robots.items()
+            },
+            "isam2_updates": len(self.update_ms),
+            "isam2_update_ms_p50": float(np.percentile(upd, 50)),
+            "isam2_update_ms_p95": float(np.percentile(upd, 95)),
+            **self.loops.counts(),
+        }
+        if self.builder is not None:
+            out["constraint_builder"] = dict(self.builder.stats)
+        return out

@@ -1,0 +1,109 @@
+"""Keeps wrong loop closures and inter-robot constraints out of the graph.
+
+Every verified match becomes a measurement in the group of its robot pair
+(a robot with itself for loop closures). After each new measurement the group's
+largest pairwise-consistent set is recomputed (PCM, Mangelson et al. 2018):
+measurements in it enter iSAM2 with a robust kernel; a measurement that drops
+out of it is removed from the graph again. Two robots whose maps are not yet
+connected are joined only when `min_consistent_to_merge` mutually consistent
+matches agree, so one lucky match cannot fuse two maps.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from basestation.pcm import LoopMeasurement, max_consistent_set
+from basestation.pose_graph import PoseGraph
+from common.config import ConstraintConfig
+from common.geometry import se2_between, se2_inverse
+
+log = logging.getLogger(__name__)
+
+NodeKey = tuple[str, int]
+
+
+def invert_with_covariance(T_a_b: np.ndarray, cov: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """T_b_a and its covariance (right-perturbation convention, as gtsam's Pose2)."""
+    x, y, th = T_a_b
+    c, s = np.cos(th), np.sin(th)
+    adj = np.array([[c, -s, y], [s, c, -x], [0.0, 0.0, 1.0]])
+    return se2_inverse(T_a_b), adj @ cov @ adj.T
+
+
+@dataclass
+class _Group:
+    measurements: dict[int, LoopMeasurement] = field(default_factory=dict)
+    in_graph: dict[int, int] = field(default_factory=dict)  # measurement id -> factor id
+
+
+class LoopClosureManager:
+    def __init__(
+        self,
+        graph: PoseGraph,
+        cfg: ConstraintConfig,
+        chain_covariance: Callable[[str, int, int], np.ndarray],
+    ) -> None:
+        """chain_covariance(robot, i, j): 3x3 uncertainty of node j relative to node i."""
+        self.graph = graph
+        self.cfg = cfg
+        self.chain_covariance = chain_covariance
+        self.groups: dict[tuple[str, str], _Group] = {}
+        self._next_id = 0
+        self.accepted: set[int] = set()
+        self.kinds: dict[int, str] = {}
+
+    def add(self, a: NodeKey, b: NodeKey, T_a_b: np.ndarray, cov: np.ndarray, kind: str) -> None:
+        if a[0] > b[0] or (a[0] == b[0] and a[1] > b[1]):
+            (a, b), (T_a_b, cov) = (b, a), invert_with_covariance(T_a_b, cov)
+        m = LoopMeasurement(
+            self._next_id, a[0], a[1], b[0], b[1], np.asarray(T_a_b, float), 0.5 * (cov + cov.T)
+        )
+        self.kinds[m.id] = kind
+        self._next_id += 1
+        group = self.groups.setdefault((a[0], b[0]), _Group())
+        group.measurements[m.id] = m
+        self._reconcile(group)
+
+    def _odometry(self, robot: str, i: int, j: int) -> tuple[np.ndarray, np.ndarray]:
+        P = self.graph.poses(robot)
+        return se2_between(P[i], P[j]), self.chain_covariance(robot, i, j)
+
+    def _reconcile(self, group: _Group) -> None:
+        ms = list(group.measurements.values())
+        consistent = max_consistent_set(ms, self._odometry, threshold_chi2=self.cfg.pcm_chi2)
+        m0 = ms[0]
+        separate = m0.robot_a != m0.robot_b and not any(
+            m0.robot_a in c and m0.robot_b in c for c in self.graph.components()
+        )
+        if separate and len(consistent) < self.cfg.min_consistent_to_merge:
+            return  # wait for more agreeing matches before joining two maps
+        robust = None if self.cfg.robust_kernel == "none" else self.cfg.robust_kernel
+        for mid, m in group.measurements.items():
+            if mid in consistent and mid not in group.in_graph:
+                group.in_graph[mid] = self.graph.add_constraint(
+                    (m.robot_a, m.index_a),
+                    (m.robot_b, m.index_b),
+                    m.T_a_b,
+                    m.covariance,
+                    robust=robust,
+                    robust_k=self.cfg.robust_k,
+                )
+                self.accepted.add(mid)
+            elif mid not in consistent and mid in group.in_graph:
+                self.graph.remove_constraint(group.in_graph.pop(mid))
+                self.accepted.discard(mid)
+                log.info("constraint %d (%s) no longer consistent: removed", mid, self.kinds[mid])
+
+    def counts(self) -> dict[str, int]:
+        loops = sum(1 for i in self.accepted if self.kinds[i] == "loop")
+        total = len(self.kinds)
+        return {
+            "loop_closures": loops,
+            "inter_robot_constraints": len(self.accepted) - loops,
+            "rejected_candidates": total - len(self.accepted),
+        }

@@ -1,0 +1,631 @@
+"""Verification of loop-closure and inter-robot candidates by scan matching (seed 002 §1.1).
+
+The base station's constraint builder asks: does the query scan (points in the body
+frame b of a new node) really see the place around a target node (frame a)? And if
+so, what is T_a_b and how sure are we? Conventions (same as `basestation.pose_graph`):
+a pose `T_a_b = [x, y, yaw]` (m, m, rad) maps points from frame b into frame a.
+
+1. `ScanVerifier.build_target` turns the target node's scans (already in frame a)
+   into a `Target`, built once and reused for several queries: a likelihood field
+   (each cell holds exp(-d^2 / 2 score_sigma^2), d = distance to the nearest target
+   point, Olson 2009), a KD-tree, per-point line normals (PCA over neighbours) and,
+   when the scans' origins are given, a probability grid of the space they saw free.
+2. `verify` searches the window around the guess with Cartographer's branch and
+   bound (`agent.scan_matcher.RealTimeCorrelativeMatcher`, run on the field), then
+   refines with point-to-line ICP (Censi 2008, CSM): residual n_j . (R q_i + t - p_j)
+   against the nearest target point's line; corners and clutter (no line) use
+   point-to-point residuals.
+3. A match is accepted only if ICP converged (without sliding more than
+   `max_corr_dist` from the search's pose), the score (mean field value of the query
+   points at the refined pose) >= `min_score`, the overlap (fraction of query points
+   with a target point within `max_corr_dist`) >= `min_overlap`, and at most
+   `max_free_space_violation` of the evidence contradicts free space: the fraction of
+   the query's beams that passed through a target point (the query's sensor is the
+   origin of frame b), and, with origins, the fraction of query points in cells the
+   target's beams passed through. Score and
+   overlap alone accept many wrong matches between rectangular rooms (in the tests, 13
+   of 20 global searches of a scan against another room); the free-space tests reject
+   them.
+
+Covariance (3x3 over [x, y, yaw], in the body frame b: gtsam's Pose2 tangent space,
+what `PoseGraph.add_constraint` expects): the Gauss-Newton information of the ICP
+residuals divided by `covariance_scale` times their variance, sigma^2 =
+max(sum r^2 / (n - 3), min_residual_sigma^2), plus a prior information of the search
+windows (1/window^2). Noise in the normals gives a flat direction (along a corridor) a
+small but spurious information; an eigen-direction of the (length-scaled) information
+carrying less than `degeneracy_threshold` of one residual's worth per residual is
+treated as unconstrained (Zhang & Singh 2016): ICP does not move along it and it keeps
+the window prior only. So a corridor reads as metres along its axis and millimetres
+across. The residuals are not independent (every query point sees the same noisy
+target), so the raw covariance is optimistic: on the synthetic rooms of the tests its
+NEES was ~8 for 3 dof; `covariance_scale` = 3 brings it to ~2.5.
+
+`global_search` (Cartographer's global localization, to anchor a robot whose start
+pose is unknown) runs the branch and bound over the whole target and all headings on a
+coarse field (`global_resolution`, cached in the target), then `verify`'s search,
+refinement and tests in a small window around the coarse optimum.
+
+A `Target` caches the correlative pyramid: use one per thread.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from dataclasses import dataclass
+from dataclasses import field as dc_field
+from typing import cast
+
+import numpy as np
+from numba import njit
+from numpy.typing import ArrayLike, NDArray
+from scipy.ndimage import distance_transform_edt
+from scipy.spatial import cKDTree
+
+from agent.probability_grid import ProbabilityGrid
+from agent.scan_matcher import RealTimeCorrelativeMatcher, adaptive_voxel_filter, voxel_filter
+from common.errors import CollabSlamError, ConfigError
+from common.geometry import se2_transform_points, wrap_angle
+
+logger = logging.getLogger(__name__)
+
+FloatArray = NDArray[np.float64]
+
+_FIELD_FLOOR = 1e-3  # what a cell far from every target point (or outside) scores
+
+
+@dataclass(frozen=True)
+class VerifiedMatch:
+    """An accepted match of a query scan (frame b) against a target (frame a).
+
+    `T_a_b` [x, y, yaw] (m, rad); `covariance` 3x3 over [x, y, yaw] in frame b (see
+    module doc), never singular; `score` mean likelihood-field value in [0, 1] of the
+    query points at `T_a_b`; `overlap` fraction of query points with a target point
+    within `max_corr_dist` (m); `icp_rmse` (m) of the ICP residuals at the solution;
+    `iterations` of ICP.
+    """
+
+    T_a_b: FloatArray
+    covariance: FloatArray
+    score: float
+    overlap: float
+    icp_rmse: float
+    iterations: int
+
+
+class LikelihoodField:
+    """The correlative score grid of a target, shaped like a `ProbabilityGrid` for the
+    matcher (`data` [iy, ix] float32, `origin_xy`, `resolution`, `shape`, `version`).
+
+    Cells hold exp(-d^2 / 2 sigma^2) with d (m) the distance from the cell to the
+    nearest cell holding a target point; 0 where that is below 1/255 (read as floor).
+    """
+
+    def __init__(self, points: FloatArray, resolution: float, sigma: float) -> None:
+        pad = int(math.ceil(3.5 * sigma / resolution)) + 2
+        lo = np.floor(points.min(axis=0) / resolution).astype(np.int64) - pad
+        hi = np.floor(points.max(axis=0) / resolution).astype(np.int64) + pad
+        nx, ny = (int(v) for v in hi - lo + 1)
+        self.resolution = float(resolution)
+        self.origin_xy = lo.astype(np.float64) * resolution
+        cells = np.floor(points / resolution).astype(np.int64) - lo
+        empty = np.ones((ny, nx), dtype=bool)
+        empty[cells[:, 1], cells[:, 0]] = False
+        d = distance_transform_edt(empty) * resolution
+        f = np.exp(-0.5 * (d / sigma) ** 2).astype(np.float32)
+        f[f < 1.0 / 255.0] = 0.0
+        self.data: NDArray[np.float32] = f
+        self.version = 0
+        self.num_scans = 1
+        self.min_probability = _FIELD_FLOOR
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        """(ny, nx) in cells."""
+        return (int(self.data.shape[0]), int(self.data.shape[1]))
+
+    def score(self, points_b: FloatArray, T_a_b: FloatArray) -> float:
+        """Mean field value of the points moved by T_a_b (outside or far: the floor)."""
+        if len(points_b) == 0:
+            return 0.0
+        uv = np.floor((se2_transform_points(T_a_b, points_b) - self.origin_xy) / self.resolution)
+        ix, iy = uv[:, 0].astype(np.int64), uv[:, 1].astype(np.int64)
+        ny, nx = self.shape
+        inside = (ix >= 0) & (ix < nx) & (iy >= 0) & (iy < ny)
+        v = np.full(len(points_b), _FIELD_FLOOR)
+        v[inside] = self.data[iy[inside], ix[inside]]
+        v[v <= 0.0] = _FIELD_FLOOR
+        return float(v.mean())
+
+
+@dataclass(frozen=True, eq=False)
+class Target:
+    """What a target node's scans become (frame a): build with `ScanVerifier.build_target`.
+
+    `points` (N, 2) m, voxel-filtered; `normals` (N, 2) unit line normals, valid where
+    `has_line`; `tree` a KD-tree of `points`; `field` the correlative score grid;
+    `extent` [min x, min y, max x, max y] (m) of the points; `free_space` the scans
+    inserted with their rays into a probability grid, when their origins were given.
+    """
+
+    points: FloatArray
+    normals: FloatArray
+    has_line: NDArray[np.bool_]
+    tree: cKDTree
+    field: LikelihoodField
+    extent: FloatArray
+    free_space: ProbabilityGrid | None
+    # correlative matchers (each caches its pyramid) and coarse fields, by purpose
+    _cache: dict[str, object] = dc_field(default_factory=dict, repr=False)
+
+
+# ------------------------------------------------------------------------ numba kernels
+
+
+@njit(cache=True)
+def _icp_normal_equations(q, pose, idx, tp, tn, line, H, g):  # type: ignore[no-untyped-def]
+    """Fill H = J^T J, g = J^T r of the ICP residuals at `pose` (T_a_b, additive in
+    frame a); idx[i] >= len(tp) means no correspondence. Returns (sum r^2, residuals)."""
+    c = math.cos(pose[2])
+    s = math.sin(pose[2])
+    n_t = tp.shape[0]
+    for i in range(3):
+        g[i] = 0.0
+        for j in range(3):
+            H[i, j] = 0.0
+    ss = 0.0
+    n_res = 0
+    for i in range(q.shape[0]):
+        j = idx[i]
+        if j >= n_t:
+            continue
+        rx = c * q[i, 0] - s * q[i, 1]
+        ry = s * q[i, 0] + c * q[i, 1]
+        ex = pose[0] + rx - tp[j, 0]
+        ey = pose[1] + ry - tp[j, 1]
+        if line[j]:
+            nx = tn[j, 0]
+            ny = tn[j, 1]
+            r = nx * ex + ny * ey
+            jac = (nx, ny, -nx * ry + ny * rx)
+            for a in range(3):
+                g[a] += jac[a] * r
+                for b in range(3):
+                    H[a, b] += jac[a] * jac[b]
+            ss += r * r
+            n_res += 1
+        else:
+            # point-to-point: rows [1, 0, -ry] and [0, 1, rx]
+            H[0, 0] += 1.0
+            H[1, 1] += 1.0
+            H[0, 2] -= ry
+            H[2, 0] -= ry
+            H[1, 2] += rx
+            H[2, 1] += rx
+            H[2, 2] += rx * rx + ry * ry
+            g[0] += ex
+            g[1] += ey
+            g[2] += -ry * ex + rx * ey
+            ss += ex * ex + ey * ey
+            n_res += 2
+    return ss, n_res
+
+
+# -------------------------------------------------------------------------- the verifier
+
+
+def _points(points: ArrayLike, name: str) -> FloatArray:
+    p = np.asarray(points, dtype=np.float64)
+    if p.size == 0:
+        return np.zeros((0, 2))
+    if p.ndim != 2 or p.shape[1] != 2:
+        raise CollabSlamError(f"{name} must have shape (N, 2), got {p.shape}")
+    return p[np.isfinite(p).all(axis=1)]
+
+
+def _line_normals(
+    points: FloatArray, tree: cKDTree, k: int, radius: float, max_flatness: float
+) -> tuple[FloatArray, NDArray[np.bool_]]:
+    """PCA over the k nearest points within `radius`: unit normals (N, 2) and whether
+    the neighbourhood is a line (>= 3 points, lambda_min / lambda_max <= max_flatness)."""
+    n = len(points)
+    k = min(k, n)
+    dist, idx = tree.query(points, k=k, distance_upper_bound=radius)
+    if k == 1:
+        dist, idx = dist[:, None], idx[:, None]
+    valid = idx < n
+    nb = points[np.minimum(idx, n - 1)]
+    w = valid.astype(np.float64)
+    cnt = w.sum(axis=1)
+    mean = (nb * w[..., None]).sum(axis=1) / cnt[:, None]
+    d = (nb - mean[:, None, :]) * w[..., None]
+    sxx = np.einsum("ij,ij->i", d[..., 0], d[..., 0])
+    syy = np.einsum("ij,ij->i", d[..., 1], d[..., 1])
+    sxy = np.einsum("ij,ij->i", d[..., 0], d[..., 1])
+    half_tr = 0.5 * (sxx + syy)
+    disc = np.sqrt(np.maximum(0.25 * (sxx - syy) ** 2 + sxy**2, 0.0))
+    lam_max, lam_min = half_tr + disc, half_tr - disc
+    major = 0.5 * np.arctan2(2.0 * sxy, sxx - syy)  # direction of the line
+    normals = np.stack([-np.sin(major), np.cos(major)], axis=1)
+    has_line = (cnt >= 3) & (lam_max > 0.0) & (lam_min <= max_flatness * lam_max)
+    return normals, has_line
+
+
+class ScanVerifier:
+    """Correlative search + point-to-line ICP + acceptance tests (see module doc).
+
+    `resolution` (m) of the score field; `linear_window` (m) and `angular_window` (rad)
+    half-widths of the search around the guess (default windows of `verify`);
+    `min_score`, `min_overlap` acceptance thresholds; `max_corr_dist` (m) ICP
+    correspondence and overlap distance; `icp_max_iterations`; `score_sigma` (m) width of
+    the field around target points (default 2 cells); `icp_tolerance_m` / `_rad` step
+    sizes that count as converged; `min_residual_sigma` (m) floor of the residual sigma
+    in the covariance; `degeneracy_threshold` (see module doc); `normal_neighbors` and
+    `normal_radius` (m) for the line fits; `query_min_points` and `query_max_voxel` (m)
+    for the adaptive voxel filter applied to queries; `translation_delta_cost_weight`
+    (1/m) and `rotation_delta_cost_weight` (1/rad): the matcher's tie-breaker toward the
+    guess (a corridor's plateau resolves to the point nearest the guess);
+    `pyramid_margin_m` (m) margin of the cached pyramid around a query;
+    `max_free_space_violation` (fraction) and `free_space_margin` (m) for the free-space
+    tests; `global_resolution` (m) of the coarse field of `global_search`;
+    `covariance_scale` inflates the ICP covariance (module doc); `max_target_cells`
+    bounds a target's grid (a stray point kilometres away must not allocate gigabytes).
+    """
+
+    def __init__(
+        self,
+        resolution: float = 0.05,
+        linear_window: float = 2.0,
+        angular_window: float = math.radians(30.0),
+        min_score: float = 0.55,
+        min_overlap: float = 0.5,
+        max_corr_dist: float = 0.2,
+        icp_max_iterations: int = 30,
+        *,
+        score_sigma: float | None = None,
+        icp_tolerance_m: float = 2e-4,
+        icp_tolerance_rad: float = 2e-4,
+        min_residual_sigma: float = 0.01,
+        degeneracy_threshold: float = 0.01,
+        normal_neighbors: int = 16,
+        normal_radius: float = 1.0,
+        max_flatness: float = 0.1,
+        query_min_points: int = 300,
+        query_max_voxel: float = 0.5,
+        translation_delta_cost_weight: float = 0.1,
+        rotation_delta_cost_weight: float = 0.1,
+        pyramid_margin_m: float = 2.0,
+        max_free_space_violation: float = 0.05,
+        free_space_margin: float = 0.3,
+        global_resolution: float = 0.2,
+        covariance_scale: float = 3.0,
+        max_target_cells: int = 16_000_000,
+    ) -> None:
+        if not (math.isfinite(resolution) and resolution > 0.0):
+            raise ConfigError(f"resolution must be > 0 m, got {resolution}")
+        if not (linear_window >= 0.0 and angular_window >= 0.0):
+            raise ConfigError("search windows must be >= 0")
+        if not (0.0 <= min_score <= 1.0 and 0.0 <= min_overlap <= 1.0):
+            raise ConfigError("min_score and min_overlap must be in [0, 1]")
+        if not max_corr_dist > 0.0 or icp_max_iterations < 1:
+            raise ConfigError("need max_corr_dist > 0 m and icp_max_iterations >= 1")
+        self.resolution = float(resolution)
+        self.linear_window = float(linear_window)
+        self.angular_window = float(angular_window)
+        self.min_score = float(min_score)
+        self.min_overlap = float(min_overlap)
+        self.max_corr_dist = float(max_corr_dist)
+        self.icp_max_iterations = int(icp_max_iterations)
+        self.score_sigma = float(score_sigma) if score_sigma else 2.0 * self.resolution
+        self.icp_tolerance_m = float(icp_tolerance_m)
+        self.icp_tolerance_rad = float(icp_tolerance_rad)
+        self.min_residual_sigma = float(min_residual_sigma)
+        self.degeneracy_threshold = float(degeneracy_threshold)
+        self.normal_neighbors = int(normal_neighbors)
+        self.normal_radius = float(normal_radius)
+        self.max_flatness = float(max_flatness)
+        self.query_min_points = int(query_min_points)
+        self.query_max_voxel = float(query_max_voxel)
+        self.translation_delta_cost_weight = float(translation_delta_cost_weight)
+        self.rotation_delta_cost_weight = float(rotation_delta_cost_weight)
+        self.pyramid_margin_m = float(pyramid_margin_m)
+        self.max_free_space_violation = float(max_free_space_violation)
+        self.free_space_margin = float(free_space_margin)
+        self.global_resolution = float(global_resolution)
+        self.covariance_scale = float(covariance_scale)
+        self.max_target_cells = int(max_target_cells)
+
+    # ----- targets ----------------------------------------------------------------
+    def build_target(
+        self, scans_in_a: list[np.ndarray], origins_in_a: list[ArrayLike] | None = None
+    ) -> Target:
+        """A `Target` from (Ni, 2) point arrays already in frame a (m); non-finite rows
+        are dropped. `origins_in_a`: optional sensor position [x, y] (or pose
+        [x, y, yaw]) of each scan in frame a; with them the target also knows its free
+        space and rejects queries whose points fall in it. Raises CollabSlamError with
+        fewer than 3 finite points or a wrong number of origins."""
+        parts = [_points(s, "scan") for s in scans_in_a]
+        pts = np.concatenate(parts) if parts else np.zeros((0, 2))
+        pts = voxel_filter(pts, self.resolution)
+        if len(pts) < 3:
+            raise CollabSlamError(f"a target needs >= 3 finite points, got {len(pts)}")
+        span = np.ptp(pts, axis=0) / self.resolution
+        if (span[0] + 100) * (span[1] + 100) > self.max_target_cells:
+            raise CollabSlamError(
+                f"target spans {np.ptp(pts, axis=0)} m: more than {self.max_target_cells} cells"
+            )
+        free_space = None
+        if origins_in_a is not None:
+            if len(origins_in_a) != len(parts):
+                raise CollabSlamError(f"got {len(origins_in_a)} origins for {len(parts)} scans")
+            free_space = self._free_space_grid(parts, origins_in_a)
+        tree = cKDTree(pts)
+        normals, has_line = _line_normals(
+            pts, tree, self.normal_neighbors, self.normal_radius, self.max_flatness
+        )
+        extent = np.concatenate([pts.min(axis=0), pts.max(axis=0)])
+        return Target(
+            pts,
+            normals,
+            has_line,
+            tree,
+            LikelihoodField(pts, self.resolution, self.score_sigma),
+            extent,
+            free_space,
+        )
+
+    def _free_space_grid(
+        self, parts: list[FloatArray], origins_in_a: list[ArrayLike]
+    ) -> ProbabilityGrid:
+        """The scans inserted with their rays (from their origins) into a probability grid."""
+        origins = [np.asarray(o, dtype=np.float64).reshape(-1)[:2] for o in origins_in_a]
+        allp = np.vstack([*parts, *[o[None] for o in origins]])
+        if not np.all(np.isfinite(allp)):
+            raise CollabSlamError("origins_in_a must be finite")
+        lo = allp.min(axis=0) - 1.0
+        size = np.ceil((allp.max(axis=0) + 1.0 - lo) / self.resolution).astype(int)
+        grid = ProbabilityGrid(self.resolution, lo, (int(size[1]), int(size[0])))
+        for pts, o in zip(parts, origins, strict=True):
+            if len(pts):
+                grid.insert(np.array([o[0], o[1], 0.0]), pts - o)
+        return grid
+
+    # ----- verification -------------------------------------------------------------
+    def verify(
+        self,
+        target: Target,
+        query_points_b: ArrayLike,
+        T_a_b_guess: ArrayLike,
+        linear_window: float | None = None,
+        angular_window: float | None = None,
+    ) -> VerifiedMatch | None:
+        """Match the query (M, 2 points in frame b, m) against `target` within the
+        windows (m, rad; default the verifier's; >= pi: all headings) around the guess
+        T_a_b. None when nothing passes the acceptance tests (module doc)."""
+        guess = np.asarray(T_a_b_guess, dtype=np.float64).reshape(3)
+        if not np.all(np.isfinite(guess)):
+            raise CollabSlamError(f"T_a_b_guess must be finite, got {guess}")
+        lw = self.linear_window if linear_window is None else float(linear_window)
+        aw = self.angular_window if angular_window is None else float(angular_window)
+        aw = min(aw, math.pi)
+        raw = _points(query_points_b, "query_points_b")
+        q = self._filter_query(raw)
+        if len(q) < 3:
+            return None
+        return self._search(target, raw, q, guess, lw, aw, 1.0, self.min_score)
+
+    def global_search(
+        self, target: Target, query_points_b: ArrayLike, min_score: float | None = None
+    ) -> VerifiedMatch | None:
+        """Search the whole target (every position inside its extent, all headings) for
+        the pose of the query (M, 2 points in frame b); same acceptance tests, with
+        `min_score` (default the verifier's). None when nothing passes."""
+        raw = _points(query_points_b, "query_points_b")
+        q = self._filter_query(raw)
+        if len(q) < 3:
+            return None
+        lo, hi = target.extent[:2], target.extent[2:]
+        centre = np.array([0.5 * (lo[0] + hi[0]), 0.5 * (lo[1] + hi[1]), 0.0])
+        window = 0.5 * float(np.max(hi - lo)) + self.global_resolution
+        ms = self.min_score if min_score is None else float(min_score)
+        coarse = target._cache.get("coarse_field")
+        if not isinstance(coarse, LikelihoodField):
+            sigma = max(self.score_sigma, self.global_resolution)
+            coarse = LikelihoodField(target.points, self.global_resolution, sigma)
+            target._cache["coarse_field"] = coarse
+        m = self._matcher(target, "global", window, math.pi, 0.0)
+        corr = m.match(cast(ProbabilityGrid, coarse), q, centre)
+        if corr is None:
+            return None
+        # Fine search around the coarse optimum: a few coarse cells and angular steps.
+        d_max = float(np.sqrt(np.einsum("ij,ij->i", q, q).max()))
+        step = math.acos(max(1.0 - self.global_resolution**2 / (2.0 * d_max**2), -1.0))
+        lw = 2.0 * self.global_resolution
+        return self._search(target, raw, q, corr.pose, lw, max(3.0 * step, 0.02), 0.0, ms)
+
+    # ----- internals ----------------------------------------------------------------
+    def _filter_query(self, q: FloatArray) -> FloatArray:
+        q = voxel_filter(q, 0.5 * self.resolution)
+        return adaptive_voxel_filter(
+            q,
+            max_length=self.query_max_voxel,
+            min_num_points=self.query_min_points,
+            max_range=math.inf,
+        )
+
+    def _search(
+        self,
+        target: Target,
+        raw: FloatArray,
+        q: FloatArray,
+        guess: FloatArray,
+        lw: float,
+        aw: float,
+        penalty_scale: float,
+        min_score: float,
+    ) -> VerifiedMatch | None:
+        m = self._matcher(target, "fine", lw, aw, penalty_scale)
+        corr = m.match(cast(ProbabilityGrid, target.field), q, guess)
+        if corr is None:
+            return None
+        rho = max(float(np.sqrt(np.mean(np.einsum("ij,ij->i", q, q)))), self.resolution)
+        pose, iterations, converged = self._icp(target, q, corr.pose, rho)
+        if not converged:
+            logger.debug("ICP did not converge from %s", corr.pose)
+            return None
+        if np.hypot(*(pose[:2] - corr.pose[:2])) > self.max_corr_dist:
+            logger.debug("ICP slid %s -> %s: rejected", corr.pose, pose)
+            return None
+        score = target.field.score(q, pose)
+        moved = se2_transform_points(pose, q)
+        _, idx = target.tree.query(moved, distance_upper_bound=self.max_corr_dist)
+        overlap = float(np.mean(idx < len(target.points)))
+        if score < min_score or overlap < self.min_overlap:
+            logger.debug("candidate rejected: score %.3f, overlap %.3f", score, overlap)
+            return None
+        violation = self._free_space_violation(target, raw, pose)
+        if target.free_space is not None:
+            violation = max(violation, self._target_free_violation(target, moved, idx))
+        if violation > self.max_free_space_violation:
+            logger.debug("candidate rejected: free-space violation %.3f", violation)
+            return None
+        H = np.empty((3, 3))
+        g = np.empty(3)
+        ss, n_res = _icp_normal_equations(
+            q, pose, idx, target.points, target.normals, target.has_line, H, g
+        )
+        rmse = math.sqrt(ss / max(n_res, 1))
+        cov = self._covariance(H, ss, n_res, pose, rho, lw, aw)
+        return VerifiedMatch(pose, cov, float(score), overlap, rmse, iterations)
+
+    def _matcher(
+        self, target: Target, key: str, lw: float, aw: float, penalty_scale: float
+    ) -> RealTimeCorrelativeMatcher:
+        """The target's matcher for `key`, set to these windows (m, rad)."""
+        m = target._cache.get(key)
+        if not isinstance(m, RealTimeCorrelativeMatcher):
+            m = RealTimeCorrelativeMatcher(
+                pyramid_margin_m=self.pyramid_margin_m, unknown_probability=_FIELD_FLOOR
+            )
+            target._cache[key] = m
+        m.linear_window, m.angular_window, m.min_score = lw, aw, 0.0
+        m.translation_delta_cost_weight = penalty_scale * self.translation_delta_cost_weight
+        m.rotation_delta_cost_weight = penalty_scale * self.rotation_delta_cost_weight
+        return m
+
+    def _free_space_violation(self, target: Target, raw: FloatArray, pose: FloatArray) -> float:
+        """Fraction of the query's beams that passed through a target point: the point
+        lies nearer to the query's sensor (the origin of frame b) than the returns of both
+        beams around its bearing, by more than `free_space_margin`. Bearings in a gap of
+        the query (no return over > 3 median beam spacings) count as unseen."""
+        if len(raw) < 3:
+            return 0.0
+        order = np.argsort(np.arctan2(raw[:, 1], raw[:, 0]))
+        b_q = np.arctan2(raw[order, 1], raw[order, 0])
+        r_q = np.hypot(raw[order, 0], raw[order, 1])
+        near = target.tree.query_ball_point(pose[:2], float(r_q.max()))
+        if len(near) == 0:
+            return 0.0
+        p_a = target.points[np.asarray(near)]
+        c, s = math.cos(pose[2]), math.sin(pose[2])
+        d = p_a - pose[:2]
+        p_b = np.stack([c * d[:, 0] + s * d[:, 1], -s * d[:, 0] + c * d[:, 1]], axis=1)
+        b_t = np.arctan2(p_b[:, 1], p_b[:, 0])
+        r_t = np.hypot(p_b[:, 0], p_b[:, 1])
+        # the beams k - 1 and k around each target bearing, on the circle
+        b_ext = np.concatenate([b_q[-1:] - 2 * np.pi, b_q, b_q[:1] + 2 * np.pi])
+        r_ext = np.concatenate([r_q[-1:], r_q, r_q[:1]])
+        k = np.searchsorted(b_ext, b_t)
+        spacing = float(np.median(np.diff(b_q)))
+        seen = b_ext[k] - b_ext[k - 1] <= 3.0 * max(spacing, 1e-6)
+        bound = np.minimum(r_ext[k], r_ext[k - 1]) - self.free_space_margin
+        crossed = seen & (r_t < bound)
+        # beam index k (1..n+1 on the extended circle) -> query beam, wrapped
+        beams = np.unique(k[crossed] % len(b_q))
+        return float(len(beams)) / len(b_q)
+
+    def _target_free_violation(
+        self, target: Target, moved: FloatArray, idx: NDArray[np.intp]
+    ) -> float:
+        """Fraction of the query points (in frame a) with no target point within
+        `max_corr_dist` that fall in cells the target scans saw as free."""
+        grid = target.free_space
+        assert grid is not None
+        lonely = moved[idx >= len(target.points)]
+        if len(lonely) == 0:
+            return 0.0
+        uv = np.floor((lonely - grid.origin_xy) / grid.resolution).astype(np.int64)
+        ny, nx = grid.shape
+        inside = (uv[:, 0] >= 0) & (uv[:, 0] < nx) & (uv[:, 1] >= 0) & (uv[:, 1] < ny)
+        p = grid.data[uv[inside, 1], uv[inside, 0]]
+        free = (p > 0.0) & (p < 0.5)
+        return float(np.count_nonzero(free)) / len(moved)
+
+    def _icp(
+        self, target: Target, q: FloatArray, pose0: FloatArray, rho: float
+    ) -> tuple[FloatArray, int, bool]:
+        """Point-to-line ICP from pose0: (pose, iterations, converged). Converged: a step
+        below the tolerances, or a 2-cycle of steps (a few correspondences flipping)
+        that small, which ends at its midpoint."""
+        pose = pose0.copy()
+        H = np.empty((3, 3))
+        g = np.empty(3)
+        n_t = len(target.points)
+        tol = np.array([self.icp_tolerance_m, self.icp_tolerance_m, self.icp_tolerance_rad])
+        prev = np.full(3, np.inf)
+        for it in range(1, self.icp_max_iterations + 1):
+            moved = se2_transform_points(pose, q)
+            _, idx = target.tree.query(moved, distance_upper_bound=self.max_corr_dist)
+            _, n_res = _icp_normal_equations(
+                q, pose, idx, target.points, target.normals, target.has_line, H, g
+            )
+            if n_res < 6 or int(np.sum(idx < n_t)) < 3:
+                return pose, it, False
+            # Gauss-Newton step in the well-constrained directions only: along a
+            # degenerate one (a corridor's axis) the pose stays where the search put it.
+            delta = -self._truncated(H, n_res, rho)[1] @ g
+            if np.all(np.abs(delta + prev) < tol) and np.all(np.abs(delta) < 10.0 * tol):
+                # a 2-cycle: a few correspondences flip between two target points
+                pose = pose + 0.5 * delta
+                pose[2] = float(wrap_angle(pose[2]))
+                return pose, it, True
+            pose = pose + delta
+            pose[2] = float(wrap_angle(pose[2]))
+            if np.all(np.abs(delta) < tol):
+                return pose, it, True
+            prev = delta
+        return pose, self.icp_max_iterations, False
+
+    def _covariance(
+        self,
+        H: FloatArray,
+        ss: float,
+        n_res: int,
+        pose: FloatArray,
+        rho: float,
+        lw: float,
+        aw: float,
+    ) -> FloatArray:
+        """Covariance of T_a_b in frame b (module doc)."""
+        sigma2 = max(ss / max(n_res - 3, 1), self.min_residual_sigma**2)
+        info = self._truncated(H, n_res, rho)[0] / (sigma2 * self.covariance_scale)
+        prior = np.diag([max(lw, self.resolution) ** -2] * 2 + [max(aw, 1e-3) ** -2])
+        cov_a = np.linalg.inv(info + prior)  # additive [x, y, yaw] in frame a
+        c, s = math.cos(pose[2]), math.sin(pose[2])
+        G = np.array([[c, s, 0.0], [-s, c, 0.0], [0.0, 0.0, 1.0]])  # frame a -> frame b
+        cov = G @ cov_a @ G.T
+        return 0.5 * (cov + cov.T)
+
+    def _truncated(self, H: FloatArray, n_res: int, rho: float) -> tuple[FloatArray, FloatArray]:
+        """H without its degenerate eigen-directions, and the pseudo-inverse of that.
+
+        Yaw is scaled by `rho` (m, the RMS radius of the query) so that one unit of each
+        coordinate moves the points by about one metre; an eigenvalue of the scaled
+        H / n_res below `degeneracy_threshold` marks a direction as unconstrained."""
+        S = np.diag([1.0, 1.0, 1.0 / rho])
+        n = max(n_res, 1)
+        lam, vec = np.linalg.eigh(S @ H @ S / n)
+        keep = lam >= self.degeneracy_threshold
+        vk, lk = vec[:, keep], lam[keep] * n
+        S_inv = np.diag([1.0, 1.0, rho])
+        return S_inv @ (vk * lk) @ vk.T @ S_inv, S @ (vk / lk) @ vk.T @ S

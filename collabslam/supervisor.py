@@ -1,0 +1,111 @@
+"""Starts collabslam processes and watches them (used by `run` and `eval carmen`).
+
+Each child is `python -m collabslam.cli ...` in its own session (so a terminal
+Ctrl-C reaches only the parent, which stops children in order), with its output
+in `<out>/logs/<name>.log`. A child that exits with an error is named in a
+ProcessError pointing at its log.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import socket
+import subprocess
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import IO
+
+from common.errors import ProcessError
+
+log = logging.getLogger(__name__)
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+@dataclass
+class Child:
+    name: str
+    proc: subprocess.Popen[bytes]
+    log_file: IO[bytes]
+
+
+class ProcessGroup:
+    def __init__(self, out: Path, log_level: str = "INFO") -> None:
+        self.out = out
+        self.log_level = log_level
+        self.children: list[Child] = []
+
+    def spawn(self, name: str, args: list[str]) -> Child:
+        logs = self.out / "logs"
+        logs.mkdir(parents=True, exist_ok=True)
+        f = open(logs / f"{name}.log", "wb")  # noqa: SIM115 - closed in terminate_all
+        cmd = [sys.executable, "-m", "collabslam.cli", "--log-level", self.log_level, *args]
+        proc = subprocess.Popen(
+            cmd,
+            stdout=f,
+            stderr=subprocess.STDOUT,
+            env=dict(os.environ, PYTHONUNBUFFERED="1"),
+            stdin=subprocess.DEVNULL,
+            start_new_session=True,
+        )
+        child = Child(name, proc, f)
+        self.children.append(child)
+        log.info("started %s (pid %d)", name, proc.pid)
+        return child
+
+    def died(self, c: Child, rc: int) -> str:
+        return (
+            f"{c.name} (pid {c.proc.pid}) exited with code {rc}; "
+            f"see {self.out / 'logs' / (c.name + '.log')}"
+        )
+
+    def check(self, children: list[Child]) -> None:
+        """Raise if any of `children` has exited (they should still be running)."""
+        for c in children:
+            rc = c.proc.poll()
+            if rc is not None:
+                raise ProcessError(self.died(c, rc))
+
+    def wait(self, children: list[Child], timeout: float) -> None:
+        """Wait for children to exit with code 0."""
+        deadline = time.monotonic() + timeout
+        for c in children:
+            try:
+                rc = c.proc.wait(max(0.1, deadline - time.monotonic()))
+            except subprocess.TimeoutExpired:
+                raise ProcessError(f"{c.name} did not stop within {timeout:.0f} s") from None
+            if rc != 0:
+                raise ProcessError(self.died(c, rc))
+
+    def wait_all_or_fail(
+        self, finishing: list[Child], running: list[Child], timeout: float, poll_s: float = 0.2
+    ) -> None:
+        """Wait until every child in `finishing` exits 0 while `running` stay up."""
+        deadline = time.monotonic() + timeout
+        pending = list(finishing)
+        while pending:
+            if time.monotonic() > deadline:
+                raise ProcessError(f"{pending[0].name} did not finish within {timeout:.0f} s")
+            for c in list(pending):
+                rc = c.proc.poll()
+                if rc is not None:
+                    if rc != 0:
+                        raise ProcessError(self.died(c, rc))
+                    pending.remove(c)
+            self.check(running)
+            time.sleep(poll_s)
+
+    def terminate_all(self) -> None:
+        for c in self.children:
+            if c.proc.poll() is None:
+                log.warning("killing %s", c.name)
+                c.proc.kill()
+                c.proc.wait()
+            c.log_file.close()

@@ -115,12 +115,21 @@ class AgentNode:
             self._new_correction = True
 
     # --- main loop ----------------------------------------------------------------------
-    def run(self, source: SensorSource, stop: threading.Event) -> None:
-        """Process the source's messages until it ends or `stop` is set."""
+    def run(
+        self, source: SensorSource, stop: threading.Event, max_unacked: int | None = None
+    ) -> None:
+        """Process the source's messages until it ends or `stop` is set.
+
+        `max_unacked`: flow control for sources that can run ahead of the base
+        station (a log replay): wait while this many keyframes are unacknowledged.
+        """
         for msg in source.messages(stop):
             if msg is not None:
                 self.handle(msg)
             self._resend()
+            while max_unacked is not None and len(self.outbox) > max_unacked and not stop.is_set():
+                time.sleep(0.01)
+                self._resend()
 
     def handle(self, msg: Any) -> None:
         if isinstance(msg, Odometry):

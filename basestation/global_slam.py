@@ -19,11 +19,12 @@ from typing import Any
 
 import numpy as np
 
-from basestation.constraint_builder import ConstraintBuilder, Job, find_candidates
+from basestation.constraint_builder import ConstraintBuilder, Job, Verified, find_candidates
 from basestation.keyframe_store import KeyframeStore
 from basestation.loop_closure_manager import LoopClosureManager
 from basestation.pose_graph import PoseGraph
 from common.config import Config
+from common.errors import CollabSlamError
 from common.geometry import quat_to_yaw, se2_between, se2_compose, se2_inverse, se2_transform_points
 from common.trajectory_io import Trajectory
 from protocol import Keyframe
@@ -144,7 +145,7 @@ class GlobalSlam:
                 map_scans,
                 query,
                 origins,
-                target_key=n_anchored // 50,
+                target_key=n_anchored // 200,
             )
         )
 
@@ -154,21 +155,28 @@ class GlobalSlam:
             return 0
         results = self.builder.results()
         for v in results:
-            job, m = v.job, v.match
-            if job.kind == "global":
-                a = self._nearest_anchored(m.T_a_b)
-                if a is None:
-                    continue
-                T_a_b = se2_between(self.graph.pose(*a), m.T_a_b)
-                self.loops.add(a, job.b, T_a_b, m.covariance, "inter")
-            else:
-                self.loops.add(job.a, job.b, m.T_a_b, m.covariance, job.kind)
+            try:
+                self._integrate(v)
+            except CollabSlamError as e:  # a stale or degenerate match: drop it, keep going
+                log.error("verified %s match %s -> %s dropped: %s", v.job.kind, v.job.a, v.job.b, e)
         return len(results)
 
-    def _nearest_anchored(self, T_map_b: np.ndarray) -> NodeKey | None:
+    def _integrate(self, v: Verified) -> None:
+        job, m = v.job, v.match
+        if job.kind == "global":
+            a = self._nearest_anchored(m.T_a_b, exclude=job.b[0])
+            if a is None:
+                return
+            T_a_b = se2_between(self.graph.pose(*a), m.T_a_b)
+            self.loops.add(a, job.b, T_a_b, m.covariance, "inter")
+        else:
+            self.loops.add(job.a, job.b, m.T_a_b, m.covariance, job.kind)
+
+    def _nearest_anchored(self, T_map_b: np.ndarray, exclude: str) -> NodeKey | None:
+        """The node of another anchored robot nearest to T_map_b."""
         best, best_d = None, np.inf
         for r in self.graph.robots():
-            if not self.graph.is_anchored(r) or self.graph.num_nodes(r) == 0:
+            if r == exclude or not self.graph.is_anchored(r) or self.graph.num_nodes(r) == 0:
                 continue
             P = self.graph.poses(r)
             d = np.hypot(P[:, 0] - T_map_b[0], P[:, 1] - T_map_b[1])

@@ -2,7 +2,8 @@
 
 Every verified match becomes a measurement in the group of its robot pair
 (a robot with itself for loop closures). After each new measurement the group's
-largest pairwise-consistent set is recomputed (PCM, Mangelson et al. 2018):
+largest pairwise-consistent set is updated (incremental PCM, Mangelson et al.
+2018, see `basestation.pcm.IncrementalPcm`):
 measurements in it enter iSAM2 with a robust kernel; a measurement that drops
 out of it is removed from the graph again. Two robots whose maps are not yet
 connected are joined only when `min_consistent_to_merge` mutually consistent
@@ -17,7 +18,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from basestation.pcm import LoopMeasurement, max_consistent_set
+from basestation.pcm import IncrementalPcm, LoopMeasurement
 from basestation.pose_graph import PoseGraph
 from common.config import ConstraintConfig
 from common.geometry import se2_between, se2_inverse
@@ -37,6 +38,7 @@ def invert_with_covariance(T_a_b: np.ndarray, cov: np.ndarray) -> tuple[np.ndarr
 
 @dataclass
 class _Group:
+    pcm: IncrementalPcm
     measurements: dict[int, LoopMeasurement] = field(default_factory=dict)
     in_graph: dict[int, int] = field(default_factory=dict)  # measurement id -> factor id
 
@@ -65,25 +67,31 @@ class LoopClosureManager:
         )
         self.kinds[m.id] = kind
         self._next_id += 1
-        group = self.groups.setdefault((a[0], b[0]), _Group())
+        group = self.groups.get((a[0], b[0]))
+        if group is None:
+            group = self.groups[(a[0], b[0])] = _Group(IncrementalPcm(self.cfg.pcm_chi2))
         group.measurements[m.id] = m
-        self._reconcile(group)
+        poses: dict[str, np.ndarray] = {}
 
-    def _odometry(self, robot: str, i: int, j: int) -> tuple[np.ndarray, np.ndarray]:
-        P = self.graph.poses(robot)
-        return se2_between(P[i], P[j]), self.chain_covariance(robot, i, j)
+        def odometry(robot: str, i: int, j: int) -> tuple[np.ndarray, np.ndarray]:
+            if robot not in poses:
+                poses[robot] = self.graph.poses(robot)
+            P = poses[robot]
+            return se2_between(P[i], P[j]), self.chain_covariance(robot, i, j)
 
-    def _reconcile(self, group: _Group) -> None:
-        ms = list(group.measurements.values())
-        consistent = max_consistent_set(ms, self._odometry, threshold_chi2=self.cfg.pcm_chi2)
-        m0 = ms[0]
+        self._reconcile(group, group.pcm.add(m, odometry))
+
+    def _reconcile(self, group: _Group, consistent: set[int]) -> None:
+        m0 = next(iter(group.measurements.values()))
         separate = m0.robot_a != m0.robot_b and not any(
             m0.robot_a in c and m0.robot_b in c for c in self.graph.components()
         )
         if separate and len(consistent) < self.cfg.min_consistent_to_merge:
             return  # wait for more agreeing matches before joining two maps
         robust = None if self.cfg.robust_kernel == "none" else self.cfg.robust_kernel
-        for mid, m in group.measurements.items():
+        changed = (consistent - group.in_graph.keys()) | (group.in_graph.keys() - consistent)
+        for mid in sorted(changed):
+            m = group.measurements[mid]
             if mid in consistent and mid not in group.in_graph:
                 group.in_graph[mid] = self.graph.add_constraint(
                     (m.robot_a, m.index_a),

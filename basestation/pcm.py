@@ -298,3 +298,68 @@ def _greedy_clique(adj: NDArray[np.bool_], d2: FloatArray) -> list[int]:
         ):
             best = clique
     return sorted(best) if n else []
+
+
+class IncrementalPcm:
+    """PCM for one group (one robot pair, or one robot's loops) as measurements arrive.
+
+    Each new measurement is tested against the group's previous ones once, when it
+    arrives (O(n) odometry queries, not O(n^2) per arrival); the consistency matrix is
+    kept. The accepted set is then updated: exactly (maximum clique) while the group
+    has at most `max_exact` measurements; above that, the new measurement joins the
+    current clique when consistent with all of it, and otherwise the best clique
+    grown greedily from it replaces the current one only if it is larger. This is the
+    incremental use of PCM in multi-robot systems (DOOR-SLAM, Kimera-Multi).
+    """
+
+    def __init__(self, threshold_chi2: float = DEFAULT_THRESHOLD_CHI2, max_exact: int = 40) -> None:
+        self.threshold_chi2 = float(threshold_chi2)
+        self.max_exact = int(max_exact)
+        self.measurements: list[LoopMeasurement] = []
+        self._d2 = np.zeros((0, 0))
+        self._clique: list[int] = []  # indices into self.measurements
+
+    def add(self, m: LoopMeasurement, odometry: Odometry) -> set[int]:
+        """Add `m` (oriented like the group's first measurement or not); returns the
+        ids of the accepted (pairwise-consistent) measurements of the group."""
+        if self.measurements:
+            first = self.measurements[0]
+            if _group_key(m) != _group_key(first):
+                raise CollabSlamError(f"measurement {m.id} belongs to another group")
+            if m.robot_a != first.robot_a:
+                m = _reversed(m)
+        n = len(self.measurements)
+        row = _pairs_d2([(old, m) for old in self.measurements], odometry) if n else np.zeros(0)
+        d2 = np.zeros((n + 1, n + 1))
+        d2[:n, :n] = self._d2
+        d2[n, :n] = d2[:n, n] = row
+        self._d2 = d2
+        self.measurements.append(m)
+        adj = d2 <= self.threshold_chi2
+        np.fill_diagonal(adj, False)
+        if n + 1 <= self.max_exact:
+            self._clique = _maximum_clique(adj, d2)
+        elif all(adj[n, i] for i in self._clique):
+            self._clique = sorted([*self._clique, n])
+        else:
+            grown = _grow_clique(adj, n)
+            if len(grown) > len(self._clique):
+                self._clique = grown
+        return {self.measurements[i].id for i in self._clique}
+
+    @property
+    def accepted(self) -> set[int]:
+        return {self.measurements[i].id for i in self._clique}
+
+
+def _grow_clique(adj: NDArray[np.bool_], start: int) -> list[int]:
+    """A clique containing `start`, grown greedily by highest degree among candidates."""
+    degree = adj.sum(axis=1)
+    clique = [start]
+    cand = adj[start].copy()
+    while cand.any():
+        v = int(np.flatnonzero(cand)[np.argmax(degree[cand])])
+        clique.append(v)
+        cand &= adj[v]
+        cand[v] = False
+    return sorted(clique)

@@ -116,7 +116,7 @@ def cmd_agent(args: argparse.Namespace) -> int:
             node = AgentNode(cfg, args.robot_id, bus, tour, T_map_odom)
         node.start()
         log.info("agent %s running", args.robot_id)
-        node.run(source, stop)
+        node.run(source, stop, cfg.agent.replay_max_unacked if args.replay else None)
         node.drain(cfg.agent.drain_timeout_s)
         if args.out:
             node.write_outputs(Path(args.out))

@@ -95,7 +95,7 @@ def eval_carmen(
                     "--replay",
                     str(log_path),
                     "--segment",
-                    f"{edges[k]!r}:{edges[k + 1]!r}",
+                    f"{float(edges[k])!r}:{float(edges[k + 1])!r}",
                     "--connect",
                     ep,
                     "--out",

@@ -148,6 +148,7 @@ class AgentConfig:
     yaw_gain: float = 1.5  # 1/s, heading controller gain
     state_period_s: float = 0.5  # s sim time between RobotState messages
     drain_timeout_s: float = 15.0  # s wall: on shutdown wait this long for acks
+    replay_max_unacked: int = 200  # --replay: pause the log while this many keyframes wait
     local_slam: LocalSlamConfig = field(default_factory=LocalSlamConfig)
 
 
@@ -187,7 +188,6 @@ class ConstraintConfig:
     min_consistent_to_merge: int = 2  # consistent matches needed to join two robots' maps
     global_search_every: int = 5  # keyframes of an unanchored robot between global searches
     global_min_score: float = 0.65  # stricter score for a whole-map search
-    global_min_overlap: float = 0.6
 
 
 @dataclass
@@ -331,6 +331,20 @@ def validate(cfg: Config) -> None:
         ("agent.keyframe_angle_rad", cfg.agent.keyframe_angle_rad),
         ("agent.outbox_max", cfg.agent.outbox_max),
         ("agent.resend_timeout_s", cfg.agent.resend_timeout_s),
+        ("agent.replay_max_unacked", cfg.agent.replay_max_unacked),
+        (
+            "basestation.constraints.max_candidates_per_s",
+            cfg.basestation.constraints.max_candidates_per_s,
+        ),
+        ("basestation.constraints.search_radius_m", cfg.basestation.constraints.search_radius_m),
+        (
+            "basestation.constraints.global_search_every",
+            cfg.basestation.constraints.global_search_every,
+        ),
+        (
+            "basestation.constraints.min_consistent_to_merge",
+            cfg.basestation.constraints.min_consistent_to_merge,
+        ),
         ("agent.cruise_speed_mps", cfg.agent.cruise_speed_mps),
         ("agent.odom_sigma_min", cfg.agent.odom_sigma_min),
         ("map.resolution_m", cfg.map.resolution_m),

@@ -10,7 +10,9 @@ import pytest
 
 from basestation.pcm import (
     DEFAULT_THRESHOLD_CHI2,
+    IncrementalPcm,
     LoopMeasurement,
+    _reversed,
     _maximum_clique,
     cycle_mahalanobis2,
     max_consistent_set,
@@ -97,6 +99,20 @@ def test_wrong_inter_robot_loops_are_excluded(world):
     assert max_consistent_set(mixed, odometry) == {m.id for m in good}
     # the heuristic finds the same set here
     assert max_consistent_set(mixed, odometry, max_exact=0) == {m.id for m in good}
+
+
+@pytest.mark.parametrize("max_exact", [40, 0])
+def test_incremental_pcm_matches_the_batch_answer(world, max_exact):
+    robots, odometry, rng = world
+    good = _loops(robots, rng, [(3, 5), (8, 10), (15, 12), (22, 30), (30, 33), (37, 20)], False)
+    bad = _loops(robots, rng, [(5, 7), (18, 25), (33, 36)], True, start_id=100)
+    mixed = [good[0], bad[0], good[1], good[2], bad[1], good[3], good[4], bad[2], good[5]]
+    pcm = IncrementalPcm(max_exact=max_exact)
+    for m in mixed:
+        got = pcm.add(m if m.id % 2 else _reversed(m), odometry)  # either orientation
+    assert got == pcm.accepted == {m.id for m in good}
+    with pytest.raises(CollabSlamError):
+        pcm.add(LoopMeasurement(999, "a", 1, "a", 30, np.zeros(3), np.eye(3)), odometry)
 
 
 def test_a_consistent_pair_of_outliers_loses_to_the_majority(world):

@@ -1,0 +1,124 @@
+"""LoopClosureManager on generated two-robot graphs: PCM in front of iSAM2.
+
+Two robots fly the same 5 m square (1 m steps) from different, unknown-to-each-
+other starts. Verified matches arrive one by one; wrong ones must stay out of the
+graph (or leave it once the majority disagrees), right ones must join the maps.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from basestation.loop_closure_manager import LoopClosureManager, invert_with_covariance
+from basestation.pose_graph import PoseGraph
+from common.config import ConstraintConfig
+from common.geometry import se2_between, se2_compose, wrap_angle
+
+ODO_COV = np.diag([0.02**2, 0.02**2, 0.005**2])
+LC_COV = np.diag([0.03**2, 0.03**2, 0.01**2])
+START_B = np.array([0.4, -0.3, 0.2])  # truth; robot b's chain floats in its own frame
+
+
+def _square(n_laps: int = 1) -> list[np.ndarray]:
+    return [
+        np.array([1.0, 0.0, np.pi / 2 if k % 5 == 0 else 0.0]) for k in range(1, 20 * n_laps + 1)
+    ]
+
+
+def _truth(start: np.ndarray, deltas: list[np.ndarray]) -> np.ndarray:
+    P = [start]
+    for d in deltas:
+        P.append(se2_compose(P[-1], d))
+    return np.array(P)
+
+
+def _setup(rng: np.random.Generator, cfg: ConstraintConfig | None = None):
+    deltas = _square()
+    truth = {"a": _truth(np.zeros(3), deltas), "b": _truth(START_B, deltas)}
+    graph = PoseGraph()
+    for rid, start in (("a", np.zeros(3)), ("b", None)):
+        graph.add_robot(rid, start)
+        graph.add_node(rid, 0, None, None)
+        for k, d in enumerate(deltas, start=1):
+            noisy = d + rng.normal(0.0, 1.0, 3) * np.sqrt(np.diag(ODO_COV))
+            graph.add_node(rid, k, noisy, ODO_COV)
+    graph.update()
+
+    def chain_cov(robot: str, i: int, j: int) -> np.ndarray:
+        # n steps of odometry, plus the heading uncertainty swept over n metres
+        n = abs(j - i)
+        return n * ODO_COV + n**2 * ODO_COV[2, 2] * np.diag([1.0, 1.0, 0.0])
+
+    manager = LoopClosureManager(graph, cfg or ConstraintConfig(), chain_cov)
+    return graph, manager, truth
+
+
+def _true_T(truth, a, b):
+    return se2_between(truth[a[0]][a[1]], truth[b[0]][b[1]])
+
+
+def _max_error(graph: PoseGraph, truth) -> float:
+    return max(
+        float(np.linalg.norm(graph.poses(r)[:, :2] - truth[r][:, :2], axis=1).max()) for r in truth
+    )
+
+
+def test_wrong_inter_robot_match_in_a_two_robot_square_is_rejected() -> None:
+    rng = np.random.default_rng(3)
+    graph, manager, truth = _setup(rng)
+    wrong = se2_compose(_true_T(truth, ("a", 10), ("b", 10)), [1.5, -1.0, 0.6])
+    manager.add(("a", 10), ("b", 10), wrong, LC_COV, "inter")
+    graph.update()
+    assert not graph.is_anchored("b"), "one match alone must not join two maps"
+    for i, j in [(2, 2), (7, 8), (15, 14), (18, 18)]:
+        manager.add(("a", i), ("b", j), _true_T(truth, ("a", i), ("b", j)), LC_COV, "inter")
+    graph.update(extra_iterations=5)
+    assert graph.is_anchored("b")
+    assert manager.counts() == {
+        "loop_closures": 0,
+        "inter_robot_constraints": 4,
+        "rejected_candidates": 1,
+    }
+    assert _max_error(graph, truth) < 0.3  # both chains drift by ~0.15 m
+
+
+def test_a_wrong_loop_closure_leaves_the_graph_when_right_ones_disagree() -> None:
+    rng = np.random.default_rng(5)
+    graph, manager, truth = _setup(rng)
+    wrong = se2_compose(_true_T(truth, ("a", 0), ("a", 20)), [2.0, 1.0, -0.5])
+    manager.add(("a", 0), ("a", 20), wrong, LC_COV, "loop")  # alone: accepted for now
+    graph.update(extra_iterations=5)
+    assert manager.counts()["loop_closures"] == 1
+    distorted = _max_error(graph, {"a": truth["a"]})
+    assert distorted > 0.3
+    for i, j in [(1, 19), (2, 18), (3, 17)]:
+        manager.add(("a", i), ("a", j), _true_T(truth, ("a", i), ("a", j)), LC_COV, "loop")
+    graph.update(extra_iterations=5)
+    counts = manager.counts()
+    assert counts["loop_closures"] == 3 and counts["rejected_candidates"] == 1
+    assert _max_error(graph, {"a": truth["a"]}) < 0.15 < distorted
+
+
+def test_orientation_of_a_match_is_normalized() -> None:
+    T = np.array([1.0, -2.0, 0.7])
+    cov = np.diag([0.01, 0.04, 0.001])
+    T_inv, cov_inv = invert_with_covariance(T, cov)
+    back, cov_back = invert_with_covariance(T_inv, cov_inv)
+    np.testing.assert_allclose(back, T, atol=1e-12)
+    np.testing.assert_allclose(cov_back, cov, atol=1e-12)
+    assert abs(wrap_angle(T_inv[2] + T[2])) < 1e-12
+
+
+@pytest.mark.parametrize("kernel", ["huber", "cauchy", "none"])
+def test_consistent_matches_join_the_floating_robot(kernel: str) -> None:
+    rng = np.random.default_rng(11)
+    cfg = ConstraintConfig(robust_kernel=kernel)
+    graph, manager, truth = _setup(rng, cfg)
+    for i, j in [(5, 4), (12, 12)]:
+        # given from b's side: the manager orders every pair the same way
+        manager.add(("b", j), ("a", i), _true_T(truth, ("b", j), ("a", i)), LC_COV, "inter")
+    graph.update(extra_iterations=5)
+    assert graph.is_anchored("b")
+    assert len(graph.components()) == 1
+    assert _max_error(graph, truth) < 0.3  # both chains drift by ~0.15 m

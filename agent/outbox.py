@@ -3,7 +3,9 @@
 Keyframes stay in the outbox, in sequence order, until the base station's
 cumulative ack covers them. If no ack makes progress for `resend_timeout_s`
 (wall time), the oldest `resend_batch` are sent again, in order; the base
-station drops duplicates, so resending is harmless.
+station drops duplicates, so resending is harmless. While acks stay stalled the
+wait doubles after each resend (up to `max_backoff` times the timeout), so a base
+station that is busy, not gone, is not flooded with duplicates.
 
 Bound policy: the outbox holds at most `max_len` keyframes. It warns once when
 it passes `warn_fraction` of that; when full, `has_room()` is False and the
@@ -31,12 +33,15 @@ class Outbox:
         resend_timeout_s: float,
         resend_batch: int,
         clock: Callable[[], float] = time.monotonic,
+        max_backoff: int = 8,
     ) -> None:
         self.max_len = max_len
         self.warn_len = max(1, int(max_len * warn_fraction))
         self.resend_timeout_s = resend_timeout_s
         self.resend_batch = resend_batch
         self._clock = clock
+        self.max_backoff = max_backoff
+        self._backoff = 1
         self._pending: OrderedDict[int, bytes] = OrderedDict()
         self._lock = threading.Lock()
         self._last_progress = clock()
@@ -76,6 +81,7 @@ class Outbox:
                 self._pending.popitem(last=False)
                 released += 1
             self._last_progress = self._clock()
+            self._backoff = 1
             if len(self._pending) < self.warn_len:
                 self._warned = False
         return released
@@ -83,9 +89,11 @@ class Outbox:
     def due_for_resend(self) -> list[bytes]:
         """The oldest unacknowledged payloads if the ack has stalled, else []."""
         with self._lock:
-            if not self._pending or self._clock() - self._last_progress < self.resend_timeout_s:
+            wait = self.resend_timeout_s * self._backoff
+            if not self._pending or self._clock() - self._last_progress < wait:
                 return []
             self._last_progress = self._clock()
+            self._backoff = min(2 * self._backoff, self.max_backoff)
             batch = [
                 p for _, p in zip(range(self.resend_batch), self._pending.values(), strict=False)
             ]

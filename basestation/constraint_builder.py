@@ -11,7 +11,9 @@ gets a global search of its latest scan against the whole map every
 Verification runs on one worker thread: the main thread packs each job with
 everything it needs (target scans already in the target node's frame, the
 query points, the guess), so the worker never touches the graph. The worker
-keeps to `max_candidates_per_s`; the queue keeps the newest `max_queue` jobs.
+keeps to `max_candidates_per_s` and takes jobs by priority: global searches
+first (only the newest per robot is kept), then inter-robot candidates, then
+loop closures; each of the last two queues keeps its newest `max_queue` jobs.
 """
 
 from __future__ import annotations
@@ -70,6 +72,10 @@ def find_candidates(
             continue
         d = np.hypot(P[:, 0] - p[0], P[:, 1] - p[1])
         ok = (d < cfg.search_radius_m) & (np.abs(wrap_angle(P[:, 2] - p[2])) < cfg.search_angle_rad)
+        if other == rid:  # a loop: the robot went away and came back
+            steps = np.hypot(*np.diff(poses[rid][: idx + 1, :2], axis=0).T)
+            travel = np.concatenate([np.cumsum(steps[::-1])[::-1], [0.0]])[: len(P)]
+            ok &= (travel >= cfg.loop_min_travel_m) & (travel >= 2.0 * d)
         if not ok.any():
             continue
         j = int(np.flatnonzero(ok)[np.argmin(d[ok])])
@@ -87,7 +93,10 @@ class ConstraintBuilder:
             min_overlap=cfg.min_overlap,
             max_corr_dist=cfg.max_corr_dist_m,
         )
-        self._jobs: collections.deque[Job] = collections.deque(maxlen=cfg.max_queue)
+        self._global: dict[str, Job] = {}  # robot -> its newest global search
+        self._queues: dict[str, collections.deque[Job]] = {
+            kind: collections.deque(maxlen=cfg.max_queue) for kind in ("inter", "loop")
+        }
         self._results: list[Verified] = []
         self._lock = threading.Lock()
         self._wake = threading.Event()
@@ -100,11 +109,29 @@ class ConstraintBuilder:
 
     def submit(self, job: Job) -> None:
         with self._lock:
-            if len(self._jobs) == self._jobs.maxlen:
-                self.stats["dropped"] += 1
-            self._jobs.append(job)
             self.stats[f"submitted_{job.kind}"] += 1
+            if job.kind == "global":
+                if job.b[0] in self._global:
+                    self.stats["superseded_global"] += 1
+                self._global[job.b[0]] = job
+            else:
+                q = self._queues[job.kind]
+                if len(q) == q.maxlen:
+                    self.stats[f"dropped_{job.kind}"] += 1
+                q.append(job)
         self._wake.set()
+
+    def _next_job(self) -> Job | None:
+        if self._global:
+            return self._global.pop(next(iter(self._global)))
+        for q in self._queues.values():
+            if q:
+                return q.popleft()
+        return None
+
+    def backlog(self) -> int:
+        with self._lock:
+            return len(self._global) + sum(len(q) for q in self._queues.values())
 
     def results(self) -> list[Verified]:
         with self._lock:
@@ -113,7 +140,7 @@ class ConstraintBuilder:
 
     def idle(self) -> bool:
         with self._lock:
-            return not self._jobs and not self._busy
+            return not self._busy and not self._global and not any(self._queues.values())
 
     def close(self) -> None:
         self._stop.set()
@@ -124,7 +151,7 @@ class ConstraintBuilder:
         period = 1.0 / self.cfg.max_candidates_per_s
         while not self._stop.is_set():
             with self._lock:
-                job = self._jobs.popleft() if self._jobs else None
+                job = self._next_job()
                 self._busy = job is not None
             if job is None:
                 self._wake.wait(0.1)

@@ -50,6 +50,8 @@ class GlobalSlam:
         self.loops = LoopClosureManager(self.graph, self.cc, self._chain_covariance)
         self.update_ms: list[float] = []
         self._new_nodes: list[NodeKey] = []
+        self._false_rng = np.random.default_rng(self.cc.false_match_seed)
+        self._last_candidate: dict[tuple[str, str], int] = {}  # (robot, target robot) -> index
 
     # --- keyframes ----------------------------------------------------------------------
     def admit(self, kf: Keyframe) -> int:
@@ -119,6 +121,10 @@ class GlobalSlam:
                 continue
             query = np.vstack(self._points_in(key, self._neighbours(key, 1), poses)[0])
             for kind, target in find_candidates(self.cc, key, poses, comp):
+                last = self._last_candidate.get((key[0], target[0]), -(10**9))
+                if key[1] - last < self.cc.candidate_stride:
+                    continue
+                self._last_candidate[(key[0], target[0])] = key[1]
                 scans, origins = self._points_in(target, self._neighbours(target, k), poses)
                 guess = se2_between(poses[target[0]][target[1]], poses[key[0]][key[1]])
                 self.builder.submit(Job(kind, target, key, guess, scans, query, origins))
@@ -135,7 +141,11 @@ class GlobalSlam:
             se2_transform_points(poses[r][i], self.store.robot(r).points[i]) for r, i in nodes
         ]
         origins = [poses[r][i] for r, i in nodes]
-        query = np.vstack(self._points_in(key, self._neighbours(key, 1), poses)[0])
+        recent = [
+            (key[0], j)
+            for j in range(max(0, key[1] - self.cc.global_query_keyframes + 1), key[1] + 1)
+        ]
+        query = np.vstack(self._points_in(key, recent, poses)[0])
         self.builder.submit(
             Job(
                 "global",
@@ -154,12 +164,35 @@ class GlobalSlam:
         if self.builder is None:
             return 0
         results = self.builder.results()
+        f = self.cc.false_match_fraction
         for v in results:
             try:
                 self._integrate(v)
+                if f > 0 and self._false_rng.random() < f / (1.0 - f):
+                    self._inject_false_match(v)
             except CollabSlamError as e:  # a stale or degenerate match: drop it, keep going
                 log.error("verified %s match %s -> %s dropped: %s", v.job.kind, v.job.a, v.job.b, e)
         return len(results)
+
+    def _inject_false_match(self, v: Verified) -> None:
+        """Evaluation only: a wrong match like perceptual aliasing produces. The query
+        node is said to be within a metre of a random other node of the same kind
+        (same robot for a loop, another anchored robot otherwise), with the real
+        match's covariance."""
+        rng = self._false_rng
+        b = v.job.b
+        if v.job.kind == "loop":
+            n = max(0, b[1] - self.cc.loop_min_index_gap)
+            robot = b[0]
+        else:
+            others = [r for r in self.graph.robots() if r != b[0] and self.graph.is_anchored(r)]
+            robot = others[int(rng.integers(len(others)))] if others else b[0]
+            n = self.graph.num_nodes(robot) if robot != b[0] else 0
+        if n < 1:
+            return
+        a = (robot, int(rng.integers(n)))
+        T = np.array([rng.uniform(-1, 1), rng.uniform(-1, 1), rng.uniform(-np.pi / 4, np.pi / 4)])
+        self.loops.add(a, b, T, v.match.covariance, "false")
 
     def _integrate(self, v: Verified) -> None:
         job, m = v.job, v.match
@@ -184,6 +217,10 @@ class GlobalSlam:
             if d[i] < best_d:
                 best, best_d = (r, i), float(d[i])
         return best
+
+    def backlog(self) -> int:
+        """Candidates waiting for verification."""
+        return 0 if self.builder is None else self.builder.backlog()
 
     def idle(self) -> bool:
         return self.builder is None or self.builder.idle()
@@ -246,6 +283,10 @@ class GlobalSlam:
             "isam2_update_ms_p95": float(np.percentile(upd, 95)),
             **self.loops.counts(),
         }
+        failed = 0
         if self.builder is not None:
             out["constraint_builder"] = dict(self.builder.stats)
+            failed = sum(v for k, v in self.builder.stats.items() if k.startswith("failed_"))
+        # candidates that failed scan-match verification or the consistency check
+        out["rejected_candidates"] = out["rejected_by_pcm"] + failed
         return out

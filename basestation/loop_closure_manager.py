@@ -109,9 +109,15 @@ class LoopClosureManager:
 
     def counts(self) -> dict[str, int]:
         loops = sum(1 for i in self.accepted if self.kinds[i] == "loop")
-        total = len(self.kinds)
-        return {
+        false = sum(1 for k in self.kinds.values() if k == "false")
+        false_in = sum(1 for i in self.accepted if self.kinds[i] == "false")
+        total = len(self.kinds) - false
+        real_accepted = len(self.accepted) - false_in
+        out = {
             "loop_closures": loops,
-            "inter_robot_constraints": len(self.accepted) - loops,
-            "rejected_candidates": total - len(self.accepted),
+            "inter_robot_constraints": real_accepted - loops,
+            "rejected_by_pcm": total - real_accepted,
         }
+        if false:
+            out |= {"false_matches_injected": false, "false_matches_accepted": false_in}
+        return out

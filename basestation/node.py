@@ -57,6 +57,7 @@ class BaseStationNode:
         self.states: dict[str, RobotState] = {}
         self.epoch = 0
         self.unknown_robot_drops = 0
+        self.intake_pauses = 0
         self._last_map = 0.0
         self._map_dirty = False
         self._lock = threading.Lock()
@@ -84,6 +85,22 @@ class BaseStationNode:
 
     def step(self, timeout: float = 0.0) -> int:
         """Process one batch of keyframes and verified constraints; returns #admitted."""
+        limit = self.cfg.basestation.pause_intake_backlog
+        if limit and self.slam.backlog() > limit:
+            self.intake_pauses += 1
+            time.sleep(min(timeout, 0.01))
+            admitted = 0
+        else:
+            admitted = self._take_batch(timeout)
+        if self.slam.integrate_constraints():
+            self._optimized()
+        now = time.monotonic()
+        if self._map_dirty and now - self._last_map >= self.cfg.basestation.map_update_period_s:
+            self.refresh_map()
+            self._last_map = now
+        return admitted
+
+    def _take_batch(self, timeout: float) -> int:
         batch: list[Keyframe] = []
         try:
             batch.append(
@@ -93,14 +110,7 @@ class BaseStationNode:
                 batch.append(self.inbox.get_nowait())
         except queue.Empty:
             pass
-        admitted = self.process(batch) if batch else 0
-        if self.slam.integrate_constraints():
-            self._optimized()
-        now = time.monotonic()
-        if self._map_dirty and now - self._last_map >= self.cfg.basestation.map_update_period_s:
-            self.refresh_map()
-            self._last_map = now
-        return admitted
+        return self.process(batch) if batch else 0
 
     def process(self, batch: list[Keyframe]) -> int:
         touched: set[str] = set()
@@ -149,8 +159,10 @@ class BaseStationNode:
         self.map.update(*self.slam.map_keyframes())
         self._map_dirty = False
 
-    def drain(self, timeout_s: float = 60.0) -> None:
+    def drain(self, timeout_s: float | None = None) -> None:
         """Process everything already received, and pending verifications."""
+        if timeout_s is None:
+            timeout_s = self.cfg.basestation.drain_timeout_s
         deadline = time.monotonic() + timeout_s
         while time.monotonic() < deadline:
             busy = self.step(timeout=0.0) or not self.inbox.empty() or not self.slam.idle()
@@ -166,6 +178,7 @@ class BaseStationNode:
         return {
             **self.slam.stats(),
             "unknown_robot_drops": self.unknown_robot_drops,
+            "intake_pauses": self.intake_pauses,
             "rejected_messages": dict(self.bus.rejected),
             "correction_epoch": self.epoch,
             "map_full_renders": self.map.full_renders,

@@ -65,6 +65,12 @@ def eval_carmen(
     edges[-1] += 1.0
     out = json_out.parent / json_out.stem
     out.mkdir(parents=True, exist_ok=True)
+    # A replay runs many times faster than the robots drove: pace it to what the
+    # verifier keeps up with (the base station delays acks, the agents wait), as a
+    # live run at sensor rate would be, instead of dropping candidates.
+    b = cfg.basestation
+    b.pause_intake_backlog = b.pause_intake_backlog or 20
+    b.drain_timeout_s = max(b.drain_timeout_s, 600.0)
     dump_config(cfg, out / "config.toml")
     ep = endpoint(free_port())
     group = ProcessGroup(out, log_level)
@@ -150,7 +156,16 @@ def eval_carmen(
         "loop_closures": base_stats.get("loop_closures", 0),
         "inter_robot_constraints": base_stats.get("inter_robot_constraints", 0),
         "rejected_candidates": base_stats.get("rejected_candidates", 0),
+        "rejected_by_pcm": base_stats.get("rejected_by_pcm", 0),
+        "false_match_fraction": cfg.basestation.constraints.false_match_fraction,
+        "false_matches_injected": base_stats.get("false_matches_injected", 0),
+        "false_matches_accepted": base_stats.get("false_matches_accepted", 0),
         "wall_s": wall,
+        "candidates_dropped": sum(
+            v
+            for k, v in base_stats.get("constraint_builder", {}).items()
+            if k.startswith("dropped_")
+        ),
         "outputs": str(out),
     }
     json_out.parent.mkdir(parents=True, exist_ok=True)

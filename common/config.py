@@ -174,6 +174,11 @@ class ConstraintConfig:
     search_radius_m: float = 10.0  # r_t, m
     search_angle_rad: float = 1.5707963267948966  # r_theta, rad (pi/2)
     loop_min_index_gap: int = 30  # d_thresh, keyframes between a node and a loop candidate
+    # A loop candidate also needs this much travel (m) since the target, and at least twice
+    # the straight distance: the robot went away and came back (not just drove on).
+    loop_min_travel_m: float = 10.0
+    global_query_keyframes: int = 20  # recent keyframes matched against the map at once
+    candidate_stride: int = 3  # keyframes of a robot between candidates against one robot
     target_neighbours: int = 3  # keyframes on each side of the target node form its "submap"
     linear_window_m: float = 1.5  # m, correlative search half-width around the guess
     angular_window_deg: float = 30.0  # deg
@@ -188,6 +193,10 @@ class ConstraintConfig:
     min_consistent_to_merge: int = 2  # consistent matches needed to join two robots' maps
     global_search_every: int = 5  # keyframes of an unanchored robot between global searches
     global_min_score: float = 0.65  # stricter score for a whole-map search
+    # Evaluation only (robustness benchmarks): after each verified match, inject a wrong
+    # one with probability f / (1 - f) so that a fraction f of all matches is false.
+    false_match_fraction: float = 0.0
+    false_match_seed: int = 0
 
 
 @dataclass
@@ -200,6 +209,11 @@ class BaseStationConfig:
     batch_max: int = 200  # keyframes per processing batch
     reorder_window: int = 1000  # out-of-order keyframes held per robot waiting for a gap
     known_start_poses: bool = True  # use the scenario's start poses (false: find by matching)
+    # Keyframe intake pauses while more candidates than this wait for verification
+    # (0: never). Acks then wait too, which paces a log replay to what the verifier
+    # keeps up with; live robots keep flying and their outboxes hold the keyframes.
+    pause_intake_backlog: int = 0
+    drain_timeout_s: float = 60.0  # s wall: at shutdown, finish pending verifications this long
     constraints: ConstraintConfig = field(default_factory=ConstraintConfig)
 
 
@@ -336,6 +350,7 @@ def validate(cfg: Config) -> None:
             "basestation.constraints.max_candidates_per_s",
             cfg.basestation.constraints.max_candidates_per_s,
         ),
+        ("basestation.constraints.candidate_stride", cfg.basestation.constraints.candidate_stride),
         ("basestation.constraints.search_radius_m", cfg.basestation.constraints.search_radius_m),
         (
             "basestation.constraints.global_search_every",
@@ -375,6 +390,8 @@ def validate(cfg: Config) -> None:
     if not 0.0 <= ls.min_match_score < 1.0:
         raise ConfigError("agent.local_slam.min_match_score: expected a value in [0, 1)")
     cc = cfg.basestation.constraints
+    if not 0.0 <= cc.false_match_fraction < 1.0:
+        raise ConfigError("basestation.constraints.false_match_fraction: expected 0 <= f < 1")
     if cc.robust_kernel not in ("huber", "cauchy", "none"):
         raise ConfigError("basestation.constraints.robust_kernel: expected huber, cauchy or none")
     for key in (

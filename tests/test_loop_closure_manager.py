@@ -78,7 +78,7 @@ def test_wrong_inter_robot_match_in_a_two_robot_square_is_rejected() -> None:
     assert manager.counts() == {
         "loop_closures": 0,
         "inter_robot_constraints": 4,
-        "rejected_candidates": 1,
+        "rejected_by_pcm": 1,
     }
     assert _max_error(graph, truth) < 0.3  # both chains drift by ~0.15 m
 
@@ -96,7 +96,7 @@ def test_a_wrong_loop_closure_leaves_the_graph_when_right_ones_disagree() -> Non
         manager.add(("a", i), ("a", j), _true_T(truth, ("a", i), ("a", j)), LC_COV, "loop")
     graph.update(extra_iterations=5)
     counts = manager.counts()
-    assert counts["loop_closures"] == 3 and counts["rejected_candidates"] == 1
+    assert counts["loop_closures"] == 3 and counts["rejected_by_pcm"] == 1
     assert _max_error(graph, {"a": truth["a"]}) < 0.15 < distorted
 
 

@@ -84,6 +84,28 @@ def test_unseen_world_three_robots(tmp_path: Path) -> None:
     assert summary["map_accuracy"] >= 0.9
 
 
+def test_robots_started_far_apart_end_in_one_map(tmp_path: Path) -> None:
+    """Unknown start poses: the base station knows only r0's start (it fixes `map`);
+    r1 and r2 start far away, facing random ways, and must be found by global search
+    and inter-robot constraints. Every ATE below is in the world frame, so a robot
+    left off the map would fail it."""
+    out = tmp_path / "run"
+    res = _run(
+        [
+            "--world", "bshape", "--robots", "3", "--out", str(out),
+            "--set", "sim.start_apart=true", "--set", "basestation.known_start_poses=false",
+        ],
+        timeout=600,
+    )  # fmt: skip
+    assert res.returncode == 0, res.stderr[-3000:]
+    summary = _check_run(out, 3)
+    base = json.loads((out / "basestation.json").read_text())
+    assert all(r["anchored"] for r in base["robots"].values()), base["robots"]
+    assert base["inter_robot_constraints"] >= 2
+    assert all(r["ate_rmse_m"] < 0.3 for r in summary["robots"])
+    assert summary["map_accuracy"] >= 0.95
+
+
 def test_dead_child_is_named(tmp_path: Path) -> None:
     """A child that dies stops the run with an error naming it."""
     out = tmp_path / "run"

@@ -34,6 +34,19 @@ def test_outbox_acks_and_resends_in_order() -> None:
     assert ob.ack(1) == 0  # a stale ack changes nothing
     clock.t = 3.0
     assert ob.due_for_resend() == [b"\x03", b"\x04"]
+    # still no progress: the wait doubles (2 s, then 4 s), an ack resets it
+    clock.t = 4.5
+    assert ob.due_for_resend() == []
+    clock.t = 5.1
+    assert ob.due_for_resend() == [b"\x03", b"\x04"]
+    clock.t = 8.5
+    assert ob.due_for_resend() == []
+    clock.t = 9.2
+    assert len(ob.due_for_resend()) == 2
+    ob.add(5, b"\x05")
+    assert ob.ack(3) == 1
+    clock.t = 10.3
+    assert ob.due_for_resend() == [b"\x04", b"\x05"]
     with pytest.raises(ValueError):
         ob.add(9, b"x")
 

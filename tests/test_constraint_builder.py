@@ -1,0 +1,80 @@
+"""Candidate search (seed 002 eq. 2) and the verification worker's queueing."""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+
+from basestation.constraint_builder import ConstraintBuilder, Job, find_candidates
+from common.config import ConstraintConfig
+
+
+def _line(x: np.ndarray, yaw: np.ndarray | float = 0.0, y: float = 0.0) -> np.ndarray:
+    return np.column_stack([x, np.full_like(x, y), np.broadcast_to(yaw, x.shape)])
+
+
+def test_driving_on_along_a_corridor_is_not_a_loop() -> None:
+    cc = ConstraintConfig()
+    P = _line(np.arange(100) * 0.2)
+    assert find_candidates(cc, ("a", 99), {"a": P}, ["a"]) == []
+
+
+def test_coming_back_is_a_loop_with_the_nearest_old_node() -> None:
+    cc = ConstraintConfig()
+    out_and_back = np.concatenate([np.arange(60) * 0.2, 12.0 - np.arange(1, 60) * 0.2])
+    P = _line(out_and_back)
+    assert find_candidates(cc, ("a", len(P) - 1), {"a": P}, ["a"]) == [("loop", ("a", 1))]
+    # facing the other way (|dyaw| > r_theta): no candidate
+    P[-1, 2] = np.pi
+    assert find_candidates(cc, ("a", len(P) - 1), {"a": P}, ["a"]) == []
+
+
+def test_nearest_node_of_each_other_robot_in_the_component() -> None:
+    cc = ConstraintConfig()
+    poses = {
+        "a": _line(np.arange(10) * 0.5),
+        "b": _line(np.arange(10) * 0.5, y=1.0),
+        "c": _line(np.arange(10) * 0.5 + 100.0),  # too far
+    }
+    got = find_candidates(cc, ("a", 4), poses, ["a", "b", "c"])
+    assert got == [("inter", ("b", 4))]
+    assert find_candidates(cc, ("a", 4), poses, ["a"]) == []  # b not in a's component
+
+
+def test_worker_verifies_in_priority_order_and_reports_failures() -> None:
+    cc = ConstraintConfig(max_candidates_per_s=1000.0)
+    builder = ConstraintBuilder(cc)
+    try:
+        rng = np.random.default_rng(0)
+        # an L-shaped wall seen from the origin; the query sees it from 0.3 m further on
+        wall = np.vstack(
+            [
+                _line(np.linspace(-3, 3, 200), y=2.0)[:, :2],
+                np.column_stack([np.full(200, 3.0), np.linspace(-2, 2, 200)]),
+            ]
+        )
+        query = wall - np.array([0.3, 0.0]) + rng.normal(0, 0.005, wall.shape)
+        good = Job(
+            "loop", ("a", 0), ("a", 50), np.array([0.25, 0.05, 0.0]), [wall], query, [np.zeros(3)]
+        )
+        junk = Job(
+            "inter",
+            ("b", 0),
+            ("a", 50),
+            np.zeros(3),
+            [wall],
+            rng.uniform(-20, 20, (300, 2)),
+            [np.zeros(3)],
+        )
+        builder.submit(good)
+        builder.submit(junk)
+        deadline = time.monotonic() + 60
+        while not builder.idle() and time.monotonic() < deadline:
+            time.sleep(0.05)
+        results = builder.results()
+        assert [r.job.kind for r in results] == ["loop"]
+        np.testing.assert_allclose(results[0].match.T_a_b, [0.3, 0.0, 0.0], atol=0.02)
+        assert builder.stats["failed_inter"] == 1 and builder.stats["verified_loop"] == 1
+    finally:
+        builder.close()

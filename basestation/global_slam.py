@@ -51,6 +51,7 @@ class GlobalSlam:
         self.update_ms: list[float] = []
         self._new_nodes: list[NodeKey] = []
         self._false_rng = np.random.default_rng(self.cc.false_match_seed)
+        self._global_map: tuple[object, list[np.ndarray], list[np.ndarray]] | None = None
         self._last_candidate: dict[tuple[str, str], int] = {}  # (robot, target robot) -> index
 
     # --- keyframes ----------------------------------------------------------------------
@@ -84,10 +85,8 @@ class GlobalSlam:
         self.update_ms.append((time.perf_counter() - t0) * 1e3)
 
     # --- constraints --------------------------------------------------------------------
-    def _chain_covariance(self, robot: str, i: int, j: int) -> np.ndarray:
-        P = self.graph.poses(robot)
-        dist = float(np.hypot(*(P[j, :2] - P[i, :2])))
-        return self.store.robot(robot).chain_covariance(i, j, dist)
+    def _chain_covariance(self, robot: str, i: np.ndarray, j: np.ndarray) -> np.ndarray:
+        return self.store.robot(robot).chain_covariance(i, j)
 
     def _points_in(
         self, frame: NodeKey, nodes: list[NodeKey], poses: dict[str, np.ndarray]
@@ -132,31 +131,25 @@ class GlobalSlam:
                 self._submit_global(key, poses)
 
     def _submit_global(self, key: NodeKey, poses: dict[str, np.ndarray]) -> None:
-        anchored = [r for r in poses if self.graph.is_anchored(r)]
+        """Queue a search of the robot's recent scans against the whole map. The map
+        target is rebuilt when robots join it or every `global_map_rebuild_nodes` nodes."""
+        anchored = tuple(sorted(r for r in poses if self.graph.is_anchored(r)))
         if not anchored:
             return
-        n_anchored = sum(len(poses[r]) for r in anchored)
-        nodes = [(r, i) for r in anchored for i in range(len(poses[r]))]
-        map_scans = [
-            se2_transform_points(poses[r][i], self.store.robot(r).points[i]) for r, i in nodes
-        ]
-        origins = [poses[r][i] for r, i in nodes]
-        recent = [
-            (key[0], j)
-            for j in range(max(0, key[1] - self.cc.global_query_keyframes + 1), key[1] + 1)
-        ]
+        n = sum(len(poses[r]) for r in anchored)
+        map_key = (anchored, n // self.cc.global_map_rebuild_nodes)
+        if self._global_map is None or self._global_map[0] != map_key:
+            nodes = [(r, i) for r in anchored for i in range(len(poses[r]))]
+            scans = [
+                se2_transform_points(poses[r][i], self.store.robot(r).points[i]) for r, i in nodes
+            ]
+            self._global_map = (map_key, scans, [poses[r][i] for r, i in nodes])
+        _, scans, origins = self._global_map
+        first = max(0, key[1] - self.cc.global_query_keyframes + 1)
+        recent = [(key[0], j) for j in range(first, key[1] + 1)]
         query = np.vstack(self._points_in(key, recent, poses)[0])
         self.builder.submit(
-            Job(
-                "global",
-                key,
-                key,
-                np.zeros(3),
-                map_scans,
-                query,
-                origins,
-                target_key=n_anchored // 200,
-            )
+            Job("global", key, key, np.zeros(3), scans, query, origins, target_key=map_key)
         )
 
     def integrate_constraints(self) -> int:

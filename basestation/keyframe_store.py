@@ -12,6 +12,7 @@ import logging
 from dataclasses import dataclass, field
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from common.geometry import pose7_to_pose4
 from protocol.messages import Keyframe
@@ -30,13 +31,23 @@ class RobotKeyframes:
     held: dict[int, Keyframe] = field(default_factory=dict)
     duplicates: int = 0
 
-    def chain_covariance(self, i: int, j: int, distance: float) -> np.ndarray:
-        """Approximate 3x3 covariance of node j relative to node i along the chain:
-        summed per-keyframe variances, plus heading uncertainty times distance."""
-        i, j = min(i, j), max(i, j)
-        v = self.var_cumsum[j] - self.var_cumsum[i]
-        var_xy = v[0] + 0.5 * v[1] * distance**2 + 1e-6
-        return np.diag([var_xy, var_xy, v[1] + 1e-8])
+    def chain_covariance(self, i: ArrayLike, j: ArrayLike) -> np.ndarray:
+        """Approximate (n, 3, 3) covariances of nodes j relative to nodes i (index arrays)
+        along the chain: summed per-keyframe variances, plus the heading uncertainty
+        swept over the (odometry) distance between them. Zero where i == j."""
+        i, j = np.atleast_1d(i), np.atleast_1d(j)
+        lo, hi = np.minimum(i, j), np.maximum(i, j)
+        cum = np.asarray(self.var_cumsum)
+        v = cum[hi] - cum[lo]
+        P = np.asarray(self.poses_odom)
+        d2 = np.sum((P[hi, :2] - P[lo, :2]) ** 2, axis=1)
+        same = lo == hi
+        var_xy = np.where(same, 0.0, v[:, 0] + 0.5 * v[:, 1] * d2 + 1e-6)
+        var_yaw = np.where(same, 0.0, v[:, 1] + 1e-8)
+        out = np.zeros((len(i), 3, 3))
+        out[:, 0, 0] = out[:, 1, 1] = var_xy
+        out[:, 2, 2] = var_yaw
+        return out
 
     @property
     def next_seq(self) -> int:

@@ -48,9 +48,10 @@ class LoopClosureManager:
         self,
         graph: PoseGraph,
         cfg: ConstraintConfig,
-        chain_covariance: Callable[[str, int, int], np.ndarray],
+        chain_covariance: Callable[[str, np.ndarray, np.ndarray], np.ndarray],
     ) -> None:
-        """chain_covariance(robot, i, j): 3x3 uncertainty of node j relative to node i."""
+        """chain_covariance(robot, I, J): (n, 3, 3) uncertainties of nodes J relative to
+        nodes I along the robot's chain (index arrays)."""
         self.graph = graph
         self.cfg = cfg
         self.chain_covariance = chain_covariance
@@ -73,13 +74,17 @@ class LoopClosureManager:
         group.measurements[m.id] = m
         poses: dict[str, np.ndarray] = {}
 
-        def odometry(robot: str, i: int, j: int) -> tuple[np.ndarray, np.ndarray]:
+        def batch(robot: str, i: np.ndarray, j: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
             if robot not in poses:
                 poses[robot] = self.graph.poses(robot)
             P = poses[robot]
             return se2_between(P[i], P[j]), self.chain_covariance(robot, i, j)
 
-        self._reconcile(group, group.pcm.add(m, odometry))
+        def odometry(robot: str, i: int, j: int) -> tuple[np.ndarray, np.ndarray]:
+            T, C = batch(robot, np.array([i]), np.array([j]))
+            return T[0], C[0]
+
+        self._reconcile(group, group.pcm.add(m, odometry, batch))
 
     def _reconcile(self, group: _Group, consistent: set[int]) -> None:
         m0 = next(iter(group.measurements.values()))

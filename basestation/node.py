@@ -181,7 +181,8 @@ class BaseStationNode:
             "intake_pauses": self.intake_pauses,
             "rejected_messages": dict(self.bus.rejected),
             "correction_epoch": self.epoch,
-            "map_full_renders": self.map.full_renders,
+            "map_rerenders": self.map.rerenders,
+            "map_rerendered_cells": self.map.rerendered_cells,
         }
 
     def write_outputs(self, out_dir: str | Path) -> None:

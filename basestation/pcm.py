@@ -38,6 +38,8 @@ logger = logging.getLogger(__name__)
 FloatArray = NDArray[np.float64]
 # odometry(robot, i, j) -> (T_i_j [x, y, yaw], its 3x3 covariance in frame j)
 Odometry = Callable[[str, int, int], tuple[np.ndarray, np.ndarray]]
+# the same for index arrays I, J (n,) -> (n, 3) poses, (n, 3, 3) covariances
+BatchOdometry = Callable[[str, np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]]
 
 DEFAULT_THRESHOLD_CHI2 = float(chi2.ppf(0.99, 3))  # ~11.34
 
@@ -310,18 +312,27 @@ class IncrementalPcm:
     current clique when consistent with all of it, and otherwise the best clique
     grown greedily from it replaces the current one only if it is larger. This is the
     incremental use of PCM in multi-robot systems (DOOR-SLAM, Kimera-Multi).
+    A new measurement is tested against the `window` most recent ones only (older
+    ones count as consistent with it), so each arrival costs O(window).
     """
 
-    def __init__(self, threshold_chi2: float = DEFAULT_THRESHOLD_CHI2, max_exact: int = 40) -> None:
+    def __init__(
+        self, threshold_chi2: float = DEFAULT_THRESHOLD_CHI2, max_exact: int = 40,
+        window: int = 200,
+    ) -> None:  # fmt: skip
         self.threshold_chi2 = float(threshold_chi2)
         self.max_exact = int(max_exact)
+        self.window = int(window)
         self.measurements: list[LoopMeasurement] = []
         self._d2 = np.zeros((0, 0))
         self._clique: list[int] = []  # indices into self.measurements
 
-    def add(self, m: LoopMeasurement, odometry: Odometry) -> set[int]:
+    def add(
+        self, m: LoopMeasurement, odometry: Odometry, batch_odometry: BatchOdometry | None = None
+    ) -> set[int]:
         """Add `m` (oriented like the group's first measurement or not); returns the
-        ids of the accepted (pairwise-consistent) measurements of the group."""
+        ids of the accepted (pairwise-consistent) measurements of the group. With
+        `batch_odometry` the tests against the window run vectorized."""
         if self.measurements:
             first = self.measurements[0]
             if _group_key(m) != _group_key(first):
@@ -350,6 +361,30 @@ class IncrementalPcm:
     @property
     def accepted(self) -> set[int]:
         return {self.measurements[i].id for i in self._clique}
+
+
+def _window_d2(olds: list[LoopMeasurement], m: LoopMeasurement, odo: BatchOdometry) -> FloatArray:
+    """`_pairs_d2` of (old, m) for every old measurement of m's group, vectorized."""
+    n = len(olds)
+    ia = np.array([o.index_a for o in olds])
+    ib = np.array([o.index_b for o in olds])
+    T1 = np.array([o.T_a_b for o in olds])
+    C1 = np.array([o.covariance for o in olds])
+    T2 = np.broadcast_to(np.asarray(m.T_a_b, dtype=np.float64), (n, 3)).copy()
+    C2 = np.broadcast_to(np.asarray(m.covariance, dtype=np.float64), (n, 3, 3)).copy()
+    i2 = np.full(n, m.index_a)
+    j2 = np.full(n, m.index_b)
+    if m.robot_a == m.robot_b:  # loops of one robot: the shorter way round (see _aligned)
+        straight = np.abs(ia - m.index_a) + np.abs(ib - m.index_b)
+        crossed = np.abs(ia - m.index_b) + np.abs(ib - m.index_a)
+        flip = crossed < straight
+        if flip.any():
+            r = _reversed(m)
+            T2[flip], C2[flip] = r.T_a_b, r.covariance
+            i2[flip], j2[flip] = m.index_b, m.index_a
+    Ob, Cob = odo(m.robot_b, ib, j2)
+    Oa, Coa = odo(m.robot_a, i2, ia)
+    return _cycle_d2(T1, C1, T2, C2, Ob, Cob, Oa, Coa)
 
 
 def _grow_clique(adj: NDArray[np.bool_], start: int) -> list[int]:

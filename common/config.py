@@ -177,6 +177,7 @@ class ConstraintConfig:
     # A loop candidate also needs this much travel (m) since the target, and at least twice
     # the straight distance: the robot went away and came back (not just drove on).
     loop_min_travel_m: float = 10.0
+    global_map_rebuild_nodes: int = 200  # rebuild the whole-map search target this often
     global_query_keyframes: int = 20  # recent keyframes matched against the map at once
     candidate_stride: int = 3  # keyframes of a robot between candidates against one robot
     target_neighbours: int = 3  # keyframes on each side of the target node form its "submap"
@@ -349,6 +350,14 @@ def validate(cfg: Config) -> None:
         (
             "basestation.constraints.max_candidates_per_s",
             cfg.basestation.constraints.max_candidates_per_s,
+        ),
+        (
+            "basestation.constraints.global_map_rebuild_nodes",
+            cfg.basestation.constraints.global_map_rebuild_nodes,
+        ),
+        (
+            "basestation.constraints.global_query_keyframes",
+            cfg.basestation.constraints.global_query_keyframes,
         ),
         ("basestation.constraints.candidate_stride", cfg.basestation.constraints.candidate_stride),
         ("basestation.constraints.search_radius_m", cfg.basestation.constraints.search_radius_m),

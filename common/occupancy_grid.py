@@ -349,6 +349,41 @@ class OccupancyGrid:
         self._origin = (ox - sx * res, oy - sy * res)
         logger.debug("grid grown from %d x %d to %d x %d cells", w, h, new_w, new_h)
 
+    def region(self, min_xy: ArrayLike, max_xy: ArrayLike) -> tuple[slice, slice]:
+        """(rows, cols) slices of the cells covering the box [min_xy, max_xy] (m), clipped
+        to the grid (possibly empty)."""
+        lo = np.asarray(min_xy, dtype=np.float64)
+        hi = np.asarray(max_xy, dtype=np.float64)
+        h, w = self.shape
+        c0, r0 = np.floor((lo - self._origin) / self._resolution).astype(int)
+        c1, r1 = np.ceil((hi - self._origin) / self._resolution).astype(int)
+        return slice(max(r0, 0), min(max(r1, 0), h)), slice(max(c0, 0), min(max(c1, 0), w))
+
+    def empty_like_region(self, rows: slice, cols: slice) -> OccupancyGrid:
+        """An empty grid on the same lattice and sensor model covering cells [rows, cols]."""
+        res = self._resolution
+        g = OccupancyGrid.__new__(OccupancyGrid)
+        g.__dict__.update(self.__dict__)
+        g._origin = (self._origin[0] + cols.start * res, self._origin[1] + rows.start * res)
+        shape = (rows.stop - rows.start, cols.stop - cols.start)
+        g._log_odds = np.zeros(shape, dtype=np.float32)
+        g._flags = np.zeros(shape, dtype=np.uint8)
+        return g
+
+    def paste(self, rows: slice, cols: slice, other: OccupancyGrid) -> None:
+        """Replace cells [rows, cols] by `other` (made by `empty_like_region` for the same
+        cells or a larger box), leaving its border out: rays entering
+        a grid from outside are clipped there, so its edge cells are not exact."""
+        r0, c0 = rows.start - other._origin_cell(self)[0], cols.start - other._origin_cell(self)[1]
+        h, w = rows.stop - rows.start, cols.stop - cols.start
+        self._log_odds[rows, cols] = other._log_odds[r0 : r0 + h, c0 : c0 + w]
+        self._flags[rows, cols] = other._flags[r0 : r0 + h, c0 : c0 + w]
+
+    def _origin_cell(self, parent: OccupancyGrid) -> tuple[int, int]:
+        """(row, col) of this grid's cell (0, 0) in `parent`'s lattice."""
+        d = (np.array(self._origin) - parent._origin) / self._resolution
+        return int(round(d[1])), int(round(d[0]))
+
     def clear(self) -> None:
         """Forget everything (all cells back to unknown); the extent is kept."""
         self._log_odds.fill(0.0)

@@ -45,9 +45,9 @@ def _setup(rng: np.random.Generator, cfg: ConstraintConfig | None = None):
             graph.add_node(rid, k, noisy, ODO_COV)
     graph.update()
 
-    def chain_cov(robot: str, i: int, j: int) -> np.ndarray:
+    def chain_cov(robot: str, i: np.ndarray, j: np.ndarray) -> np.ndarray:
         # n steps of odometry, plus the heading uncertainty swept over n metres
-        n = abs(j - i)
+        n = np.abs(np.asarray(j) - np.asarray(i))[:, None, None]
         return n * ODO_COV + n**2 * ODO_COV[2, 2] * np.diag([1.0, 1.0, 0.0])
 
     manager = LoopClosureManager(graph, cfg or ConstraintConfig(), chain_cov)

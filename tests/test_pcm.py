@@ -107,10 +107,29 @@ def test_incremental_pcm_matches_the_batch_answer(world, max_exact):
     good = _loops(robots, rng, [(3, 5), (8, 10), (15, 12), (22, 30), (30, 33), (37, 20)], False)
     bad = _loops(robots, rng, [(5, 7), (18, 25), (33, 36)], True, start_id=100)
     mixed = [good[0], bad[0], good[1], good[2], bad[1], good[3], good[4], bad[2], good[5]]
+
+    def batch(robot, ii, jj):
+        out = [
+            odometry(robot, int(i), int(j)) if i != j else (np.zeros(3), np.zeros((3, 3)))
+            for i, j in zip(ii, jj, strict=True)
+        ]
+        return np.array([o[0] for o in out]), np.array([o[1] for o in out])
+
     pcm = IncrementalPcm(max_exact=max_exact)
+    vec = IncrementalPcm(max_exact=max_exact)
     for m in mixed:
         got = pcm.add(m if m.id % 2 else _reversed(m), odometry)  # either orientation
+        assert vec.add(m if m.id % 2 else _reversed(m), odometry, batch) == got
+    np.testing.assert_allclose(vec._d2, pcm._d2, rtol=1e-9)
     assert got == pcm.accepted == {m.id for m in good}
+    # loops of one robot, both paths agree too
+    loops = IncrementalPcm()
+    loops_vec = IncrementalPcm()
+    for k, (i, j) in enumerate([(2, 30), (31, 5), (10, 38), (36, 12)]):
+        T, cov = _measure(robots["a"], i, robots["a"], j, rng, wrong=k == 2)
+        m = LoopMeasurement(500 + k, "a", i, "a", j, T, cov)
+        assert loops_vec.add(m, odometry, batch) == loops.add(m, odometry)
+    np.testing.assert_allclose(loops_vec._d2, loops._d2, rtol=1e-9)
     with pytest.raises(CollabSlamError):
         pcm.add(LoopMeasurement(999, "a", 1, "a", 30, np.zeros(3), np.eye(3)), odometry)
 

@@ -45,6 +45,7 @@ class Job:
     target_scans: list[np.ndarray]  # points in frame a (for "global": in the map frame)
     query_points: np.ndarray  # points in frame b
     target_origins: list[np.ndarray] | None = None  # sensor pose of each target scan
+    n_sensor: int | None = None  # the first n query points are node b's own scan
     target_key: object = None  # cache key of the target (global map version)
 
 
@@ -181,10 +182,18 @@ class ConstraintBuilder:
                     v.build_target(job.target_scans, job.target_origins),
                 )
             return v.global_search(
-                self._global_target[1], job.query_points, min_score=self.cfg.global_min_score
+                self._global_target[1],
+                job.query_points,
+                self.cfg.global_min_score,
+                job.query_points[: job.n_sensor],
             )
         target = v.build_target(job.target_scans, job.target_origins)
-        return v.verify(target, job.query_points, job.T_a_b_guess)
+        return v.verify(
+            target,
+            job.query_points,
+            job.T_a_b_guess,
+            sensor_points=job.query_points[: job.n_sensor],
+        )
 
 
 def relative_guess(poses: dict[str, np.ndarray], a: NodeKey, b: NodeKey) -> np.ndarray:

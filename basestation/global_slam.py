@@ -100,6 +100,15 @@ class GlobalSlam:
             origins.append(T_f_n)
         return points, origins
 
+    def _query(
+        self, key: NodeKey, nodes: list[NodeKey], poses: dict[str, np.ndarray]
+    ) -> tuple[np.ndarray, int]:
+        """The nodes' points in key's frame, key's own scan first; and its length."""
+        own = self.store.robot(key[0]).points[key[1]]
+        others = [n for n in nodes if n != key]
+        pts = self._points_in(key, others, poses)[0] if others else []
+        return np.vstack([own, *pts]), len(own)
+
     def _neighbours(self, key: NodeKey, k: int) -> list[NodeKey]:
         rid, i = key
         n = len(self.store.robot(rid).points)
@@ -118,7 +127,7 @@ class GlobalSlam:
             comp = comp_of.get(key[0])
             if comp is None:
                 continue
-            query = np.vstack(self._points_in(key, self._neighbours(key, 1), poses)[0])
+            query, n_own = self._query(key, self._neighbours(key, 1), poses)
             for kind, target in find_candidates(self.cc, key, poses, comp):
                 last = self._last_candidate.get((key[0], target[0]), -(10**9))
                 if key[1] - last < self.cc.candidate_stride:
@@ -126,7 +135,9 @@ class GlobalSlam:
                 self._last_candidate[(key[0], target[0])] = key[1]
                 scans, origins = self._points_in(target, self._neighbours(target, k), poses)
                 guess = se2_between(poses[target[0]][target[1]], poses[key[0]][key[1]])
-                self.builder.submit(Job(kind, target, key, guess, scans, query, origins))
+                self.builder.submit(
+                    Job(kind, target, key, guess, scans, query, origins, n_sensor=n_own)
+                )
             if not self.graph.is_anchored(key[0]) and key[1] % self.cc.global_search_every == 0:
                 self._submit_global(key, poses)
 
@@ -147,9 +158,9 @@ class GlobalSlam:
         _, scans, origins = self._global_map
         first = max(0, key[1] - self.cc.global_query_keyframes + 1)
         recent = [(key[0], j) for j in range(first, key[1] + 1)]
-        query = np.vstack(self._points_in(key, recent, poses)[0])
+        query, n_own = self._query(key, recent, poses)
         self.builder.submit(
-            Job("global", key, key, np.zeros(3), scans, query, origins, target_key=map_key)
+            Job("global", key, key, np.zeros(3), scans, query, origins, n_own, target_key=map_key)
         )
 
     def integrate_constraints(self) -> int:

@@ -34,6 +34,7 @@ from common.geometry import se2_between, wrap_angle
 log = logging.getLogger(__name__)
 
 NodeKey = tuple[str, int]
+GLOBAL_SEARCH_COST = 10
 
 
 @dataclass(frozen=True)
@@ -105,6 +106,7 @@ class ConstraintBuilder:
         self._global_target: tuple[object, object] | None = None  # (key, Target)
         self.stats = collections.Counter()
         self._busy = False
+        self._busy_kind: str | None = None
         self._thread = threading.Thread(target=self._work, name="constraint-builder", daemon=True)
         self._thread.start()
 
@@ -131,8 +133,11 @@ class ConstraintBuilder:
         return None
 
     def backlog(self) -> int:
+        """Pending work in candidate units: a global search counts as
+        `GLOBAL_SEARCH_COST` candidates (it costs about that much more)."""
         with self._lock:
-            return len(self._global) + sum(len(q) for q in self._queues.values())
+            n_global = len(self._global) + (self._busy_kind == "global")
+            return GLOBAL_SEARCH_COST * n_global + sum(len(q) for q in self._queues.values())
 
     def results(self) -> list[Verified]:
         with self._lock:
@@ -154,6 +159,7 @@ class ConstraintBuilder:
             with self._lock:
                 job = self._next_job()
                 self._busy = job is not None
+                self._busy_kind = job.kind if job is not None else None
             if job is None:
                 self._wake.wait(0.1)
                 self._wake.clear()
@@ -169,6 +175,7 @@ class ConstraintBuilder:
                 if match is not None:
                     self._results.append(Verified(job, match))
                 self._busy = False
+                self._busy_kind = None
             rest = period - (time.monotonic() - t0)
             if rest > 0:
                 self._stop.wait(rest)

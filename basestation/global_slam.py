@@ -22,6 +22,7 @@ import numpy as np
 from basestation.constraint_builder import ConstraintBuilder, Job, Verified, find_candidates
 from basestation.keyframe_store import KeyframeStore
 from basestation.loop_closure_manager import LoopClosureManager
+from basestation.pcm import LoopMeasurement
 from basestation.pose_graph import PoseGraph
 from common.config import Config
 from common.errors import CollabSlamError
@@ -122,24 +123,51 @@ class GlobalSlam:
         components = self.graph.components()
         comp_of = {r: c for c in components for r in c}
         poses = {r: self.graph.poses(r) for r in self.graph.robots() if r in comp_of}
-        k = self.cc.target_neighbours
+        links = self.loops.pending_links()
         for key in new:
             comp = comp_of.get(key[0])
             if comp is None:
                 continue
-            query, n_own = self._query(key, self._neighbours(key, 1), poses)
-            for kind, target in find_candidates(self.cc, key, poses, comp):
-                last = self._last_candidate.get((key[0], target[0]), -(10**9))
-                if key[1] - last < self.cc.candidate_stride:
-                    continue
-                self._last_candidate[(key[0], target[0])] = key[1]
-                scans, origins = self._points_in(target, self._neighbours(target, k), poses)
-                guess = se2_between(poses[target[0]][target[1]], poses[key[0]][key[1]])
-                self.builder.submit(
-                    Job(kind, target, key, guess, scans, query, origins, n_sensor=n_own)
-                )
+            query = self._query(key, self._neighbours(key, 1), poses)
+            self._submit_candidates(key, poses, comp, query)
+            for m in links:  # a match with a separate map: look for more where it says
+                if key[0] in (m.robot_a, m.robot_b):
+                    hyp = self._hypothesis(m, key[0], poses)
+                    other = m.robot_a if m.robot_b == key[0] else m.robot_b
+                    self._submit_candidates(key, hyp, [*comp_of[other], key[0]], query, "inter")
             if not self.graph.is_anchored(key[0]) and key[1] % self.cc.global_search_every == 0:
                 self._submit_global(key, poses)
+
+    def _submit_candidates(
+        self,
+        key: NodeKey,
+        poses: dict[str, np.ndarray],
+        robots: list[str],
+        query: tuple[np.ndarray, int],
+        only: str | None = None,
+    ) -> None:
+        for kind, target in find_candidates(self.cc, key, poses, robots):
+            last = self._last_candidate.get((key[0], target[0]), -(10**9))
+            if (only and kind != only) or key[1] - last < self.cc.candidate_stride:
+                continue
+            self._last_candidate[(key[0], target[0])] = key[1]
+            k = self.cc.target_neighbours
+            scans, origins = self._points_in(target, self._neighbours(target, k), poses)
+            guess = se2_between(poses[target[0]][target[1]], poses[key[0]][key[1]])
+            self.builder.submit(Job(kind, target, key, guess, scans, query[0], origins, query[1]))
+
+    @staticmethod
+    def _hypothesis(
+        m: LoopMeasurement, robot: str, poses: dict[str, np.ndarray]
+    ) -> dict[str, np.ndarray]:
+        """`poses` with `robot`'s chain moved into the other robot's map frame as the
+        match `m` (between two separate maps) puts it."""
+        if m.robot_b == robot:
+            na, nb, T_a_b = (m.robot_a, m.index_a), (robot, m.index_b), m.T_a_b
+        else:
+            na, nb, T_a_b = (m.robot_b, m.index_b), (robot, m.index_a), se2_inverse(m.T_a_b)
+        T = se2_compose(se2_compose(poses[na[0]][na[1]], T_a_b), se2_inverse(poses[robot][nb[1]]))
+        return {**poses, robot: se2_compose(T, poses[robot])}
 
     def _submit_global(self, key: NodeKey, poses: dict[str, np.ndarray]) -> None:
         """Queue a search of the robot's recent scans against the whole map. The map

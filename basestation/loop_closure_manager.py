@@ -112,6 +112,17 @@ class LoopClosureManager:
                 self.accepted.discard(mid)
                 log.info("constraint %d (%s) no longer consistent: removed", mid, self.kinds[mid])
 
+    def pending_links(self) -> list[LoopMeasurement]:
+        """The newest match of each robot pair whose maps are still separate (waiting
+        for `min_consistent_to_merge` agreeing matches)."""
+        comps = self.graph.components()
+        out = []
+        for (ra, rb), g in self.groups.items():
+            if ra == rb or not g.measurements or any(ra in c and rb in c for c in comps):
+                continue
+            out.append(g.measurements[max(g.measurements)])
+        return out
+
     def counts(self) -> dict[str, int]:
         loops = sum(1 for i in self.accepted if self.kinds[i] == "loop")
         false = sum(1 for k in self.kinds.values() if k == "false")

@@ -288,13 +288,7 @@ def _greedy_clique(adj: NDArray[np.bool_], d2: FloatArray) -> list[int]:
     for start in np.argsort(-degree, kind="stable"):
         if degree[start] + 1 < len(best):
             break
-        clique = [int(start)]
-        cand = adj[start].copy()
-        while cand.any():
-            v = int(np.flatnonzero(cand)[np.argmax(degree[cand])])
-            clique.append(v)
-            cand &= adj[v]
-            cand[v] = False
+        clique = _grow_clique(adj, int(start), degree)
         if len(clique) > len(best) or (
             len(clique) == len(best) and _clique_cost(clique, d2) < _clique_cost(best, d2)
         ):
@@ -387,9 +381,12 @@ def _window_d2(olds: list[LoopMeasurement], m: LoopMeasurement, odo: BatchOdomet
     return _cycle_d2(T1, C1, T2, C2, Ob, Cob, Oa, Coa)
 
 
-def _grow_clique(adj: NDArray[np.bool_], start: int) -> list[int]:
+def _grow_clique(
+    adj: NDArray[np.bool_], start: int, degree: NDArray[np.int64] | None = None
+) -> list[int]:
     """A clique containing `start`, grown greedily by highest degree among candidates."""
-    degree = adj.sum(axis=1)
+    if degree is None:
+        degree = adj.sum(axis=1)
     clique = [start]
     cand = adj[start].copy()
     while cand.any():

@@ -17,9 +17,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from agent.correlative_matcher import RealTimeCorrelativeMatcher
+from agent.grid_refiner import CeresLikeRefiner
 from agent.motion_filter import MotionFilter
 from agent.pose_extrapolator import PoseExtrapolator
-from agent.scan_matcher import CeresLikeRefiner, RealTimeCorrelativeMatcher, ScanMatcher
+from agent.scan_matcher import ScanMatcher
 from agent.scan_preprocessor import ScanPreprocessor
 from agent.submaps import ActiveSubmaps
 from common.config import LocalSlamConfig

@@ -112,6 +112,12 @@ def _odds(p: float) -> float:
     return p / (1.0 - p)
 
 
+@njit(cache=True, inline="always")
+def cell_probability(v, p_unknown):  # type: ignore[no-untyped-def]
+    """A stored cell value as a probability: 0 (never observed) reads `p_unknown`."""
+    return v if v > 0.0 else p_unknown
+
+
 class ProbabilityGrid:
     """Occupancy probabilities of one submap; grows when a scan reaches past its edge.
 

@@ -16,7 +16,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from agent.scan_matcher import adaptive_voxel_filter, voxel_filter
+from agent.voxel_filter import adaptive_voxel_filter, voxel_filter
 from common.config import LocalSlamConfig
 
 log = logging.getLogger(__name__)

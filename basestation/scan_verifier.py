@@ -11,7 +11,7 @@ a pose `T_a_b = [x, y, yaw]` (m, m, rad) maps points from frame b into frame a.
    point, Olson 2009), a KD-tree, per-point line normals (PCA over neighbours) and,
    when the scans' origins are given, a probability grid of the space they saw free.
 2. `verify` searches the window around the guess with Cartographer's branch and
-   bound (`agent.scan_matcher.RealTimeCorrelativeMatcher`, run on the field), then
+   bound (`agent.correlative_matcher.RealTimeCorrelativeMatcher`, on the field), then
    refines with point-to-line ICP (Censi 2008, CSM): residual n_j . (R q_i + t - p_j)
    against the nearest target point's line; corners and clutter (no line) use
    point-to-point residuals.
@@ -66,8 +66,9 @@ from numpy.typing import ArrayLike, NDArray
 from scipy.ndimage import distance_transform_edt
 from scipy.spatial import cKDTree
 
+from agent.correlative_matcher import RealTimeCorrelativeMatcher
 from agent.probability_grid import ProbabilityGrid
-from agent.scan_matcher import RealTimeCorrelativeMatcher, adaptive_voxel_filter, voxel_filter
+from agent.voxel_filter import adaptive_voxel_filter, voxel_filter
 from common.errors import CollabSlamError, ConfigError
 from common.geometry import se2_transform_points, wrap_angle
 

@@ -11,18 +11,12 @@ import math
 import numpy as np
 import pytest
 
+from agent.correlative_matcher import RealTimeCorrelativeMatcher
+from agent.grid_refiner import CeresLikeRefiner, _normal_equations, refine
 from agent.probability_grid import ProbabilityGrid
-from agent.scan_matcher import (
-    CeresLikeRefiner,
-    RealTimeCorrelativeMatcher,
-    ScanMatcher,
-    _normal_equations,
-    adaptive_voxel_filter,
-    match,
-    refine,
-    voxel_filter,
-)
+from agent.scan_matcher import ScanMatcher, match
 from agent.submaps import ActiveSubmaps, Submap
+from agent.voxel_filter import adaptive_voxel_filter, voxel_filter
 from common.errors import CollabSlamError
 from common.geometry import se2_between, se2_compose
 

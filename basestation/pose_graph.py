@@ -1,7 +1,7 @@
 """Multi-robot 2-D pose graph solved incrementally with gtsam iSAM2.
 
-The only class in collabslam that sees gtsam types for the 2-D back end; callers
-use robot-id strings, node indices and numpy arrays.
+The only class that sees gtsam types for the 2-D back end; callers use robot ids,
+node indices and numpy arrays.
 
 Conventions:
 - Every pose is ``T_map_node = [x, y, yaw]`` (m, m, rad) in the base station's map

@@ -57,26 +57,35 @@ from __future__ import annotations
 import logging
 import math
 from dataclasses import dataclass
-from dataclasses import field as dc_field
 from typing import cast
 
 import numpy as np
-from numba import njit
 from numpy.typing import ArrayLike, NDArray
-from scipy.ndimage import distance_transform_edt
 from scipy.spatial import cKDTree
 
 from agent.correlative_matcher import RealTimeCorrelativeMatcher
 from agent.probability_grid import ProbabilityGrid
 from agent.voxel_filter import adaptive_voxel_filter, voxel_filter
+from basestation.free_space import (
+    beam_violation_grid,
+    beam_violation_points,
+    free_space_grid,
+    target_free_violation,
+)
+from basestation.match_target import (
+    FIELD_FLOOR,
+    LikelihoodField,
+    Target,
+    icp_normal_equations,
+    line_normals,
+    points_2d,
+)
 from common.errors import CollabSlamError, ConfigError
 from common.geometry import se2_transform_points, wrap_angle
 
 logger = logging.getLogger(__name__)
 
 FloatArray = NDArray[np.float64]
-
-_FIELD_FLOOR = 1e-3  # what a cell far from every target point (or outside) scores
 
 
 @dataclass(frozen=True)
@@ -96,164 +105,6 @@ class VerifiedMatch:
     overlap: float
     icp_rmse: float
     iterations: int
-
-
-class LikelihoodField:
-    """The correlative score grid of a target, shaped like a `ProbabilityGrid` for the
-    matcher (`data` [iy, ix] float32, `origin_xy`, `resolution`, `shape`, `version`).
-
-    Cells hold exp(-d^2 / 2 sigma^2) with d (m) the distance from the cell to the
-    nearest cell holding a target point; 0 where that is below 1/255 (read as floor).
-    """
-
-    def __init__(self, points: FloatArray, resolution: float, sigma: float) -> None:
-        pad = int(math.ceil(3.5 * sigma / resolution)) + 2
-        lo = np.floor(points.min(axis=0) / resolution).astype(np.int64) - pad
-        hi = np.floor(points.max(axis=0) / resolution).astype(np.int64) + pad
-        nx, ny = (int(v) for v in hi - lo + 1)
-        self.resolution = float(resolution)
-        self.origin_xy = lo.astype(np.float64) * resolution
-        cells = np.floor(points / resolution).astype(np.int64) - lo
-        empty = np.ones((ny, nx), dtype=bool)
-        empty[cells[:, 1], cells[:, 0]] = False
-        d = distance_transform_edt(empty) * resolution
-        f = np.exp(-0.5 * (d / sigma) ** 2).astype(np.float32)
-        f[f < 1.0 / 255.0] = 0.0
-        self.data: NDArray[np.float32] = f
-        self.version = 0
-        self.num_scans = 1
-        self.min_probability = _FIELD_FLOOR
-
-    @property
-    def shape(self) -> tuple[int, int]:
-        """(ny, nx) in cells."""
-        return (int(self.data.shape[0]), int(self.data.shape[1]))
-
-    def score(self, points_b: FloatArray, T_a_b: FloatArray) -> float:
-        """Mean field value of the points moved by T_a_b (outside or far: the floor)."""
-        if len(points_b) == 0:
-            return 0.0
-        uv = np.floor((se2_transform_points(T_a_b, points_b) - self.origin_xy) / self.resolution)
-        ix, iy = uv[:, 0].astype(np.int64), uv[:, 1].astype(np.int64)
-        ny, nx = self.shape
-        inside = (ix >= 0) & (ix < nx) & (iy >= 0) & (iy < ny)
-        v = np.full(len(points_b), _FIELD_FLOOR)
-        v[inside] = self.data[iy[inside], ix[inside]]
-        v[v <= 0.0] = _FIELD_FLOOR
-        return float(v.mean())
-
-
-@dataclass(frozen=True, eq=False)
-class Target:
-    """What a target node's scans become (frame a): build with `ScanVerifier.build_target`.
-
-    `points` (N, 2) m, voxel-filtered; `normals` (N, 2) unit line normals, valid where
-    `has_line`; `tree` a KD-tree of `points`; `field` the correlative score grid;
-    `extent` [min x, min y, max x, max y] (m) of the points; `free_space` the scans
-    inserted with their rays into a probability grid, when their origins were given.
-    """
-
-    points: FloatArray
-    normals: FloatArray
-    has_line: NDArray[np.bool_]
-    tree: cKDTree
-    field: LikelihoodField
-    extent: FloatArray
-    free_space: ProbabilityGrid | None
-    # correlative matchers (each caches its pyramid) and coarse fields, by purpose
-    _cache: dict[str, object] = dc_field(default_factory=dict, repr=False)
-
-
-# ------------------------------------------------------------------------ numba kernels
-
-
-@njit(cache=True)
-def _icp_normal_equations(q, pose, idx, tp, tn, line, H, g):  # type: ignore[no-untyped-def]
-    """Fill H = J^T J, g = J^T r of the ICP residuals at `pose` (T_a_b, additive in
-    frame a); idx[i] >= len(tp) means no correspondence. Returns (sum r^2, residuals)."""
-    c = math.cos(pose[2])
-    s = math.sin(pose[2])
-    n_t = tp.shape[0]
-    for i in range(3):
-        g[i] = 0.0
-        for j in range(3):
-            H[i, j] = 0.0
-    ss = 0.0
-    n_res = 0
-    for i in range(q.shape[0]):
-        j = idx[i]
-        if j >= n_t:
-            continue
-        rx = c * q[i, 0] - s * q[i, 1]
-        ry = s * q[i, 0] + c * q[i, 1]
-        ex = pose[0] + rx - tp[j, 0]
-        ey = pose[1] + ry - tp[j, 1]
-        if line[j]:
-            nx = tn[j, 0]
-            ny = tn[j, 1]
-            r = nx * ex + ny * ey
-            jac = (nx, ny, -nx * ry + ny * rx)
-            for a in range(3):
-                g[a] += jac[a] * r
-                for b in range(3):
-                    H[a, b] += jac[a] * jac[b]
-            ss += r * r
-            n_res += 1
-        else:
-            # point-to-point: rows [1, 0, -ry] and [0, 1, rx]
-            H[0, 0] += 1.0
-            H[1, 1] += 1.0
-            H[0, 2] -= ry
-            H[2, 0] -= ry
-            H[1, 2] += rx
-            H[2, 1] += rx
-            H[2, 2] += rx * rx + ry * ry
-            g[0] += ex
-            g[1] += ey
-            g[2] += -ry * ex + rx * ey
-            ss += ex * ex + ey * ey
-            n_res += 2
-    return ss, n_res
-
-
-# -------------------------------------------------------------------------- the verifier
-
-
-def _points(points: ArrayLike, name: str) -> FloatArray:
-    p = np.asarray(points, dtype=np.float64)
-    if p.size == 0:
-        return np.zeros((0, 2))
-    if p.ndim != 2 or p.shape[1] != 2:
-        raise CollabSlamError(f"{name} must have shape (N, 2), got {p.shape}")
-    return p[np.isfinite(p).all(axis=1)]
-
-
-def _line_normals(
-    points: FloatArray, tree: cKDTree, k: int, radius: float, max_flatness: float
-) -> tuple[FloatArray, NDArray[np.bool_]]:
-    """PCA over the k nearest points within `radius`: unit normals (N, 2) and whether
-    the neighbourhood is a line (>= 3 points, lambda_min / lambda_max <= max_flatness)."""
-    n = len(points)
-    k = min(k, n)
-    dist, idx = tree.query(points, k=k, distance_upper_bound=radius)
-    if k == 1:
-        dist, idx = dist[:, None], idx[:, None]
-    valid = idx < n
-    nb = points[np.minimum(idx, n - 1)]
-    w = valid.astype(np.float64)
-    cnt = w.sum(axis=1)
-    mean = (nb * w[..., None]).sum(axis=1) / cnt[:, None]
-    d = (nb - mean[:, None, :]) * w[..., None]
-    sxx = np.einsum("ij,ij->i", d[..., 0], d[..., 0])
-    syy = np.einsum("ij,ij->i", d[..., 1], d[..., 1])
-    sxy = np.einsum("ij,ij->i", d[..., 0], d[..., 1])
-    half_tr = 0.5 * (sxx + syy)
-    disc = np.sqrt(np.maximum(0.25 * (sxx - syy) ** 2 + sxy**2, 0.0))
-    lam_max, lam_min = half_tr + disc, half_tr - disc
-    major = 0.5 * np.arctan2(2.0 * sxy, sxx - syy)  # direction of the line
-    normals = np.stack([-np.sin(major), np.cos(major)], axis=1)
-    has_line = (cnt >= 3) & (lam_max > 0.0) & (lam_min <= max_flatness * lam_max)
-    return normals, has_line
 
 
 class ScanVerifier:
@@ -353,7 +204,7 @@ class ScanVerifier:
         [x, y, yaw]) of each scan in frame a; with them the target also knows its free
         space and rejects queries whose points fall in it. Raises CollabSlamError with
         fewer than 3 finite points or a wrong number of origins."""
-        parts = [_points(s, "scan") for s in scans_in_a]
+        parts = [points_2d(s, "scan") for s in scans_in_a]
         pts = np.concatenate(parts) if parts else np.zeros((0, 2))
         pts = voxel_filter(pts, self.resolution)
         if len(pts) < 3:
@@ -367,9 +218,9 @@ class ScanVerifier:
         if origins_in_a is not None:
             if len(origins_in_a) != len(parts):
                 raise CollabSlamError(f"got {len(origins_in_a)} origins for {len(parts)} scans")
-            free_space = self._free_space_grid(parts, origins_in_a)
+            free_space = free_space_grid(self.resolution, parts, origins_in_a)
         tree = cKDTree(pts)
-        normals, has_line = _line_normals(
+        normals, has_line = line_normals(
             pts, tree, self.normal_neighbors, self.normal_radius, self.max_flatness
         )
         extent = np.concatenate([pts.min(axis=0), pts.max(axis=0)])
@@ -382,22 +233,6 @@ class ScanVerifier:
             extent,
             free_space,
         )
-
-    def _free_space_grid(
-        self, parts: list[FloatArray], origins_in_a: list[ArrayLike]
-    ) -> ProbabilityGrid:
-        """The scans inserted with their rays (from their origins) into a probability grid."""
-        origins = [np.asarray(o, dtype=np.float64).reshape(-1)[:2] for o in origins_in_a]
-        allp = np.vstack([*parts, *[o[None] for o in origins]])
-        if not np.all(np.isfinite(allp)):
-            raise CollabSlamError("origins_in_a must be finite")
-        lo = allp.min(axis=0) - 1.0
-        size = np.ceil((allp.max(axis=0) + 1.0 - lo) / self.resolution).astype(int)
-        grid = ProbabilityGrid(self.resolution, lo, (int(size[1]), int(size[0])))
-        for pts, o in zip(parts, origins, strict=True):
-            if len(pts):
-                grid.insert(np.array([o[0], o[1], 0.0]), pts - o)
-        return grid
 
     # ----- verification -------------------------------------------------------------
     def verify(
@@ -421,8 +256,8 @@ class ScanVerifier:
         lw = self.linear_window if linear_window is None else float(linear_window)
         aw = self.angular_window if angular_window is None else float(angular_window)
         aw = min(aw, math.pi)
-        raw = _points(query_points_b, "query_points_b")
-        beams = raw if sensor_points is None else _points(sensor_points, "sensor_points")
+        raw = points_2d(query_points_b, "query_points_b")
+        beams = raw if sensor_points is None else points_2d(sensor_points, "sensor_points")
         q = self._filter_query(raw)
         if len(q) < 3:
             return None
@@ -439,8 +274,8 @@ class ScanVerifier:
         the pose of the query (M, 2 points in frame b); same acceptance tests, with
         `min_score` (default the verifier's); `sensor_points` as in `verify`. None when
         nothing passes."""
-        raw = _points(query_points_b, "query_points_b")
-        beams = raw if sensor_points is None else _points(sensor_points, "sensor_points")
+        raw = points_2d(query_points_b, "query_points_b")
+        beams = raw if sensor_points is None else points_2d(sensor_points, "sensor_points")
         q = self._filter_query(raw)
         if len(q) < 3:
             return None
@@ -504,16 +339,18 @@ class ScanVerifier:
             logger.debug("candidate rejected: score %.3f, overlap %.3f", score, overlap)
             return None
         if target.free_space is not None:
-            beam_violation = self._beam_violation_grid(target.free_space, beams, pose)
+            beam_violation = beam_violation_grid(
+                target.free_space, beams, pose, self.free_space_margin
+            )
         else:
-            beam_violation = self._free_space_violation(target, beams, pose)
+            beam_violation = beam_violation_points(target, beams, pose, self.free_space_margin)
         if beam_violation > self.max_beam_violation:
             logger.debug(
                 "candidate rejected: %.3f of the beams cross target points", beam_violation
             )
             return None
         if target.free_space is not None:
-            violation = self._target_free_violation(target, moved, idx)
+            violation = target_free_violation(target, moved, idx)
             if violation > self.max_free_space_violation:
                 logger.debug(
                     "candidate rejected: %.3f of the points in target free space", violation
@@ -521,7 +358,7 @@ class ScanVerifier:
                 return None
         H = np.empty((3, 3))
         g = np.empty(3)
-        ss, n_res = _icp_normal_equations(
+        ss, n_res = icp_normal_equations(
             q, pose, idx, target.points, target.normals, target.has_line, H, g
         )
         rmse = math.sqrt(ss / max(n_res, 1))
@@ -535,87 +372,13 @@ class ScanVerifier:
         m = target._cache.get(key)
         if not isinstance(m, RealTimeCorrelativeMatcher):
             m = RealTimeCorrelativeMatcher(
-                pyramid_margin_m=self.pyramid_margin_m, unknown_probability=_FIELD_FLOOR
+                pyramid_margin_m=self.pyramid_margin_m, unknown_probability=FIELD_FLOOR
             )
             target._cache[key] = m
         m.linear_window, m.angular_window, m.min_score = lw, aw, 0.0
         m.translation_delta_cost_weight = penalty_scale * self.translation_delta_cost_weight
         m.rotation_delta_cost_weight = penalty_scale * self.rotation_delta_cost_weight
         return m
-
-    def _free_space_violation(self, target: Target, raw: FloatArray, pose: FloatArray) -> float:
-        """Fraction of the query's beams that passed through a target point: the point
-        lies nearer to the query's sensor (the origin of frame b) than the returns of both
-        beams around its bearing, by more than `free_space_margin`. Bearings in a gap of
-        the query (no return over > 3 median beam spacings) count as unseen."""
-        if len(raw) < 3:
-            return 0.0
-        order = np.argsort(np.arctan2(raw[:, 1], raw[:, 0]))
-        b_q = np.arctan2(raw[order, 1], raw[order, 0])
-        r_q = np.hypot(raw[order, 0], raw[order, 1])
-        near = target.tree.query_ball_point(pose[:2], float(r_q.max()))
-        if len(near) == 0:
-            return 0.0
-        p_a = target.points[np.asarray(near)]
-        c, s = math.cos(pose[2]), math.sin(pose[2])
-        d = p_a - pose[:2]
-        p_b = np.stack([c * d[:, 0] + s * d[:, 1], -s * d[:, 0] + c * d[:, 1]], axis=1)
-        b_t = np.arctan2(p_b[:, 1], p_b[:, 0])
-        r_t = np.hypot(p_b[:, 0], p_b[:, 1])
-        # the beams k - 1 and k around each target bearing, on the circle
-        b_ext = np.concatenate([b_q[-1:] - 2 * np.pi, b_q, b_q[:1] + 2 * np.pi])
-        r_ext = np.concatenate([r_q[-1:], r_q, r_q[:1]])
-        k = np.searchsorted(b_ext, b_t)
-        spacing = float(np.median(np.diff(b_q)))
-        seen = b_ext[k] - b_ext[k - 1] <= 3.0 * max(spacing, 1e-6)
-        bound = np.minimum(r_ext[k], r_ext[k - 1]) - self.free_space_margin
-        crossed = seen & (r_t < bound)
-        # beam index k (1..n+1 on the extended circle) -> query beam, wrapped
-        beams = np.unique(k[crossed] % len(b_q))
-        return float(len(beams)) / len(b_q)
-
-    def _beam_violation_grid(
-        self, grid: ProbabilityGrid, beams: FloatArray, pose: FloatArray
-    ) -> float:
-        """Fraction of the query's beams (points in frame b, sensor at its origin) whose
-        ray crosses a cell the target's scans saw occupied (p >= 0.65) more than
-        `free_space_margin` before its return. On a grid, a stray point in a target
-        scan (a person, noise) is outvoted by the scans that saw the cell free."""
-        if len(beams) == 0:
-            return 0.0
-        r = np.hypot(beams[:, 0], beams[:, 1])
-        step = grid.resolution
-        n = int(np.ceil(r.max() / step))
-        t = np.arange(1, n + 1) * step  # (S,) distances along every ray
-        use = t[None, :] < (r[:, None] - self.free_space_margin)  # (B, S)
-        dirs = beams / np.maximum(r, 1e-9)[:, None]
-        c, s_ = math.cos(pose[2]), math.sin(pose[2])
-        d_a = np.stack([c * dirs[:, 0] - s_ * dirs[:, 1], s_ * dirs[:, 0] + c * dirs[:, 1]], 1)
-        xy = pose[:2] + t[None, :, None] * d_a[:, None, :]  # (B, S, 2) in frame a
-        uv = np.floor((xy - grid.origin_xy) / step).astype(np.int64)
-        ny, nx = grid.shape
-        inside = use & (uv[..., 0] >= 0) & (uv[..., 0] < nx) & (uv[..., 1] >= 0) & (uv[..., 1] < ny)
-        p = np.zeros(use.shape, dtype=np.float32)
-        p[inside] = grid.data[uv[..., 1][inside], uv[..., 0][inside]]
-        crossed = (p >= 0.65).any(axis=1)
-        return float(np.count_nonzero(crossed)) / len(beams)
-
-    def _target_free_violation(
-        self, target: Target, moved: FloatArray, idx: NDArray[np.intp]
-    ) -> float:
-        """Fraction of the query points (in frame a) with no target point within
-        `max_corr_dist` that fall in cells the target scans saw as free."""
-        grid = target.free_space
-        assert grid is not None
-        lonely = moved[idx >= len(target.points)]
-        if len(lonely) == 0:
-            return 0.0
-        uv = np.floor((lonely - grid.origin_xy) / grid.resolution).astype(np.int64)
-        ny, nx = grid.shape
-        inside = (uv[:, 0] >= 0) & (uv[:, 0] < nx) & (uv[:, 1] >= 0) & (uv[:, 1] < ny)
-        p = grid.data[uv[inside, 1], uv[inside, 0]]
-        free = (p > 0.0) & (p < 0.5)
-        return float(np.count_nonzero(free)) / len(moved)
 
     def _icp(
         self, target: Target, q: FloatArray, pose0: FloatArray, rho: float
@@ -632,7 +395,7 @@ class ScanVerifier:
         for it in range(1, self.icp_max_iterations + 1):
             moved = se2_transform_points(pose, q)
             _, idx = target.tree.query(moved, distance_upper_bound=self.max_corr_dist)
-            _, n_res = _icp_normal_equations(
+            _, n_res = icp_normal_equations(
                 q, pose, idx, target.points, target.normals, target.has_line, H, g
             )
             if n_res < 6 or int(np.sum(idx < n_t)) < 3:

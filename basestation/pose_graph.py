@@ -8,9 +8,8 @@ Conventions:
   frame; a relative pose ``T_a_b`` is node b expressed in node a's frame.
 - Covariances are 3x3 over ``[x, y, yaw]`` in the local (body) frame of the node
   (gtsam's Pose2 tangent space), in m^2 / rad^2.
-- Keys: robot number k (registration order) uses the character
-  ``ROBOT_KEY_ALPHABET[k]`` and node i is ``gtsam.symbol(char, i)``. Only lower-case
-  letters are used (26 robots); upper case stays free for non-robot variables.
+- Keys: robot k (registration order) is ``ROBOT_KEY_ALPHABET[k]``, node i is
+  ``gtsam.symbol(char, i)``; 26 lower-case letters, upper case left for the rest.
 
 Gauge (how disjoint chains stay well-posed): the graph is split into connected
 components of robots (linked by inter-robot constraints). A component containing a

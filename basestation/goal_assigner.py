@@ -1,0 +1,82 @@
+"""Frontier goals for the robots (seed 002 §1.2, eq. 3).
+
+Each robot k at pose x_k = [x, y, yaw] gets the frontier f minimizing
+    w1 |x_k - f|_t + w2 |x_k - f|_theta + w3 |f - f_prev_k|_t
+(distance, heading change to face f, distance from the robot's previous goal, which
+anchors the goal and stops it switching between frontiers of similar cost). The
+robots are assigned jointly (Hungarian method on the cost matrix), so no two robots
+get the same goal: a goal given to one robot leaves the queue for the others. A
+robot whose previous goal vanished (explored, or no longer a frontier) gets the best
+remaining one; with more robots than frontiers, the ones left over get none (they
+wait: exploration halts for them until a new map brings frontiers).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+from scipy.optimize import linear_sum_assignment
+
+from common.errors import ConfigError
+from common.geometry import wrap_angle
+
+
+@dataclass(frozen=True)
+class AssignmentWeights:
+    w_distance: float = 1.0  # w1, per m
+    w_heading: float = 0.5  # w2, per rad
+    w_previous: float = 0.5  # w3, per m from the previous goal
+
+    def __post_init__(self) -> None:
+        if min(self.w_distance, self.w_heading, self.w_previous) < 0:
+            raise ConfigError("goal assignment weights must be >= 0")
+
+
+def assignment_costs(
+    poses: NDArray[np.float64],
+    frontiers: NDArray[np.float64],
+    previous: list[NDArray[np.float64] | None],
+    w: AssignmentWeights,
+) -> NDArray[np.float64]:
+    """(robots, frontiers) matrix of eq. 3."""
+    d = frontiers[None, :, :] - poses[:, None, :2]
+    dist = np.hypot(d[..., 0], d[..., 1])
+    heading = np.abs(wrap_angle(np.arctan2(d[..., 1], d[..., 0]) - poses[:, None, 2]))
+    prev = np.zeros_like(dist)
+    for k, p in enumerate(previous):
+        if p is not None:
+            prev[k] = np.hypot(*(frontiers - np.asarray(p)[None, :2]).T)
+    return w.w_distance * dist + w.w_heading * heading + w.w_previous * prev
+
+
+class GoalAssigner:
+    def __init__(self, weights: AssignmentWeights | None = None) -> None:
+        self.weights = weights or AssignmentWeights()
+        self.goals: dict[str, NDArray[np.float64]] = {}  # current goal per robot
+
+    def assign(
+        self, poses: dict[str, ArrayLike], frontiers: list[ArrayLike]
+    ) -> dict[str, NDArray[np.float64] | None]:
+        """Goals [x, y] (or None: nothing left for it) for every robot in `poses`."""
+        robots = sorted(poses)
+        if not robots:
+            return {}
+        if not frontiers:
+            self.goals.clear()
+            return {r: None for r in robots}
+        P = np.array([np.asarray(poses[r], dtype=np.float64)[:3] for r in robots])
+        F = np.array([np.asarray(f, dtype=np.float64)[:2] for f in frontiers])
+        prev = [self.goals.get(r) for r in robots]
+        cost = assignment_costs(P, F, prev, self.weights)
+        rows, cols = linear_sum_assignment(cost)
+        out: dict[str, NDArray[np.float64] | None] = {r: None for r in robots}
+        for i, j in zip(rows, cols, strict=True):
+            out[robots[i]] = F[j].copy()
+        self.goals = {r: g for r, g in out.items() if g is not None}
+        return out
+
+    def release(self, robot: str) -> None:
+        """Forget a robot's goal (it went silent); its frontier is free for the others."""
+        self.goals.pop(robot, None)

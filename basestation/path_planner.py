@@ -1,0 +1,204 @@
+"""Collision-free paths on the global grid with OMPL's RRT* (seed 002 §1.2).
+
+The planning map: unknown cells count as free (seed 002: the robot discovers them on
+the way), occupied cells are grown by `inflation_m` (the no-collision zone, plus two
+cells so that the dense final check is conservative), and a
+disc of `robot_clearance_m` around every other robot and along its current path is
+blocked too. RRT* (`og.SimpleSetup`, path-length objective) runs for at most
+`time_budget_s`; the solution is simplified (shortcutting) and then checked densely
+against the planning map, so a returned path never crosses a blocked cell. A start
+inside the inflated zone (a robot close to a wall) is allowed: the inflation (not
+the wall) is cleared in a disc of `start_escape_m` around it.
+
+OMPL's random generator is seeded (`seed` of the first planner of the process: OMPL
+accepts a seed only before its first sample) for repeatable plans.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+
+import numpy as np
+import ompl.base as ob
+import ompl.geometric as og
+import ompl.util as ou
+from numpy.typing import ArrayLike, NDArray
+from scipy import ndimage
+
+from common.errors import ConfigError
+from common.map_io import GridMap
+
+log = logging.getLogger(__name__)
+ou.setLogLevel(ou.LOG_WARN)
+
+
+class PlanningMap:
+    """The blocked-cell mask of a grid (module doc) and lookups in metres."""
+
+    def __init__(
+        self,
+        grid: GridMap,
+        inflation_m: float,
+        others: list[ArrayLike] | None = None,
+        robot_clearance_m: float = 1.0,
+    ) -> None:
+        if inflation_m < 0 or robot_clearance_m < 0:
+            raise ConfigError("inflation and robot clearance must be >= 0 m")
+        self.resolution = grid.resolution
+        self.origin = np.array(grid.origin[:2], dtype=np.float64)
+        occupied = grid.data > 0
+        self.occupied = occupied
+        dist = ndimage.distance_transform_edt(~occupied) * grid.resolution
+        self.blocked = dist <= inflation_m
+        self.blocked |= occupied
+        for pts in others or []:  # other robots: positions and paths, (N, 2) each
+            p = np.atleast_2d(np.asarray(pts, dtype=np.float64))[:, :2]
+            self.block_discs(p, robot_clearance_m)
+        h, w = self.blocked.shape
+        self.extent = np.array([w, h], dtype=np.float64) * self.resolution
+
+    def cells(self, xy: NDArray[np.float64]) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
+        ij = np.floor((np.atleast_2d(xy) - self.origin) / self.resolution).astype(np.int64)
+        return ij[:, 1], ij[:, 0]
+
+    def is_free(self, xy: ArrayLike) -> NDArray[np.bool_]:
+        """Per point: inside the map and not blocked."""
+        iy, ix = self.cells(np.asarray(xy, dtype=np.float64))
+        h, w = self.blocked.shape
+        inside = (ix >= 0) & (ix < w) & (iy >= 0) & (iy < h)
+        out = np.zeros(len(ix), dtype=bool)
+        out[inside] = ~self.blocked[iy[inside], ix[inside]]
+        return out
+
+    def block_discs(self, centres: NDArray[np.float64], radius: float, value: bool = True) -> None:
+        """Set (or clear) the cells within `radius` of each centre (m)."""
+        r = int(math.ceil(radius / self.resolution))
+        yy, xx = np.mgrid[-r : r + 1, -r : r + 1]
+        disc = (xx * xx + yy * yy) * self.resolution**2 <= radius * radius
+        h, w = self.blocked.shape
+        iy, ix = self.cells(centres)
+        for cy, cx in zip(iy, ix, strict=True):
+            y0, y1, x0, x1 = cy - r, cy + r + 1, cx - r, cx + r + 1
+            sy0, sx0 = max(0, -y0), max(0, -x0)
+            y0, x0, y1, x1 = max(y0, 0), max(x0, 0), min(y1, h), min(x1, w)
+            if y0 >= y1 or x0 >= x1:
+                continue
+            d = disc[sy0 : sy0 + (y1 - y0), sx0 : sx0 + (x1 - x0)]
+            if value:
+                self.blocked[y0:y1, x0:x1] |= d
+            else:
+                self.blocked[y0:y1, x0:x1] &= ~d
+
+    def segment_free(self, path: NDArray[np.float64]) -> bool:
+        """Whether every point along the polyline (sampled at a quarter cell) is free."""
+        if len(path) == 1:
+            return bool(self.is_free(path)[0])
+        pts = []
+        for a, b in zip(path[:-1], path[1:], strict=True):
+            n = max(2, int(math.ceil(np.hypot(*(b - a)) / (0.25 * self.resolution))) + 1)
+            pts.append(a + np.linspace(0.0, 1.0, n)[:, None] * (b - a))
+        return bool(self.is_free(np.vstack(pts)).all())
+
+
+_seeded = False
+
+
+def _seed_ompl_once(seed: int) -> None:
+    """OMPL has one process-wide generator that can be seeded only before first use."""
+    global _seeded
+    if not _seeded:
+        ou.RNG.setSeed(int(seed) + 1)  # 0 means "random" to OMPL
+        _seeded = True
+
+
+class PathPlanner:
+    def __init__(
+        self,
+        inflation_m: float = 0.4,
+        robot_clearance_m: float = 1.0,
+        time_budget_s: float = 0.3,
+        start_escape_m: float = 0.5,
+        seed: int = 0,
+    ) -> None:
+        if not time_budget_s > 0:
+            raise ConfigError(f"planning time budget must be > 0 s, got {time_budget_s}")
+        self.inflation_m = float(inflation_m)
+        self.robot_clearance_m = float(robot_clearance_m)
+        self.time_budget_s = float(time_budget_s)
+        self.start_escape_m = float(start_escape_m)
+        _seed_ompl_once(seed)
+
+    def plan(
+        self,
+        grid: GridMap,
+        start: ArrayLike,
+        goal: ArrayLike,
+        others: list[ArrayLike] | None = None,
+    ) -> NDArray[np.float64] | None:
+        """An (N, 2) path from start to goal [x, y] (m, map frame), or None if none was
+        found within the budget (or the goal is blocked). `others`: other robots'
+        positions / current paths, (M, 2) arrays, kept `robot_clearance_m` away from."""
+        # two more cells of margin than asked: a path checked at a quarter cell on this
+        # map cannot clip a cell of the map with the asked inflation between two checks
+        margin = 2.0 * grid.resolution
+        pm = PlanningMap(grid, self.inflation_m + margin, others, self.robot_clearance_m + margin)
+        s = np.asarray(start, dtype=np.float64)[:2]
+        g = np.asarray(goal, dtype=np.float64)[:2]
+        pm.block_discs(s[None], self.start_escape_m, value=False)
+        pm.blocked |= pm.occupied  # only the inflation is cleared around the start
+        if not pm.is_free(g[None])[0]:
+            log.debug("goal %s is blocked", g)
+            return None
+        if not pm.is_free(s[None])[0]:
+            log.debug("start %s is inside an obstacle", s)
+            return None
+        if pm.segment_free(np.array([s, g])):
+            return np.array([s, g])
+        return self._rrt_star(pm, s, g)
+
+    def _rrt_star(
+        self, pm: PlanningMap, s: NDArray[np.float64], g: NDArray[np.float64]
+    ) -> NDArray[np.float64] | None:
+        space = ob.RealVectorStateSpace(2)
+        bounds = ob.RealVectorBounds(2)
+        for k in range(2):
+            bounds.setLow(k, float(pm.origin[k]))
+            bounds.setHigh(k, float(pm.origin[k] + pm.extent[k]))
+        space.setBounds(bounds)
+        ss = og.SimpleSetup(space)
+        blocked, origin, res = pm.blocked, pm.origin, pm.resolution
+        h, w = blocked.shape
+
+        def valid(state: ob.State) -> bool:
+            ix = int((state[0] - origin[0]) / res)
+            iy = int((state[1] - origin[1]) / res)
+            return 0 <= ix < w and 0 <= iy < h and not blocked[iy, ix]
+
+        ss.setStateValidityChecker(valid)
+        si = ss.getSpaceInformation()
+        si.setStateValidityCheckingResolution(0.2 * res / float(pm.extent.max()))
+        a, b = space.allocState(), space.allocState()
+        a[0], a[1], b[0], b[1] = float(s[0]), float(s[1]), float(g[0]), float(g[1])
+        ss.setStartAndGoalStates(a, b, 0.5 * res)
+        ss.getProblemDefinition().setOptimizationObjective(ob.PathLengthOptimizationObjective(si))
+        ss.setPlanner(og.RRTstar(si))
+        ss.solve(self.time_budget_s)
+        if not ss.haveExactSolutionPath():
+            return None
+        raw = self._path(ss, s, g)
+        ss.simplifySolution(0.05)
+        for path in (self._path(ss, s, g), raw):  # shortcutting may clip a corner
+            if pm.segment_free(path):
+                return path
+        log.debug("RRT* path touches a blocked cell: rejected")
+        return None
+
+    @staticmethod
+    def _path(
+        ss: og.SimpleSetup, s: NDArray[np.float64], g: NDArray[np.float64]
+    ) -> NDArray[np.float64]:
+        p = ss.getSolutionPath()
+        path = np.array([[p.getState(i)[0], p.getState(i)[1]] for i in range(p.getStateCount())])
+        path[0], path[-1] = s, g
+        return path

@@ -1,0 +1,79 @@
+"""OMPL RRT* paths on the global grid: never through blocked cells."""
+
+from __future__ import annotations
+
+import numpy as np
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from basestation.path_planner import PathPlanner, PlanningMap
+from common.map_io import GridMap
+
+RES = 0.1
+
+
+def _grid(data: np.ndarray) -> GridMap:
+    return GridMap(np.asarray(data, dtype=np.int8), RES, (0.0, 0.0, 0.0))
+
+
+def _room_with_wall() -> np.ndarray:
+    d = np.zeros((100, 100), dtype=np.int8)  # 10 x 10 m, all free
+    d[:, 0] = d[:, -1] = d[0, :] = d[-1, :] = 100
+    d[:80, 48:52] = 100  # a wall from the bottom, a gap at the top
+    return d
+
+
+def test_path_goes_around_a_wall_and_keeps_its_distance() -> None:
+    grid = _grid(_room_with_wall())
+    planner = PathPlanner(inflation_m=0.4, time_budget_s=0.5, seed=1)
+    path = planner.plan(grid, [2.0, 2.0], [8.0, 2.0])
+    assert path is not None
+    np.testing.assert_allclose(path[0], [2.0, 2.0])
+    np.testing.assert_allclose(path[-1], [8.0, 2.0])
+    assert path[:, 1].max() > 8.0  # over the top of the wall
+    assert PlanningMap(grid, 0.4).segment_free(path)
+
+
+def test_unknown_space_counts_as_free() -> None:
+    d = np.full((60, 60), -1, dtype=np.int8)
+    d[:, :20] = 0
+    path = PathPlanner(seed=2).plan(_grid(d), [1.0, 3.0], [5.0, 3.0])
+    assert path is not None and len(path) == 2  # straight through the unknown
+
+
+def test_another_robot_blocks_a_corridor() -> None:
+    d = np.full((40, 100), 100, dtype=np.int8)
+    d[15:25, 1:99] = 0  # a 1 m wide corridor, 10 m long
+    grid = _grid(d)
+    planner = PathPlanner(inflation_m=0.1, robot_clearance_m=1.0, time_budget_s=0.2, seed=3)
+    assert planner.plan(grid, [1.0, 2.0], [9.0, 2.0]) is not None
+    assert planner.plan(grid, [1.0, 2.0], [9.0, 2.0], others=[[[5.0, 2.0]]]) is None
+
+
+def test_blocked_goal_gives_no_path() -> None:
+    grid = _grid(_room_with_wall())
+    assert PathPlanner().plan(grid, [2.0, 2.0], [5.0, 3.0]) is None  # inside the wall
+
+
+@settings(max_examples=25, deadline=None)
+@given(st.integers(0, 10_000))
+def test_a_path_never_crosses_occupied_or_inflated_cells(seed: int) -> None:
+    rng = np.random.default_rng(seed)
+    d = np.where(rng.random((60, 60)) < 0.5, 0, -1).astype(np.int8)
+    for _ in range(rng.integers(3, 12)):  # random rectangular obstacles
+        y, x = rng.integers(0, 55, 2)
+        d[y : y + rng.integers(1, 15), x : x + rng.integers(1, 15)] = 100
+    grid = _grid(d)
+    start, goal = rng.uniform(0.2, 5.8, 2), rng.uniform(0.2, 5.8, 2)
+    planner = PathPlanner(inflation_m=0.2, time_budget_s=0.1, seed=seed)
+    path = planner.plan(grid, start, goal)
+    if path is None:
+        return
+    pm = PlanningMap(grid, 0.2)
+    # outside the start's escape disc nothing may be inflated; nowhere occupied
+    t = np.linspace(0, 1, 50)[:, None]
+    dense = np.vstack([a + t * (b - a) for a, b in zip(path[:-1], path[1:], strict=True)])
+    iy, ix = pm.cells(dense)
+    assert not pm.occupied[iy, ix].any()
+    far = np.hypot(*(dense - start).T) > planner.start_escape_m + 2 * RES  # cell rounding
+    assert not pm.blocked[iy[far], ix[far]].any()

@@ -29,7 +29,7 @@ from agent.sensor_sources import SensorSource
 from agent.vehicle import NullVehicle, ZenohVehicle
 from common.bus import Bus
 from common.config import Config
-from common.geometry import pose4_compose, pose4_inverse, pose4_to_pose7, pose7_to_pose4
+from common.geometry import map_to_odom, odom_to_map, pose4_to_pose7, pose7_to_pose4
 from common.trajectory_io import Trajectory, write_tum
 from protocol import (
     Altimeter,
@@ -184,9 +184,8 @@ class AgentNode:
         with self._corr_lock:
             if self._new_correction:
                 self._new_correction = False
-                T_odom_map = pose4_inverse(self.T_map_odom)
                 pts = np.column_stack([self.tour_map, np.zeros((len(self.tour_map), 2))])
-                tour_odom = pose4_compose(T_odom_map, pts) if len(pts) else pts
+                tour_odom = map_to_odom(self.T_map_odom, pts) if len(pts) else pts
                 self.follower.set_path(tour_odom[:, :2], keep_progress=True)
         self.vehicle.command(stamp, *self.follower.command(self.frontend.pose))
 
@@ -223,7 +222,7 @@ class AgentNode:
                 keyframes_acked=self.outbox.acked_seq + 1,
                 outbox_len=len(self.outbox),
                 pose_odom=pose4_to_pose7(pose),
-                pose_map=pose4_to_pose7(pose4_compose(T_map_odom, pose)),
+                pose_map=pose4_to_pose7(odom_to_map(T_map_odom, pose)),
             ),
         )
 

@@ -126,3 +126,14 @@ def pose4_inverse(T_a_b: ArrayLike) -> FloatArray:
     a = np.asarray(T_a_b, dtype=np.float64)
     xy = se2_inverse(a[..., [0, 1, 3]])
     return np.stack([xy[..., 0], xy[..., 1], -a[..., 2], xy[..., 2]], axis=-1)
+
+
+def map_to_odom(T_map_odom: ArrayLike, poses_map: ArrayLike) -> FloatArray:
+    """Goals / waypoints [x, y, z, yaw] (..., 4) from `map` into a robot's `odom` frame
+    with its correction T_map_odom [x, y, z, yaw] (seed 002 eq. 4)."""
+    return pose4_compose(pose4_inverse(T_map_odom), poses_map)
+
+
+def odom_to_map(T_map_odom: ArrayLike, poses_odom: ArrayLike) -> FloatArray:
+    """The inverse of `map_to_odom`: poses in `odom` into `map`."""
+    return pose4_compose(T_map_odom, poses_odom)

@@ -43,6 +43,7 @@ from protocol import (
     Scan2D,
     encode,
 )
+from protocol import Path as PathMsg
 
 log = logging.getLogger(__name__)
 
@@ -86,6 +87,9 @@ class AgentNode:
         self.T_map_odom = np.zeros(4) if T_map_odom is None else np.asarray(T_map_odom, float)
         self.epoch = -1
         self._new_correction = True
+        self._new_path = False
+        self.exploring = cfg.exploration.enabled
+        self.mission_over = False
         self.next_seq = 0
         self.last_scan_stamp: float | None = None
         self.last_state_stamp = -np.inf
@@ -101,6 +105,7 @@ class AgentNode:
         rid = self.robot_id
         self.bus.subscribe(self.keys.robot(rid, "ack"), KeyframeAck, self._on_ack)
         self.bus.subscribe(self.keys.robot(rid, "correction"), PoseCorrection, self._on_correction)
+        self.bus.subscribe(self.keys.robot(rid, "path"), PathMsg, self._on_path)
         self.bus.declare_alive("agent", rid)
 
     def _on_ack(self, msg: KeyframeAck, key: str) -> None:
@@ -113,6 +118,16 @@ class AgentNode:
             self.epoch = msg.epoch
             self.T_map_odom = pose7_to_pose4(msg.T_map_odom)
             self._new_correction = True
+
+    def _on_path(self, msg: PathMsg, key: str) -> None:
+        """A new path from the base station (exploration); empty: stop here."""
+        with self._corr_lock:
+            wp = np.asarray(msg.waypoints, dtype=np.float64).reshape(-1, 4)
+            if msg.frame == "odom":  # keep it in map: corrections re-place it (eq. 4)
+                wp = odom_to_map(self.T_map_odom, wp)
+            self.tour_map = wp[:, :2]
+            self._new_path = True
+            self.mission_over = len(wp) == 0 and msg.path_id == 0
 
     # --- main loop ----------------------------------------------------------------------
     def run(
@@ -182,11 +197,11 @@ class AgentNode:
 
     def _command(self, stamp: float) -> None:
         with self._corr_lock:
-            if self._new_correction:
-                self._new_correction = False
+            if self._new_correction or self._new_path:
                 pts = np.column_stack([self.tour_map, np.zeros((len(self.tour_map), 2))])
                 tour_odom = map_to_odom(self.T_map_odom, pts) if len(pts) else pts
-                self.follower.set_path(tour_odom[:, :2], keep_progress=True)
+                self.follower.set_path(tour_odom[:, :2], keep_progress=not self._new_path)
+                self._new_correction = self._new_path = False
         self.vehicle.command(stamp, *self.follower.command(self.frontend.pose))
 
     def _resend(self) -> None:
@@ -205,7 +220,11 @@ class AgentNode:
     def status(self) -> str:
         if self.scans == 0:
             return "starting"
-        return "done" if self.follower.done else "flying"
+        if not self.follower.done:
+            return "flying"
+        if self.exploring and not self.mission_over:
+            return "waiting"  # for its next path from the base station
+        return "done"
 
     def publish_state(self, stamp: float) -> None:
         with self._corr_lock:

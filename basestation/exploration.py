@@ -26,6 +26,7 @@ from numpy.typing import ArrayLike, NDArray
 from basestation.frontiers import Box, Frontier, FrontierDetector
 from basestation.goal_assigner import AssignmentWeights, GoalAssigner
 from basestation.path_planner import PathPlanner, PlanningMap
+from common.config import Config
 from common.map_io import GridMap
 
 log = logging.getLogger(__name__)
@@ -50,6 +51,7 @@ class ExplorationManager:
     unreachable: int = 0
     max_failures: int = 5  # failed plans before a frontier is given up
     _failures: list[tuple[NDArray[np.float64], int]] = field(default_factory=list)
+    _stopped: set[str] = field(default_factory=set)
 
     def step(
         self,
@@ -68,6 +70,13 @@ class ExplorationManager:
         for r in set(self.tasks) - set(P):
             self.release(r)
         self.done = not self.frontiers and bool((grid.data == 0).any())  # not before a map
+        if not self.frontiers:  # done: every robot stops (once); no map yet: wait
+            stop = [r for r in P if r not in self._stopped] if self.done else []
+            self._stopped.update(stop)
+            for r in stop:
+                self.tasks.pop(r, None)
+            return {r: None for r in stop}
+        self._stopped.clear()
         if not need:
             return {}
         out: dict[str, NDArray[np.float64] | None] = {}
@@ -125,3 +134,23 @@ class ExplorationManager:
         """Forget a robot (gone silent): its goal is free for the others."""
         self.tasks.pop(robot, None)
         self.assigner.release(robot)
+
+
+def make_explorer(cfg: Config) -> ExplorationManager:
+    """An `ExplorationManager` set up from `cfg.exploration`."""
+    e = cfg.exploration
+    return ExplorationManager(
+        detector=FrontierDetector(e.frontier_radius_m, min_group_cells=e.min_frontier_cells),
+        assigner=GoalAssigner(AssignmentWeights(e.w_distance, e.w_heading, e.w_previous)),
+        planner=PathPlanner(e.inflation_m, e.robot_clearance_m, e.planning_time_s),
+    )
+
+
+def densify(path: NDArray[np.float64], spacing_m: float) -> NDArray[np.float64]:
+    """Waypoints at most `spacing_m` apart along the polyline: a follower that turns
+    toward the next waypoint early then cuts corners by little."""
+    out = [path[:1]]
+    for a, b in zip(path[:-1], path[1:], strict=True):
+        n = max(1, int(np.ceil(np.hypot(*(b - a)) / spacing_m)))
+        out.append(a + np.linspace(0.0, 1.0, n + 1)[1:, None] * (b - a))
+    return np.vstack(out)

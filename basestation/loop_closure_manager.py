@@ -7,7 +7,8 @@ largest pairwise-consistent set is updated (incremental PCM, Mangelson et al.
 measurements in it enter iSAM2 with a robust kernel; a measurement that drops
 out of it is removed from the graph again. Two robots whose maps are not yet
 connected are joined only when `min_consistent_to_merge` mutually consistent
-matches agree, so one lucky match cannot fuse two maps.
+matches from places at least `merge_min_spread_m` apart agree, so one lucky
+match (and the matches it leads to nearby) cannot fuse two maps.
 """
 
 from __future__ import annotations
@@ -91,7 +92,7 @@ class LoopClosureManager:
         separate = m0.robot_a != m0.robot_b and not any(
             m0.robot_a in c and m0.robot_b in c for c in self.graph.components()
         )
-        if separate and len(consistent) < self.cfg.min_consistent_to_merge:
+        if separate and not self._enough_to_merge(group, consistent):
             return  # wait for more agreeing matches before joining two maps
         robust = None if self.cfg.robust_kernel == "none" else self.cfg.robust_kernel
         changed = (consistent - group.in_graph.keys()) | (group.in_graph.keys() - consistent)
@@ -111,6 +112,18 @@ class LoopClosureManager:
                 self.graph.remove_constraint(group.in_graph.pop(mid))
                 self.accepted.discard(mid)
                 log.info("constraint %d (%s) no longer consistent: removed", mid, self.kinds[mid])
+
+    def _enough_to_merge(self, group: _Group, consistent: set[int]) -> bool:
+        """`min_consistent_to_merge` agreeing matches, seen from places of robot b at
+        least `merge_min_spread_m` apart: in look-alike rooms one wrong match and the
+        matches searched near where it put the robot can agree; a few metres on, the
+        likeness usually breaks."""
+        if len(consistent) < self.cfg.min_consistent_to_merge:
+            return False
+        ms = [group.measurements[i] for i in consistent]
+        P = self.graph.poses(ms[0].robot_b)[[m.index_b for m in ms], :2]
+        spread = float(np.max(np.hypot(*(P[:, None] - P[None]).transpose(2, 0, 1))))
+        return spread >= self.cfg.merge_min_spread_m
 
     def pending_links(self) -> list[LoopMeasurement]:
         """The newest match of each robot pair whose maps are still separate (waiting

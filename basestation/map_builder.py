@@ -119,7 +119,10 @@ class MapBuilder:
         self.rerenders += 1
         self.rerendered_cells += sub.shape[0] * sub.shape[1]
 
-    def gridmap(self) -> GridMap | None:
+    def gridmap(self, free_thresh: float | None = None) -> GridMap | None:
+        """The map_server view; `free_thresh` overrides the config's (exploration reads
+        a cell seen free more often than hit as free, p < 0.5)."""
         if self.grid is None:
             return None
-        return self.grid.to_gridmap(self.cfg.occupied_thresh, self.cfg.free_thresh)
+        free = self.cfg.free_thresh if free_thresh is None else free_thresh
+        return self.grid.to_gridmap(self.cfg.occupied_thresh, free)

@@ -22,16 +22,18 @@ from typing import Any
 
 import numpy as np
 
+from basestation.exploration import densify, make_explorer
 from basestation.global_slam import GlobalSlam
 from basestation.map_builder import MapBuilder
 from common.bus import Bus
 from common.config import Config
-from common.geometry import pose4_to_pose7
+from common.geometry import pose4_to_pose7, pose7_to_pose4
 from common.map_io import write_map
 from common.picture import render_map_picture
 from common.scenario import Scenario
 from common.trajectory_io import write_tum
 from protocol import Keyframe, KeyframeAck, PoseCorrection, RobotState
+from protocol import Path as PathMsg
 
 log = logging.getLogger(__name__)
 
@@ -53,6 +55,9 @@ class BaseStationNode:
                 starts = dict(list(starts.items())[:1])
         self.slam = GlobalSlam(cfg, starts)
         self.map = MapBuilder(cfg.map)
+        self.explorer = make_explorer(cfg) if cfg.exploration.enabled else None
+        self._last_explore = 0.0
+        self._path_id = 0
         self.inbox: queue.Queue[Keyframe] = queue.Queue()
         self.states: dict[str, RobotState] = {}
         self.epoch = 0
@@ -98,7 +103,33 @@ class BaseStationNode:
         if self._map_dirty and now - self._last_map >= self.cfg.basestation.map_update_period_s:
             self.refresh_map()
             self._last_map = now
+        if self.explorer is not None and now - self._last_explore >= self.cfg.exploration.period_s:
+            self._last_explore = now
+            self.explore()
         return admitted
+
+    def explore(self) -> None:
+        """One exploration step: new paths (map frame) for the robots that need one."""
+        grid = self.map.gridmap(free_thresh=0.49)
+        if grid is None or self.explorer is None:
+            return
+        with self._lock:
+            states = dict(self.states)
+        poses = {
+            rid: pose7_to_pose4(st.pose_map)[[0, 1, 3]]
+            for rid, st in states.items()
+            if rid in self.slam.graph.robots() and self.slam.graph.is_anchored(rid)
+        }
+        z = self.cfg.agent.cruise_altitude_m
+        for rid, path in self.explorer.step(grid, poses).items():
+            self._path_id += 1
+            over = path is None and self.explorer.done  # path_id 0: the mission is over
+            p = np.zeros((0, 2)) if path is None else densify(path, 0.25)
+            wp = np.column_stack([p, np.full(len(p), z), np.zeros(len(p))]).astype(np.float32)
+            self.bus.publish(
+                self.keys.robot(rid, "path"),
+                PathMsg(rid, 0 if over else self._path_id, time.time(), "map", self.epoch, wp),
+            )
 
     def _take_batch(self, timeout: float) -> int:
         batch: list[Keyframe] = []
@@ -181,6 +212,14 @@ class BaseStationNode:
             "intake_pauses": self.intake_pauses,
             "rejected_messages": dict(self.bus.rejected),
             "correction_epoch": self.epoch,
+            "exploration": None
+            if self.explorer is None
+            else {
+                "done": self.explorer.done,
+                "frontiers": len(self.explorer.frontiers),
+                "paths_sent": self._path_id,
+                "unreachable": self.explorer.unreachable,
+            },
             "map_rerenders": self.map.rerenders,
             "map_rerendered_cells": self.map.rerendered_cells,
         }

@@ -19,6 +19,8 @@ import time
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from collabslam.supervisor import Child, ProcessGroup, free_port
 from common.bus import endpoint
 from common.config import Config, dump_config
@@ -36,7 +38,10 @@ def make_scenario(cfg: Config, world_yaml: Path, n_robots: int) -> Scenario:
         starts = spread_start_poses(world, n_robots, seed=cfg.sim.seed)
     else:
         starts = start_poses(world, n_robots, seed=cfg.sim.seed, spacing=cfg.sim.start_spacing_m)
-    tours = plan_tours(world, starts, seed=cfg.sim.seed, length_m=cfg.sim.tour_length_m)
+    if cfg.exploration.enabled:  # the base station sends the paths
+        tours = [np.zeros((0, 2)) for _ in range(n_robots)]
+    else:
+        tours = plan_tours(world, starts, seed=cfg.sim.seed, length_m=cfg.sim.tour_length_m)
     robots = [RobotScenario(f"r{i}", starts[i], tours[i]) for i in range(n_robots)]
     return Scenario(str(world_yaml.resolve()), robots, cfg.sim.seed)
 

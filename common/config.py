@@ -191,7 +191,8 @@ class ConstraintConfig:
     robust_kernel: str = "huber"  # huber | cauchy | none
     robust_k: float = 1.345
     pcm_chi2: float = 11.345  # chi2(3 dof, 0.99): pairwise consistency threshold
-    min_consistent_to_merge: int = 2  # consistent matches needed to join two robots' maps
+    min_consistent_to_merge: int = 3  # consistent matches needed to join two robots' maps
+    merge_min_spread_m: float = 2.0  # m between the places those matches were seen from
     global_search_every: int = 5  # keyframes of an unanchored robot between global searches
     global_min_score: float = 0.65  # stricter score for a whole-map search
     # Evaluation only (robustness benchmarks): after each verified match, inject a wrong
@@ -219,6 +220,22 @@ class BaseStationConfig:
 
 
 @dataclass
+class ExplorationConfig:
+    """Autonomous exploration (seed 002 §1.2): the base station sends frontier paths."""
+
+    enabled: bool = False  # false: robots fly the scenario's scripted tours
+    period_s: float = 1.0  # s wall between exploration steps of the base station
+    frontier_radius_m: float = 0.3  # r of the frontier rule (Fig. 4)
+    min_frontier_cells: int = 8  # smaller frontier groups are noise
+    w_distance: float = 1.0  # w1 of eq. 3, per m
+    w_heading: float = 0.5  # w2, per rad
+    w_previous: float = 0.5  # w3, per m from the previous goal
+    inflation_m: float = 0.35  # m, no-collision zone around obstacles
+    robot_clearance_m: float = 1.0  # m, disc around other robots and their paths
+    planning_time_s: float = 0.2  # s, RRT* budget per path
+
+
+@dataclass
 class ProtocolConfig:
     max_message_bytes: int = 8 * 1024 * 1024  # bytes; larger payloads are dropped
 
@@ -231,6 +248,7 @@ class Config:
     agent: AgentConfig = field(default_factory=AgentConfig)
     map: MapConfig = field(default_factory=MapConfig)
     basestation: BaseStationConfig = field(default_factory=BaseStationConfig)
+    exploration: ExplorationConfig = field(default_factory=ExplorationConfig)
     protocol: ProtocolConfig = field(default_factory=ProtocolConfig)
 
 
@@ -347,6 +365,9 @@ def validate(cfg: Config) -> None:
         ("agent.outbox_max", cfg.agent.outbox_max),
         ("agent.resend_timeout_s", cfg.agent.resend_timeout_s),
         ("agent.replay_max_unacked", cfg.agent.replay_max_unacked),
+        ("exploration.period_s", cfg.exploration.period_s),
+        ("exploration.frontier_radius_m", cfg.exploration.frontier_radius_m),
+        ("exploration.planning_time_s", cfg.exploration.planning_time_s),
         (
             "basestation.constraints.max_candidates_per_s",
             cfg.basestation.constraints.max_candidates_per_s,

@@ -17,7 +17,7 @@ from common.errors import ProtocolError
 from protocol.codec import array_field, message
 
 ROBOT_ID_RE = re.compile(r"^[A-Za-z0-9_-]{1,32}$")
-ROBOT_STATUSES = ("starting", "flying", "hovering", "done", "landed")
+ROBOT_STATUSES = ("starting", "waiting", "flying", "hovering", "done", "landed")
 
 
 def _check_robot_id(robot_id: str) -> None:
@@ -245,7 +245,8 @@ class Goal(Message):
 
 @message
 class Path(Message):
-    """A path of [x, y, z, yaw] waypoints in `frame`; an empty path means stop."""
+    """A path of [x, y, z, yaw] waypoints in `frame`; an empty path means stop and
+    wait; an empty path with `path_id` 0 means the mission (exploration) is over."""
 
     robot_id: str
     path_id: int

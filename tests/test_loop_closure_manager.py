@@ -115,10 +115,24 @@ def test_consistent_matches_join_the_floating_robot(kernel: str) -> None:
     rng = np.random.default_rng(11)
     cfg = ConstraintConfig(robust_kernel=kernel)
     graph, manager, truth = _setup(rng, cfg)
-    for i, j in [(5, 4), (12, 12)]:
+    for i, j in [(5, 4), (12, 12), (17, 16)]:
         # given from b's side: the manager orders every pair the same way
         manager.add(("b", j), ("a", i), _true_T(truth, ("b", j), ("a", i)), LC_COV, "inter")
     graph.update(extra_iterations=5)
     assert graph.is_anchored("b")
     assert len(graph.components()) == 1
     assert _max_error(graph, truth) < 0.3  # both chains drift by ~0.15 m
+
+
+def test_agreeing_matches_from_one_spot_do_not_join_two_maps() -> None:
+    """Look-alike places: matches seen from within a metre of each other agree with
+    each other whatever they say; they must not fuse two maps on their own."""
+    rng = np.random.default_rng(2)
+    graph, manager, truth = _setup(rng)
+    wrong = np.array([1.5, -1.0, 0.6])  # the same wrong offset every time
+    for j in (8, 9, 9):  # nodes of b 1 m apart at most
+        T = se2_compose(_true_T(truth, ("a", j), ("b", j)), wrong)
+        manager.add(("a", j), ("b", j), T, LC_COV, "inter")
+    graph.update()
+    assert not graph.is_anchored("b")
+    assert manager.counts()["inter_robot_constraints"] == 0

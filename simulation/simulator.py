@@ -167,7 +167,7 @@ class Simulator:
                 self.end_reason = "max_sim_time"
                 break
             if all(r.status == "done" for r in self.robots.values()):
-                self.end_reason = "tours_done"
+                self.end_reason = "robots_done"  # tours flown, or exploration over
                 break
             self.ticks += 1
             self.t = self.ticks * self.dt

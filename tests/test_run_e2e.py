@@ -106,6 +106,23 @@ def test_robots_started_far_apart_end_in_one_map(tmp_path: Path) -> None:
     assert summary["map_accuracy"] >= 0.95
 
 
+def test_autonomous_exploration_finishes(tmp_path: Path) -> None:
+    """Two drones, no tours: the base station's frontier paths take them through the
+    room set until no frontier is left."""
+    out = tmp_path / "run"
+    res = _run(
+        ["--world", "rooms15", "--robots", "2", "--out", str(out), "--max-sim-time", "400",
+         "--set", "exploration.enabled=true"],
+        timeout=600,
+    )  # fmt: skip
+    assert res.returncode == 0, res.stderr[-3000:]
+    summary = _check_run(out, 2)
+    assert summary["sim_end_reason"] == "robots_done", summary
+    base = json.loads((out / "basestation.json").read_text())
+    assert base["exploration"]["done"] and base["exploration"]["frontiers"] == 0
+    assert summary["map_coverage"] >= 0.9 and summary["map_accuracy"] >= 0.95
+
+
 def test_dead_child_is_named(tmp_path: Path) -> None:
     """A child that dies stops the run with an error naming it."""
     out = tmp_path / "run"

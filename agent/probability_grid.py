@@ -29,6 +29,7 @@ import numpy as np
 from numba import njit
 from numpy.typing import ArrayLike, NDArray
 
+from agent.voxel_filter import finite_points
 from common.errors import CollabSlamError, ConfigError
 from common.geometry import se2_transform_points
 
@@ -266,15 +267,7 @@ class ProbabilityGrid:
 
     def _to_submap(self, T: NDArray[np.float64], points: ArrayLike, name: str) -> NDArray:
         """(N, 2) sensor-frame points -> submap frame (m), non-finite rows dropped."""
-        p = np.asarray(points, dtype=np.float64)
-        if p.size == 0:
-            return np.zeros((0, 2))
-        if p.ndim != 2 or p.shape[1] != 2:
-            raise CollabSlamError(f"{name} must have shape (N, 2), got {p.shape}")
-        finite = np.isfinite(p[:, 0] + p[:, 1])  # NaN and +-inf propagate through the sum
-        if not finite.all():
-            logger.debug("%s: skipping %d non-finite points", name, int((~finite).sum()))
-            p = p[finite]
+        p = finite_points(points, name)
         return se2_transform_points(T, p)
 
     def _ensure_contains(self, xy: NDArray[np.float64]) -> None:

@@ -10,12 +10,11 @@ from dataclasses import field as dc_field
 
 import numpy as np
 from numba import njit
-from numpy.typing import ArrayLike, NDArray
+from numpy.typing import NDArray
 from scipy.ndimage import distance_transform_edt
 from scipy.spatial import cKDTree
 
 from agent.probability_grid import ProbabilityGrid
-from common.errors import CollabSlamError
 from common.geometry import se2_transform_points
 
 FloatArray = NDArray[np.float64]
@@ -87,15 +86,6 @@ class Target:
     free_space: ProbabilityGrid | None
     # correlative matchers (each caches its pyramid) and coarse fields, by purpose
     _cache: dict[str, object] = dc_field(default_factory=dict, repr=False)
-
-
-def points_2d(points: ArrayLike, name: str) -> FloatArray:
-    p = np.asarray(points, dtype=np.float64)
-    if p.size == 0:
-        return np.zeros((0, 2))
-    if p.ndim != 2 or p.shape[1] != 2:
-        raise CollabSlamError(f"{name} must have shape (N, 2), got {p.shape}")
-    return p[np.isfinite(p).all(axis=1)]
 
 
 def line_normals(

@@ -65,7 +65,7 @@ from scipy.spatial import cKDTree
 
 from agent.correlative_matcher import RealTimeCorrelativeMatcher
 from agent.probability_grid import ProbabilityGrid
-from agent.voxel_filter import adaptive_voxel_filter, voxel_filter
+from agent.voxel_filter import adaptive_voxel_filter, finite_points, voxel_filter
 from basestation.free_space import (
     beam_violation_grid,
     beam_violation_points,
@@ -78,7 +78,6 @@ from basestation.match_target import (
     Target,
     icp_normal_equations,
     line_normals,
-    points_2d,
 )
 from common.errors import CollabSlamError, ConfigError
 from common.geometry import se2_transform_points, wrap_angle
@@ -204,7 +203,7 @@ class ScanVerifier:
         [x, y, yaw]) of each scan in frame a; with them the target also knows its free
         space and rejects queries whose points fall in it. Raises CollabSlamError with
         fewer than 3 finite points or a wrong number of origins."""
-        parts = [points_2d(s, "scan") for s in scans_in_a]
+        parts = [finite_points(s, "scan") for s in scans_in_a]
         pts = np.concatenate(parts) if parts else np.zeros((0, 2))
         pts = voxel_filter(pts, self.resolution)
         if len(pts) < 3:
@@ -256,8 +255,8 @@ class ScanVerifier:
         lw = self.linear_window if linear_window is None else float(linear_window)
         aw = self.angular_window if angular_window is None else float(angular_window)
         aw = min(aw, math.pi)
-        raw = points_2d(query_points_b, "query_points_b")
-        beams = raw if sensor_points is None else points_2d(sensor_points, "sensor_points")
+        raw = finite_points(query_points_b, "query_points_b")
+        beams = raw if sensor_points is None else finite_points(sensor_points, "sensor_points")
         q = self._filter_query(raw)
         if len(q) < 3:
             return None
@@ -274,8 +273,8 @@ class ScanVerifier:
         the pose of the query (M, 2 points in frame b); same acceptance tests, with
         `min_score` (default the verifier's); `sensor_points` as in `verify`. None when
         nothing passes."""
-        raw = points_2d(query_points_b, "query_points_b")
-        beams = raw if sensor_points is None else points_2d(sensor_points, "sensor_points")
+        raw = finite_points(query_points_b, "query_points_b")
+        beams = raw if sensor_points is None else finite_points(sensor_points, "sensor_points")
         q = self._filter_query(raw)
         if len(q) < 3:
             return None

@@ -12,9 +12,9 @@ free space. The grid origin puts building (0, 0) at map (0, 0).
 Shipped worlds (seed 002 experiments): `bshape` (Fig. 8), `rooms15` (Fig. 10),
 `floor30x25` (Fig. 9). `random_floor` (`simulation/random_floor.py`) makes
 rooms-and-corridors floors that no test has seen; the plan, rasterization and
-validation live in `simulation/floor_plan.py`. Every generated world passes `validate_world`: one 4-connected
-free region, and one region for the centre of a drone of radius 0.25 m with a
-0.1 m margin.
+validation live in `simulation/floor_plan.py`. Every generated world passes
+`validate_world`: one 4-connected free region, and one region for the centre of a
+drone of radius 0.25 m with a 0.1 m margin.
 
 CLI: `python -m simulation.world_generator --out simulation/worlds` rewrites the
 shipped worlds.

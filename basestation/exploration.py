@@ -49,7 +49,7 @@ class ExplorationManager:
     frontiers: list[Frontier] = field(default_factory=list)
     done: bool = False
     unreachable: int = 0
-    max_failures: int = 5  # failed plans before a frontier is given up
+    max_failures: int = 8  # failed plans before a frontier is given up
     _failures: list[tuple[NDArray[np.float64], int]] = field(default_factory=list)
     _stopped: set[str] = field(default_factory=set)
 

@@ -4,9 +4,10 @@ The planning map: unknown cells count as free (seed 002: the robot discovers the
 the way), occupied cells are grown by `inflation_m` (the no-collision zone, plus two
 cells so that the dense final check is conservative), and a
 disc of `robot_clearance_m` around every other robot and along its current path is
-blocked too. RRT* (`og.SimpleSetup`, path-length objective) runs for at most
-`time_budget_s`; the solution is simplified (shortcutting) and then checked densely
-against the planning map, so a returned path never crosses a blocked cell. A start
+blocked too. RRT* (`og.SimpleSetup`, path-length objective) runs for
+`time_budget_s`, up to `attempts` times while it has no exact solution; the
+solution is simplified (shortcutting) and then checked densely against the
+planning map, so a returned path never crosses a blocked cell. A start
 inside the inflated zone (a robot close to a wall) is allowed: the inflation (not
 the wall) is cleared in a disc of `start_escape_m` around it.
 
@@ -120,6 +121,7 @@ class PathPlanner:
         time_budget_s: float = 0.3,
         start_escape_m: float = 0.5,
         seed: int = 0,
+        attempts: int = 3,
     ) -> None:
         if not time_budget_s > 0:
             raise ConfigError(f"planning time budget must be > 0 s, got {time_budget_s}")
@@ -127,6 +129,7 @@ class PathPlanner:
         self.robot_clearance_m = float(robot_clearance_m)
         self.time_budget_s = float(time_budget_s)
         self.start_escape_m = float(start_escape_m)
+        self.attempts = max(1, int(attempts))
         _seed_ompl_once(seed)
 
     def plan(
@@ -183,8 +186,11 @@ class PathPlanner:
         ss.setStartAndGoalStates(a, b, 0.5 * res)
         ss.getProblemDefinition().setOptimizationObjective(ob.PathLengthOptimizationObjective(si))
         ss.setPlanner(og.RRTstar(si))
-        ss.solve(self.time_budget_s)
-        if not ss.haveExactSolutionPath():
+        for _ in range(self.attempts):  # a further solve() grows the same tree
+            ss.solve(self.time_budget_s)
+            if ss.haveExactSolutionPath():
+                break
+        else:
             return None
         raw = self._path(ss, s, g)
         ss.simplifySolution(0.05)

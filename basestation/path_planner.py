@@ -142,14 +142,13 @@ class PathPlanner:
         """An (N, 2) path from start to goal [x, y] (m, map frame), or None if none was
         found within the budget (or the goal is blocked). `others`: other robots'
         positions / current paths, (M, 2) arrays, kept `robot_clearance_m` away from."""
-        # two more cells of margin than asked: a path checked at a quarter cell on this
-        # map cannot clip a cell of the map with the asked inflation between two checks
-        margin = 2.0 * grid.resolution
-        pm = PlanningMap(grid, self.inflation_m + margin, others, self.robot_clearance_m + margin)
         s = np.asarray(start, dtype=np.float64)[:2]
         g = np.asarray(goal, dtype=np.float64)[:2]
-        pm.block_discs(s[None], self.start_escape_m, value=False)
-        pm.blocked |= pm.occupied  # only the inflation is cleared around the start
+        # RRT* searches with two more cells of margin than asked, so that the final
+        # check on the asked map, at a quarter cell, does not catch a clipped corner
+        margin = 2.0 * grid.resolution
+        pm = self._map(grid, s, others, margin)
+        check = self._map(grid, s, others, 0.0)
         if not pm.is_free(g[None])[0]:
             log.debug("goal %s is blocked", g)
             return None
@@ -158,10 +157,18 @@ class PathPlanner:
             return None
         if pm.segment_free(np.array([s, g])):
             return np.array([s, g])
-        return self._rrt_star(pm, s, g)
+        return self._rrt_star(pm, check, s, g)
+
+    def _map(
+        self, grid: GridMap, s: NDArray[np.float64], others: list[ArrayLike] | None, margin: float
+    ) -> PlanningMap:
+        pm = PlanningMap(grid, self.inflation_m + margin, others, self.robot_clearance_m + margin)
+        pm.block_discs(s[None], self.start_escape_m, value=False)
+        pm.blocked |= pm.occupied  # only the inflation is cleared around the start
+        return pm
 
     def _rrt_star(
-        self, pm: PlanningMap, s: NDArray[np.float64], g: NDArray[np.float64]
+        self, pm: PlanningMap, check: PlanningMap, s: NDArray[np.float64], g: NDArray[np.float64]
     ) -> NDArray[np.float64] | None:
         space = ob.RealVectorStateSpace(2)
         bounds = ob.RealVectorBounds(2)
@@ -195,7 +202,7 @@ class PathPlanner:
         raw = self._path(ss, s, g)
         ss.simplifySolution(0.05)
         for path in (self._path(ss, s, g), raw):  # shortcutting may clip a corner
-            if pm.segment_free(path):
+            if check.segment_free(path):
                 return path
         log.debug("RRT* path touches a blocked cell: rejected")
         return None

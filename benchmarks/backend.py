@@ -85,7 +85,7 @@ class NewNode:
 class Feed:
     """A multi-robot graph in arrival order."""
 
-    starts: dict[str, FloatArray]  # robot id -> known T_map_first
+    starts: dict[str, FloatArray | None]  # robot id -> known T_map_first (None: floating)
     nodes: list[NewNode]  # time order; one iSAM2 update each
 
 
@@ -115,13 +115,20 @@ def reference_poses(data: G2oGraph, n_nodes: int) -> FloatArray:
     return batch_optimize(graph, start="guess").poses["ref"]
 
 
-def split_g2o(data: G2oGraph, n_nodes: int) -> Feed:
-    """The first ``n_nodes`` vertices of a g2o graph as 3 robots (see the module doc)."""
-    if not 3 * len(ROBOTS) <= n_nodes <= len(data.vertices_se2):
-        raise CollabSlamError(f"need {3 * len(ROBOTS)}..{len(data.vertices_se2)} nodes")
-    bounds = np.linspace(0, n_nodes, len(ROBOTS) + 1).astype(int)
+def split_g2o(
+    data: G2oGraph,
+    n_nodes: int,
+    robots: Sequence[str] = ROBOTS,
+    known_starts: bool = True,
+) -> Feed:
+    """The first ``n_nodes`` vertices of a g2o graph as consecutive chains, one per
+    robot (see the module doc). ``known_starts=False``: only the first robot starts
+    at the file's first vertex, the others float until an edge links them."""
+    if not 3 * len(robots) <= n_nodes <= len(data.vertices_se2):
+        raise CollabSlamError(f"need {3 * len(robots)}..{len(data.vertices_se2)} nodes")
+    bounds = np.linspace(0, n_nodes, len(robots) + 1).astype(int)
     owner = np.searchsorted(bounds, np.arange(n_nodes), side="right") - 1
-    node_of = [(ROBOTS[owner[v]], int(v - bounds[owner[v]])) for v in range(n_nodes)]
+    node_of = [(robots[owner[v]], int(v - bounds[owner[v]])) for v in range(n_nodes)]
     arrival = {v: (node_of[v][1], owner[v]) for v in range(n_nodes)}  # (step, robot)
     odometry: dict[int, tuple[FloatArray, FloatArray]] = {}
     ready: dict[int, list[Constraint]] = {}  # vertex -> constraints available with it
@@ -139,8 +146,12 @@ def split_g2o(data: G2oGraph, n_nodes: int) -> Feed:
     missing = [v for v in range(n_nodes) if node_of[v][1] > 0 and v not in odometry]
     if missing:
         raise CollabSlamError(f"no odometry edge into vertices {missing[:5]}")
-    ref = reference_poses(data, n_nodes)
-    starts = {r: ref[bounds[k]] for k, r in enumerate(ROBOTS)}
+    starts: dict[str, FloatArray | None]
+    if known_starts:
+        ref = reference_poses(data, n_nodes)
+        starts = {r: ref[bounds[k]] for k, r in enumerate(robots)}
+    else:
+        starts = {r: data.vertices_se2[0] if k == 0 else None for k, r in enumerate(robots)}
     nodes = []
     for v in sorted(range(n_nodes), key=lambda v: arrival[v]):
         robot_id, index = node_of[v]

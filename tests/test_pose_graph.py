@@ -10,6 +10,7 @@ from numpy.typing import NDArray
 
 from basestation.batch_solver import batch_optimize
 from basestation.pose_graph import ROBOT_KEY_ALPHABET, PoseGraph
+from benchmarks.backend import split_g2o
 from common.errors import CollabSlamError
 from common.g2o_io import read_g2o
 from common.geometry import se2_between, se2_compose, wrap_angle
@@ -223,39 +224,19 @@ def test_robot_alphabet_is_bounded() -> None:
 
 
 def _feed_m3500(graph: PoseGraph, n_nodes: int, n_robots: int) -> int:
-    """Feed an M3500 prefix node by node, split into interleaved chains of one robot each.
-
-    Robot 0 starts at the file's first vertex; the other chains float until an edge
-    links them. An edge is odometry if it links consecutive vertices of one chain,
-    otherwise a constraint, added as soon as both its nodes exist. Returns the
-    number of inter-robot constraints.
-    """
-    data = read_g2o(G2O_DIR / "M3500.g2o")
-    bounds = np.linspace(0, n_nodes, n_robots + 1).astype(int)
-    robot_of = np.searchsorted(bounds, np.arange(n_nodes), side="right") - 1
-    names = [f"r{k}" for k in range(n_robots)]
-    odometry: dict[int, tuple[NDArray, NDArray]] = {}
-    ready: dict[int, list] = {}  # step -> constraints whose nodes all exist from then on
-    for e in data.edges_se2:
-        if max(e.i, e.j) >= n_nodes:
-            continue
-        cov = np.linalg.inv(e.information)
-        if e.j == e.i + 1 and robot_of[e.i] == robot_of[e.j] and e.j not in odometry:
-            odometry[e.j] = (e.measurement, cov)
-            continue
-        ends = [(names[robot_of[u]], int(u - bounds[robot_of[u]])) for u in (e.i, e.j)]
-        ready.setdefault(max(ends[0][1], ends[1][1]), []).append((ends, e.measurement, cov))
-    for k, name in enumerate(names):
-        graph.add_robot(name, data.vertices_se2[0] if k == 0 else None)
+    """Feed an M3500 prefix node by node, cut into one chain per robot (the bench's
+    split, robot 0 at the file's first vertex, the others floating until an edge
+    links them), one update per node. Returns the number of inter-robot constraints."""
+    feed = split_g2o(read_g2o(G2O_DIR / "M3500.g2o"), n_nodes,
+                     [f"r{k}" for k in range(n_robots)], known_starts=False)  # fmt: skip
+    for robot, start in feed.starts.items():
+        graph.add_robot(robot, start)
     inter_robot = 0
-    for step in range(int(np.diff(bounds).max())):
-        for k, name in enumerate(names):
-            vertex = bounds[k] + step
-            if vertex < bounds[k + 1]:
-                graph.add_node(name, step, *(odometry[vertex] if step else (None, None)))
-        for ends, measurement, cov in ready.get(step, []):
-            graph.add_constraint(ends[0], ends[1], measurement, cov, robust=None)
-            inter_robot += ends[0][0] != ends[1][0]
+    for node in feed.nodes:
+        graph.add_node(node.robot_id, node.index, node.delta, node.covariance)
+        for c in node.constraints:
+            graph.add_constraint(c.key_a, c.key_b, c.T_a_b, c.covariance, robust=None)
+            inter_robot += c.key_a[0] != c.key_b[0]
         graph.update()
     return inter_robot
 

@@ -122,6 +122,7 @@ class PathPlanner:
         start_escape_m: float = 0.5,
         seed: int = 0,
         attempts: int = 3,
+        robot_radius_m: float = 0.2,
     ) -> None:
         if not time_budget_s > 0:
             raise ConfigError(f"planning time budget must be > 0 s, got {time_budget_s}")
@@ -130,6 +131,7 @@ class PathPlanner:
         self.time_budget_s = float(time_budget_s)
         self.start_escape_m = float(start_escape_m)
         self.attempts = max(1, int(attempts))
+        self.robot_radius_m = float(robot_radius_m)
         _seed_ompl_once(seed)
 
     def plan(
@@ -165,6 +167,8 @@ class PathPlanner:
         pm = PlanningMap(grid, self.inflation_m + margin, others, self.robot_clearance_m + margin)
         pm.block_discs(s[None], self.start_escape_m, value=False)
         pm.blocked |= pm.occupied  # only the inflation is cleared around the start
+        # ... but the robot is where it is: map noise under it must not trap it
+        pm.block_discs(s[None], self.robot_radius_m, value=False)
         return pm
 
     def _rrt_star(

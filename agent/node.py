@@ -25,6 +25,7 @@ from agent.local_trajectory_builder import LocalSlamResult, LocalTrajectoryBuild
 from agent.odometry_tracker import OdometryTracker
 from agent.outbox import Outbox
 from agent.path_follower import PathFollower
+from agent.safety_guard import SafetyGuard
 from agent.sensor_sources import SensorSource
 from agent.vehicle import NullVehicle, ZenohVehicle
 from common.bus import Bus
@@ -82,6 +83,13 @@ class AgentNode:
             a.max_accel_mps2,
             a.cruise_altitude_m,
         )
+        self.guard = SafetyGuard(
+            a.vehicle_radius_m,
+            a.safety_margin_m,
+            a.max_accel_mps2,
+            a.safety_reaction_s,
+            a.blocked_after_s,
+        )
         self.tour_map = np.asarray(tour_map, dtype=np.float64).reshape(-1, 2)
         self._corr_lock = threading.Lock()
         self.T_map_odom = np.zeros(4) if T_map_odom is None else np.asarray(T_map_odom, float)
@@ -127,6 +135,7 @@ class AgentNode:
                 wp = odom_to_map(self.T_map_odom, wp)
             self.tour_map = wp[:, :2]
             self._new_path = True
+            self.guard.clear()
             self.mission_over = len(wp) == 0 and msg.path_id == 0
 
     # --- main loop ----------------------------------------------------------------------
@@ -160,6 +169,8 @@ class AgentNode:
         if self.last_scan_stamp is not None and scan.stamp == self.last_scan_stamp:
             self._command(scan.stamp)  # a re-sent lock-step tick: answer again
             return
+        ranges = np.asarray(scan.ranges, dtype=np.float64)
+        self.guard.update(scan.angle_min + scan.angle_increment * np.arange(len(ranges)), ranges)
         result = self.frontend.add_scan(scan)
         if result is None:  # rejected (time going back, too few points): logged there
             self._command(scan.stamp)
@@ -202,7 +213,9 @@ class AgentNode:
                 tour_odom = map_to_odom(self.T_map_odom, pts) if len(pts) else pts
                 self.follower.set_path(tour_odom[:, :2], keep_progress=not self._new_path)
                 self._new_correction = self._new_path = False
-        self.vehicle.command(stamp, *self.follower.command(self.frontend.pose))
+        vx, vy, vz, yaw_rate = self.follower.command(self.frontend.pose)
+        vx, vy = self.guard.limit(stamp, vx, vy)
+        self.vehicle.command(stamp, vx, vy, vz, yaw_rate)
 
     def _resend(self) -> None:
         key = self.keys.robot(self.robot_id, "keyframe")
@@ -221,7 +234,7 @@ class AgentNode:
         if self.scans == 0:
             return "starting"
         if not self.follower.done:
-            return "flying"
+            return "blocked" if self.guard.blocked else "flying"
         if self.exploring and not self.mission_over:
             return "waiting"  # for its next path from the base station
         return "done"
@@ -266,6 +279,7 @@ class AgentNode:
             "scans": self.scans,
             "odom_distance_m": self.frontend.distance_m,
             "scans_rejected": self.frontend.rejected_scans,
+            "guard_limited_ticks": self.guard.limited_ticks,
             "correction_epoch": self.epoch,
             "rejected_messages": dict(self.bus.rejected),
         }

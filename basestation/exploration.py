@@ -26,6 +26,7 @@ from numpy.typing import ArrayLike, NDArray
 from basestation.frontiers import Box, Frontier, FrontierDetector
 from basestation.goal_assigner import AssignmentWeights, GoalAssigner
 from basestation.path_planner import PathPlanner, PlanningMap
+from basestation.travel_distance import travel_distances
 from common.config import Config
 from common.map_io import GridMap
 
@@ -50,6 +51,10 @@ class ExplorationManager:
     done: bool = False
     unreachable: int = 0
     max_failures: int = 8  # failed plans before a frontier is given up
+    coordinated: bool = True  # false: the greedy baseline (nearest frontier, no sharing rule)
+    alternatives: int = 2  # other frontiers tried when other robots block the best one
+    w_spread: float = 1.0  # cost per m a frontier lies inside spread_radius_m of a busy goal
+    spread_radius_m: float = 5.0  # m
     _failures: list[tuple[NDArray[np.float64], int]] = field(default_factory=list)
     _stopped: set[str] = field(default_factory=set)
 
@@ -58,15 +63,17 @@ class ExplorationManager:
         grid: GridMap,
         poses: dict[str, ArrayLike],
         touched: list[Box] | None = None,
+        blocked: set[str] | frozenset[str] = frozenset(),
     ) -> dict[str, NDArray[np.float64] | None]:
         """New paths (map frame, (N, 2)) for the robots that need one; None tells a
-        robot to stop (nothing left for it). Robots not in the result keep theirs."""
+        robot to stop (nothing left for it). Robots not in the result keep theirs.
+        `blocked`: robots whose own safety guard holds them (they get a new path)."""
         self.frontiers = [
             f for f in self.detector.update(grid, touched) if not self._given_up(f.goal)
         ]
         P = {r: np.asarray(p, dtype=np.float64)[:3] for r, p in poses.items()}
         pm = PlanningMap(grid, self.planner.inflation_m)
-        need = [r for r in P if self._needs_new_path(r, P[r], pm)]
+        need = [r for r in P if r in blocked or self._needs_new_path(r, P, pm)]
         for r in set(self.tasks) - set(P):
             self.release(r)
         self.done = not self.frontiers and bool((grid.data == 0).any())  # not before a map
@@ -79,43 +86,90 @@ class ExplorationManager:
         self._stopped.clear()
         if not need:
             return {}
-        out: dict[str, NDArray[np.float64] | None] = {}
-        busy = {r: t.goal for r, t in self.tasks.items() if r not in need}
-        candidates = [
-            f.goal for f in self.frontiers
-            if all(np.hypot(*(f.goal - g)) > self.frontier_gone_m for g in busy.values())
-        ]  # fmt: skip
-        goals = self.assigner.assign({r: P[r] for r in need}, candidates)
         for r in need:
             self.tasks.pop(r, None)
-            goal = goals.get(r)
-            path = None
-            if goal is not None:
-                others = [P[o][None, :2] for o in P if o != r]
-                others += [t.path for o, t in self.tasks.items() if o != r]
-                path = self.planner.plan(grid, P[r][:2], goal, others)
-                if path is None:
-                    self.unreachable += 1
-                    # blocked by the map itself (not just by another robot for now)?
-                    if self.planner.plan(grid, P[r][:2], goal) is None:
-                        self._failed(goal)
-                    log.debug("robot %s: no path to frontier %s", r, goal)
+        goals = self._goals({r: P[r] for r in need}, grid)
+        return {r: self._plan(r, goals.get(r), grid, P) for r in need}
+
+    def _plan(
+        self,
+        r: str,
+        goal: NDArray[np.float64] | None,
+        grid: GridMap,
+        P: dict[str, NDArray[np.float64]],
+    ) -> NDArray[np.float64] | None:
+        """A path for robot r to `goal`, or (coordinated) to the next best frontier when
+        other robots block it; None if there is none."""
+        tried: list[NDArray[np.float64]] = []
+        while goal is not None:
+            others = [P[o][None, :2] for o in P if o != r]
+            if self.coordinated:
+                others += [self._remaining(o, P[o]) for o in self.tasks if o != r and o in P]
+            path = self.planner.plan(grid, P[r][:2], goal, others)
             if path is not None:
                 self.tasks[r] = _Task(goal, path)
-            out[r] = path
-        return out
+                return path
+            self.unreachable += 1
+            # blocked by the map itself (not just by another robot for now)?
+            if self.planner.plan(grid, P[r][:2], goal) is None:
+                self._failed(goal)
+            log.debug("robot %s: no path to frontier %s", r, goal)
+            tried.append(goal)
+            if not self.coordinated or len(tried) > self.alternatives:
+                return None
+            goal = self._goals({r: P[r]}, grid, exclude=tried).get(r)
+        return None
 
-    def _needs_new_path(self, r: str, pose: NDArray[np.float64], pm: PlanningMap) -> bool:
+    def _goals(
+        self,
+        poses: dict[str, NDArray[np.float64]],
+        grid: GridMap,
+        exclude: list[NDArray[np.float64]] | None = None,
+    ) -> dict[str, NDArray[np.float64] | None]:
+        if not self.coordinated:
+            return self.assigner.nearest(poses, [f.goal for f in self.frontiers])
+        busy = [t.goal for r, t in self.tasks.items() if r not in poses]
+        taken = busy + (exclude or [])
+        candidates = [
+            f.goal for f in self.frontiers
+            if all(np.hypot(*(f.goal - g)) > self.frontier_gone_m for g in taken)
+        ]  # fmt: skip
+        if not candidates:
+            return self.assigner.assign(poses, [])
+        F = np.array(candidates)
+        robots = sorted(poses)
+        D = travel_distances(
+            grid, np.array([poses[r][:2] for r in robots]), F, self.planner.robot_radius_m
+        )
+        spread = np.zeros(len(F))
+        for g in busy:  # frontiers near where another robot is heading: it will see them
+            spread += self.w_spread * np.maximum(0.0, self.spread_radius_m - np.hypot(*(F - g).T))
+        return self.assigner.assign(poses, candidates, dict(zip(robots, D, strict=True)), spread)
+
+    def _remaining(self, robot: str, pose: NDArray[np.float64]) -> NDArray[np.float64]:
+        """The part of a robot's path still ahead of it, from where it is now."""
+        path = self.tasks[robot].path
+        k = int(np.argmin(np.hypot(*(path - pose[:2]).T)))
+        return np.vstack([pose[None, :2], path[k + 1 :]])
+
+    def _needs_new_path(self, r: str, P: dict[str, NDArray[np.float64]], pm: PlanningMap) -> bool:
         t = self.tasks.get(r)
         if t is None:
             return True
+        pose = P[r]
         if np.hypot(*(pose[:2] - t.goal)) < self.goal_reached_m:
             return True
         if not any(np.hypot(*(f.goal - t.goal)) < self.frontier_gone_m for f in self.frontiers):
             return True  # explored meanwhile, or no longer a frontier
+        rest = self._remaining(r, pose)
+        # another robot now stands on the way (beyond the first clearance around r itself)
+        ahead = rest[np.hypot(*(rest - pose[:2]).T) > self.planner.robot_clearance_m]
+        for o, q in P.items():
+            if o != r and len(ahead):
+                if np.min(np.hypot(*(ahead - q[:2]).T)) < self.planner.robot_clearance_m:
+                    return True
         # the rest of the path, after the waypoint nearest the robot, must still be free
-        k = int(np.argmin(np.hypot(*(t.path - pose[:2]).T)))
-        return not pm.segment_free(t.path[min(k + 1, len(t.path) - 1) :])
+        return not pm.segment_free(rest[1:] if len(rest) > 1 else rest)
 
     def _given_up(self, goal: NDArray[np.float64]) -> bool:
         return any(
@@ -143,6 +197,9 @@ def make_explorer(cfg: Config) -> ExplorationManager:
         detector=FrontierDetector(e.frontier_radius_m, min_group_cells=e.min_frontier_cells),
         assigner=GoalAssigner(AssignmentWeights(e.w_distance, e.w_heading, e.w_previous)),
         planner=PathPlanner(e.inflation_m, e.robot_clearance_m, e.planning_time_s),
+        coordinated=e.strategy == "coordinated",
+        w_spread=e.w_spread,
+        spread_radius_m=e.spread_radius_m,
     )
 
 

@@ -34,21 +34,27 @@ class AssignmentWeights:
             raise ConfigError("goal assignment weights must be >= 0")
 
 
+UNREACHABLE_COST = 1e6  # a frontier a robot cannot reach: assigned only if nothing else is
+
+
 def assignment_costs(
     poses: NDArray[np.float64],
     frontiers: NDArray[np.float64],
     previous: list[NDArray[np.float64] | None],
     w: AssignmentWeights,
+    distances: NDArray[np.float64] | None = None,
 ) -> NDArray[np.float64]:
-    """(robots, frontiers) matrix of eq. 3."""
+    """(robots, frontiers) matrix of eq. 3; `distances` (robots, frontiers), m, replaces
+    the straight-line distance term (travel distances; inf = unreachable)."""
     d = frontiers[None, :, :] - poses[:, None, :2]
-    dist = np.hypot(d[..., 0], d[..., 1])
+    dist = np.hypot(d[..., 0], d[..., 1]) if distances is None else distances
     heading = np.abs(wrap_angle(np.arctan2(d[..., 1], d[..., 0]) - poses[:, None, 2]))
     prev = np.zeros_like(dist)
     for k, p in enumerate(previous):
         if p is not None:
             prev[k] = np.hypot(*(frontiers - np.asarray(p)[None, :2]).T)
-    return w.w_distance * dist + w.w_heading * heading + w.w_previous * prev
+    cost = w.w_distance * dist + w.w_heading * heading + w.w_previous * prev
+    return np.where(np.isfinite(cost), cost, UNREACHABLE_COST)
 
 
 class GoalAssigner:
@@ -57,9 +63,16 @@ class GoalAssigner:
         self.goals: dict[str, NDArray[np.float64]] = {}  # current goal per robot
 
     def assign(
-        self, poses: dict[str, ArrayLike], frontiers: list[ArrayLike]
+        self,
+        poses: dict[str, ArrayLike],
+        frontiers: list[ArrayLike],
+        distances: dict[str, NDArray[np.float64]] | None = None,
+        extra_costs: NDArray[np.float64] | None = None,
     ) -> dict[str, NDArray[np.float64] | None]:
-        """Goals [x, y] (or None: nothing left for it) for every robot in `poses`."""
+        """Goals [x, y] (or None: nothing left for it) for every robot in `poses`.
+
+        `distances[robot]`: travel distance (m) to each frontier, replacing the straight
+        line; `extra_costs`: per-frontier cost added for every robot (spreading)."""
         robots = sorted(poses)
         if not robots:
             return {}
@@ -69,13 +82,37 @@ class GoalAssigner:
         P = np.array([np.asarray(poses[r], dtype=np.float64)[:3] for r in robots])
         F = np.array([np.asarray(f, dtype=np.float64)[:2] for f in frontiers])
         prev = [self.goals.get(r) for r in robots]
-        cost = assignment_costs(P, F, prev, self.weights)
+        D = None if distances is None else np.array([distances[r] for r in robots])
+        cost = assignment_costs(P, F, prev, self.weights, D)
+        if extra_costs is not None:
+            cost = cost + np.asarray(extra_costs, dtype=np.float64)[None, :]
         rows, cols = linear_sum_assignment(cost)
         out: dict[str, NDArray[np.float64] | None] = {r: None for r in robots}
         for i, j in zip(rows, cols, strict=True):
             out[robots[i]] = F[j].copy()
-        self.goals = {r: g for r, g in out.items() if g is not None}
+        self._remember(out)
         return out
+
+    def nearest(
+        self, poses: dict[str, ArrayLike], frontiers: list[ArrayLike]
+    ) -> dict[str, NDArray[np.float64] | None]:
+        """Uncoordinated baseline (explore_lite): each robot its own nearest frontier,
+        whatever the others chose."""
+        out: dict[str, NDArray[np.float64] | None] = {r: None for r in poses}
+        if frontiers:
+            F = np.array([np.asarray(f, dtype=np.float64)[:2] for f in frontiers])
+            for r, p in poses.items():
+                xy = np.asarray(p, dtype=np.float64)[:2]
+                out[r] = F[int(np.argmin(np.hypot(*(F - xy).T)))].copy()
+        self._remember(out)
+        return out
+
+    def _remember(self, goals: dict[str, NDArray[np.float64] | None]) -> None:
+        for r, g in goals.items():
+            if g is None:
+                self.goals.pop(r, None)
+            else:
+                self.goals[r] = g
 
     def release(self, robot: str) -> None:
         """Forget a robot's goal (it went silent); its frontier is free for the others."""

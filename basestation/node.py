@@ -25,6 +25,7 @@ import numpy as np
 from basestation.exploration import densify, make_explorer
 from basestation.global_slam import GlobalSlam
 from basestation.map_builder import MapBuilder
+from basestation.map_history import MapHistory
 from common.bus import Bus
 from common.config import Config
 from common.geometry import pose4_to_pose7, pose7_to_pose4
@@ -32,7 +33,7 @@ from common.map_io import write_map
 from common.picture import render_map_picture
 from common.scenario import Scenario
 from common.trajectory_io import write_tum
-from protocol import Keyframe, KeyframeAck, PoseCorrection, RobotState
+from protocol import ClockSync, Keyframe, KeyframeAck, PoseCorrection, RobotState
 from protocol import Path as PathMsg
 
 log = logging.getLogger(__name__)
@@ -66,6 +67,11 @@ class BaseStationNode:
         self._last_map = 0.0
         self._map_dirty = False
         self._lock = threading.Lock()
+        # lock-step handshake: the simulator's latest request (sim time) and our answer
+        self._sync_requested = -1.0
+        self._sync_answered = -1.0
+        self.syncs = 0
+        self.map_history = MapHistory()
 
     # --- wiring -------------------------------------------------------------------------
     def start(self) -> None:
@@ -73,8 +79,14 @@ class BaseStationNode:
             self.keys.all_robots("keyframe"), Keyframe, lambda m, k: self.inbox.put(m)
         )
         self.bus.subscribe(self.keys.all_robots("state"), RobotState, self._on_state)
+        if self.explorer is not None:
+            self.bus.subscribe(self.keys.clock("sim"), ClockSync, self._on_sim_clock)
         self.bus.watch_alive("agent", self._on_agent_alive)
         self.bus.declare_alive("basestation", "base")
+
+    def _on_sim_clock(self, msg: ClockSync, key: str) -> None:
+        with self._lock:
+            self._sync_requested = max(self._sync_requested, msg.stamp)
 
     def _on_state(self, msg: RobotState, key: str) -> None:
         with self._lock:
@@ -103,10 +115,37 @@ class BaseStationNode:
         if self._map_dirty and now - self._last_map >= self.cfg.basestation.map_update_period_s:
             self.refresh_map()
             self._last_map = now
-        if self.explorer is not None and now - self._last_explore >= self.cfg.exploration.period_s:
+        with self._lock:
+            requested = self._sync_requested
+        if requested > self._sync_answered:
+            self.sync(requested)
+        elif (
+            self.explorer is not None
+            and self._sync_answered < 0.0  # no lock-step simulator: pace by the wall clock
+            and now - self._last_explore >= self.cfg.exploration.period_s
+        ):
             self._last_explore = now
             self.explore()
         return admitted
+
+    def sync(self, stamp: float) -> None:
+        """Answer the simulator's clock at sim time `stamp`: take every keyframe received,
+        integrate verified constraints, refresh the map, explore, then release the clock."""
+        while not self.inbox.empty():
+            self._take_batch(0.0)
+        if self.slam.integrate_constraints():
+            self._optimized()
+        if self._map_dirty:
+            self.refresh_map()
+            self._last_map = time.monotonic()
+        grid = self.map.gridmap()
+        if grid is not None:
+            self.map_history.add(stamp, grid)
+        self._sync_answered = stamp
+        if self.explorer is not None:
+            self.explore()
+        self.syncs += 1
+        self.bus.publish(self.keys.clock("basestation"), ClockSync("basestation", stamp))
 
     def explore(self) -> None:
         """One exploration step: new paths (map frame) for the robots that need one."""
@@ -120,11 +159,21 @@ class BaseStationNode:
             for rid, st in states.items()
             if rid in self.slam.graph.robots() and self.slam.graph.is_anchored(rid)
         }
+        blocked = {rid for rid, st in states.items() if st.status == "blocked"}
         z = self.cfg.agent.cruise_altitude_m
-        for rid, path in self.explorer.step(grid, poses).items():
+        for rid, path in self.explorer.step(grid, poses, blocked=blocked).items():
             self._path_id += 1
             over = path is None and self.explorer.done  # path_id 0: the mission is over
             p = np.zeros((0, 2)) if path is None else densify(path, 0.25)
+            log.info(
+                "t=%.1f s: path %d for %s from (%.1f, %.1f): %s",
+                self._sync_answered,
+                self._path_id,
+                rid,
+                *poses[rid][:2],
+                "hold" if path is None else f"{len(path)} points to ({path[-1, 0]:.1f}, "
+                f"{path[-1, 1]:.1f})",
+            )
             wp = np.column_stack([p, np.full(len(p), z), np.zeros(len(p))]).astype(np.float32)
             self.bus.publish(
                 self.keys.robot(rid, "path"),
@@ -220,6 +269,7 @@ class BaseStationNode:
                 "paths_sent": self._path_id,
                 "unreachable": self.explorer.unreachable,
             },
+            "clock_syncs": self.syncs,
             "map_rerenders": self.map.rerenders,
             "map_rerendered_cells": self.map.rerendered_cells,
         }
@@ -242,5 +292,7 @@ class BaseStationNode:
                 robots={rid: t.poses_se2()[-1] for rid, t in on_map.items() if len(t)},
                 title=f"collabslam map: {len(on_map)} of {len(trajs)} robots on the map",
             )
+        if len(self.map_history):
+            self.map_history.write(out / "map_history.npz")
         (out / "basestation.json").write_text(json.dumps(self.stats(), indent=1))
         log.info("outputs written to %s", out)

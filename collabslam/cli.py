@@ -299,6 +299,34 @@ def build_parser() -> argparse.ArgumentParser:
         help="comma list of graph sizes in nodes (<= 3500: M3500 prefix, else city10000)",
     )
     b.set_defaults(func=cmd_bench, bench_kwargs=lambda a: {"sizes": a.sizes})
+    b = bn.add_parser(
+        "exploration",
+        help="time to 95 %% explored for 1..N drones: coordinated (ours) vs greedy baseline",
+    )
+    common(b, zenoh=False)
+    b.add_argument("--json", required=True, help="output JSON file; runs and plots go next to it")
+    b.add_argument("--data-dir", default=str(_default_data_dir()))
+    b.add_argument(
+        "--world",
+        default="bshape",
+        help="comma list: shipped names, map_server YAML paths, or random:SEED (generated)",
+    )
+    b.add_argument("--robots", default="1,2,3", help="comma list of team sizes")
+    b.add_argument("--seeds", type=int, default=1, help="runs per team size (sim.seed 0..N-1)")
+    b.add_argument("--max-sim-time", type=float, default=400.0, help="s of sim time per run")
+    b.add_argument(
+        "--strategies", default="ours,baseline", help="comma list of ours, baseline"
+    )
+    b.set_defaults(
+        func=cmd_bench,
+        bench_kwargs=lambda a: {
+            "worlds": a.world.split(","),
+            "robots": [int(n) for n in a.robots.split(",")],
+            "seeds": a.seeds,
+            "max_sim_time": a.max_sim_time,
+            "strategies": a.strategies.split(","),
+        },
+    )
 
     sp = sub.add_parser("eval", help="score results against references")
     ev = sp.add_subparsers(dest="eval_command", required=True)

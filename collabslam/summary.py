@@ -7,9 +7,19 @@ import logging
 from pathlib import Path
 from typing import Any
 
+from basestation.map_history import read_map_history
 from common.errors import CollabSlamError
 from common.map_io import read_map
-from common.metrics import ate_rmse, map_accuracy, map_coverage
+from common.metrics import (
+    ate_rmse,
+    coverage_curve,
+    map_accuracy,
+    map_coverage,
+    min_separation,
+    reachable_free,
+    time_to_coverage,
+)
+from common.scenario import read_scenario
 from common.trajectory_io import read_tum
 
 log = logging.getLogger(__name__)
@@ -53,6 +63,7 @@ def build_summary(
     if (out / "map.yaml").is_file():
         world, grid = read_map(world_yaml), read_map(out / "map.yaml")
         coverage, accuracy = map_coverage(grid, world), map_accuracy(grid, world)
+    gts = [read_tum(p) for r in robot_ids if (p := out / "ground_truth" / f"{r}.tum").is_file()]
     return {
         "robots": robots,
         "sim_time_s": sim.get("sim_time_s"),
@@ -62,5 +73,22 @@ def build_summary(
         "map_coverage": coverage,
         "map_accuracy": accuracy,
         "isam2_update_ms_p95": base.get("isam2_update_ms_p95"),
+        "min_robot_separation_m": min_separation(gts) if len(gts) == len(robot_ids) else None,
+        **_coverage_over_time(out, world_yaml),
         "rejected_messages": base.get("rejected_messages", {}),
+    }
+
+
+def _coverage_over_time(out: Path, world_yaml: Path) -> dict[str, Any]:
+    """time_to_95_s and the coverage curve of the reachable free area, from the base
+    station's map history (lock-step exploration runs only)."""
+    if not (out / "map_history.npz").is_file() or not (out / "scenario.json").is_file():
+        return {}
+    world = read_map(world_yaml)
+    starts = [r.start_pose[:2] for r in read_scenario(out / "scenario.json").robots]
+    history = read_map_history(out / "map_history.npz")
+    t, c = coverage_curve(history, world, reachable_free(world, starts))
+    return {
+        "time_to_95_s": time_to_coverage(t, c, 0.95),
+        "coverage_curve": [[float(a), round(float(b), 4)] for a, b in zip(t, c, strict=True)],
     }

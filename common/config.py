@@ -80,6 +80,11 @@ class SimConfig:
     rate: float = 1.0  # sim seconds per wall second when clock = realtime
     seed: int = 0
     lockstep_timeout_s: float = 2.0  # s wall: re-publish a tick if an agent has not answered
+    # Lock-step with exploration: every exploration.period_s of sim time the clock also
+    # waits for the base station (map refresh + exploration step), so exploration does not
+    # depend on machine load. Waits longer than basestation_timeout_s (wall) are given up.
+    sync_basestation: bool = True
+    basestation_timeout_s: float = 60.0  # s wall
     start_timeout_s: float = 60.0  # s wall: wait this long for every agent to come alive
     tour_length_m: float = 80.0  # m, scripted tour per robot
     start_spacing_m: float = 1.5  # m between start positions
@@ -146,6 +151,13 @@ class AgentConfig:
     cruise_altitude_m: float = 1.0  # m above ground
     max_accel_mps2: float = 1.0  # m/s^2, used to slow down before the last waypoint
     yaw_gain: float = 1.5  # 1/s, heading controller gain
+    # Safety guard on every command (agent/safety_guard.py): the speed along the commanded
+    # direction is capped so the drone stops before any point of the live scan within
+    # vehicle_radius_m + safety_margin_m of its track.
+    vehicle_radius_m: float = 0.25  # m, the drone's collision disc
+    safety_margin_m: float = 0.05  # m, keep below exploration.inflation_m - vehicle_radius_m
+    safety_reaction_s: float = 0.1  # s of travel before braking starts (latency)
+    blocked_after_s: float = 2.0  # s held still by the guard: report "blocked" (replan)
     state_period_s: float = 0.5  # s sim time between RobotState messages
     drain_timeout_s: float = 15.0  # s wall: on shutdown wait this long for acks
     replay_max_unacked: int = 200  # --replay: pause the log while this many keyframes wait
@@ -224,12 +236,19 @@ class ExplorationConfig:
     """Autonomous exploration (seed 002 §1.2): the base station sends frontier paths."""
 
     enabled: bool = False  # false: robots fly the scenario's scripted tours
+    # coordinated: joint eq. 3 assignment, distinct goals, paths around the other robots;
+    # greedy: the baseline, every robot to its own nearest frontier (explore_lite style)
+    strategy: str = "coordinated"
     period_s: float = 1.0  # s wall between exploration steps of the base station
     frontier_radius_m: float = 0.3  # r of the frontier rule (Fig. 4)
     min_frontier_cells: int = 8  # smaller frontier groups are noise
     w_distance: float = 1.0  # w1 of eq. 3, per m
     w_heading: float = 0.5  # w2, per rad
     w_previous: float = 0.5  # w3, per m from the previous goal
+    # Spreading (coordinated only): a frontier within spread_radius_m of a goal another
+    # robot is flying to costs w_spread per m inside (that robot will likely see it).
+    w_spread: float = 1.0  # per m
+    spread_radius_m: float = 5.0  # m
     inflation_m: float = 0.35  # m, no-collision zone around obstacles
     robot_clearance_m: float = 1.0  # m, disc around other robots and their paths
     planning_time_s: float = 0.2  # s, RRT* budget per path
@@ -356,6 +375,9 @@ def validate(cfg: Config) -> None:
         ("sim.laser.range_max_m", las.range_max_m),
         ("sim.laser.rate_hz", las.rate_hz),
         ("sim.lockstep_timeout_s", cfg.sim.lockstep_timeout_s),
+        ("sim.basestation_timeout_s", cfg.sim.basestation_timeout_s),
+        ("agent.vehicle_radius_m", cfg.agent.vehicle_radius_m),
+        ("agent.blocked_after_s", cfg.agent.blocked_after_s),
         ("sim.quadrotor.max_speed_mps", cfg.sim.quadrotor.max_speed_mps),
         ("sim.quadrotor.max_accel_mps2", cfg.sim.quadrotor.max_accel_mps2),
         ("sim.quadrotor.radius_m", cfg.sim.quadrotor.radius_m),
@@ -434,6 +456,14 @@ def validate(cfg: Config) -> None:
         "robust_k",
     ):
         _positive(f"basestation.constraints.{key}", getattr(cc, key))
+    for key in ("safety_margin_m", "safety_reaction_s"):
+        if getattr(cfg.agent, key) < 0.0:
+            raise ConfigError(f"agent.{key}: expected a value >= 0, got {getattr(cfg.agent, key)}")
+    if cfg.exploration.strategy not in ("coordinated", "greedy"):
+        raise ConfigError(
+            "exploration.strategy: expected coordinated or greedy, "
+            f"got {cfg.exploration.strategy!r}"
+        )
     if not 0.0 < cfg.agent.outbox_warn_fraction <= 1.0:
         raise ConfigError("agent.outbox_warn_fraction: expected a value in (0, 1]")
 

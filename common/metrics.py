@@ -8,7 +8,7 @@ from __future__ import annotations
 import logging
 
 import numpy as np
-from numpy.typing import NDArray
+from numpy.typing import ArrayLike, NDArray
 from scipy import ndimage
 
 from common.errors import CollabSlamError
@@ -104,14 +104,15 @@ def _distance_to(mask: NDArray[np.bool_], resolution: float) -> NDArray[np.float
     return ndimage.distance_transform_edt(~mask, sampling=resolution)
 
 
-def map_coverage(map_: GridMap, world: GridMap) -> float:
-    """Fraction of the world's free cells whose centre falls in a free cell of `map_`.
+def map_coverage(map_: GridMap, world: GridMap, region: NDArray[np.bool_] | None = None) -> float:
+    """Fraction of the world's free cells (or of `region`, a mask over the world's
+    cells) whose centre falls in a free cell of `map_`.
 
     `map_` is sampled at the world's cell centres by the map cell containing each
     centre (resolutions and origins may differ); centres outside `map_` count as not
     covered. Raises CollabSlamError if the world has no free cell.
     """
-    world_free = world.free_mask()
+    world_free = world.free_mask() if region is None else region
     n_free = int(world_free.sum())
     if n_free == 0:
         raise CollabSlamError("map_coverage: the world map has no free cell")
@@ -191,3 +192,51 @@ def map_accuracy_per_label(
         free_ok / free_n if free_n else float("nan"),
         occ_ok / occ_n if occ_n else float("nan"),
     )
+
+
+def reachable_free(world: GridMap, starts_xy: ArrayLike) -> NDArray[np.bool_]:
+    """The world's free cells connected (8-neighbours) to a start position: the free
+    area robots starting there can reach and explore. Raises CollabSlamError if no
+    start lies in free space."""
+    free = world.free_mask()
+    labels, _ = ndimage.label(free, structure=np.ones((3, 3)))
+    cells = world.world_to_cell(np.asarray(starts_xy, dtype=np.float64).reshape(-1, 2))
+    cells = cells[world.in_bounds(cells)]
+    ids = {int(v) for v in labels[cells[:, 1], cells[:, 0]] if v > 0}
+    if not ids:
+        raise CollabSlamError("reachable_free: no start position lies in the world's free space")
+    return np.isin(labels, sorted(ids))
+
+
+def coverage_curve(
+    history: list[tuple[float, GridMap]], world: GridMap, region: NDArray[np.bool_]
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """(sim times, fraction of `region` each snapshot of the map knew as free)."""
+    t = np.array([s for s, _ in history], dtype=np.float64)
+    c = np.array([map_coverage(g, world, region) for _, g in history], dtype=np.float64)
+    return t, c
+
+
+def time_to_coverage(
+    times: NDArray[np.float64], coverage: NDArray[np.float64], fraction: float = 0.95
+) -> float | None:
+    """First time the coverage reached `fraction`, or None if it never did."""
+    hit = np.flatnonzero(np.asarray(coverage) >= fraction)
+    return float(times[hit[0]]) if len(hit) else None
+
+
+def min_separation(trajectories: list[Trajectory]) -> float | None:
+    """Smallest distance (m, horizontal) between any two robots at the same time, the
+    later trajectories interpolated at the first one's stamps; None for < 2 robots."""
+    if len(trajectories) < 2:
+        return None
+    t = trajectories[0].stamps
+    xy = [
+        np.column_stack([np.interp(t, tr.stamps, tr.positions[:, i]) for i in range(2)])
+        for tr in trajectories
+    ]
+    best = np.inf
+    for i in range(len(xy)):
+        for j in range(i + 1, len(xy)):
+            best = min(best, float(np.min(np.hypot(*(xy[i] - xy[j]).T))))
+    return best

@@ -4,6 +4,7 @@ from protocol.codec import DEFAULT_MAX_BYTES, SCHEMA_VERSION, decode, encode
 from protocol.keys import Keys
 from protocol.messages import (
     Altimeter,
+    ClockSync,
     Cloud3D,
     Goal,
     Imu,
@@ -25,6 +26,7 @@ __all__ = [
     "encode",
     "Keys",
     "Altimeter",
+    "ClockSync",
     "Cloud3D",
     "Goal",
     "Imu",

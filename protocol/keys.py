@@ -6,6 +6,7 @@
     collabslam/<fleet>/robot/<id>/state                              agent -> anyone
     collabslam/<fleet>/robot/<id>/{ack,correction,goal,path}         base station -> agent
     collabslam/<fleet>/alive/{basestation,agent,sim}/<id>           liveliness tokens
+    collabslam/<fleet>/clock/{sim,basestation}                       lock-step handshake
 
 Everything a robot publishes lives under its own `robot/<id>/` prefix, so access
 control can allow a robot to write only there.
@@ -55,6 +56,12 @@ class Keys:
 
     def alive_all(self, role: str = "*") -> str:
         return f"{self.root}/alive/{role}/*"
+
+    def clock(self, sender: str) -> str:
+        """The lock-step handshake key of `sender` ("sim" or "basestation")."""
+        if sender not in ("sim", "basestation"):
+            raise ConfigError(f"unknown clock sender {sender!r}")
+        return f"{self.root}/clock/{sender}"
 
     def robot_id_of(self, key: str) -> str | None:
         """The robot id in a key under this fleet's robot/ space, else None."""

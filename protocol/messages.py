@@ -17,7 +17,7 @@ from common.errors import ProtocolError
 from protocol.codec import array_field, message
 
 ROBOT_ID_RE = re.compile(r"^[A-Za-z0-9_-]{1,32}$")
-ROBOT_STATUSES = ("starting", "waiting", "flying", "hovering", "done", "landed")
+ROBOT_STATUSES = ("starting", "waiting", "flying", "blocked", "hovering", "done", "landed")
 
 
 def _check_robot_id(robot_id: str) -> None:
@@ -280,6 +280,25 @@ class RobotState(Message):
             raise ProtocolError(f"RobotState.status {self.status!r} not in {ROBOT_STATUSES}")
 
 
+@message
+class ClockSync:
+    """Lock-step handshake between the simulator and the base station (sim time, s).
+
+    The simulator puts `stamp` T on `clock/sim` and holds the clock; the base
+    station answers T on `clock/basestation` once it has taken every keyframe it
+    has, refreshed its map and run its exploration step for T.
+    """
+
+    sender: str  # "sim" or "basestation"
+    stamp: float
+
+    def validate(self) -> None:
+        if self.sender not in ("sim", "basestation"):
+            raise ProtocolError(f"ClockSync.sender {self.sender!r} not in ('sim', 'basestation')")
+        if self.stamp < 0.0:
+            raise ProtocolError(f"ClockSync.stamp must be >= 0, got {self.stamp}")
+
+
 def _check_frame(frame: str) -> None:
     if frame not in ("odom", "map"):
         raise ProtocolError(f"frame must be 'odom' or 'map', got {frame!r}")
@@ -301,5 +320,6 @@ def message_types() -> dict[str, Any]:
             Goal,
             Path,
             RobotState,
+            ClockSync,
         )
     }

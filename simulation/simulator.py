@@ -29,7 +29,7 @@ from common.errors import ProcessError
 from common.geometry import pose4_to_pose7
 from common.scenario import Scenario
 from common.trajectory_io import Trajectory, write_tum
-from protocol import Altimeter, Imu, LaserScan, Odometry, RobotState, VehicleCommand
+from protocol import Altimeter, ClockSync, Imu, LaserScan, Odometry, RobotState, VehicleCommand
 from simulation.quadrotor import Quadrotor
 from simulation.sensors import AltimeterModel, ImuModel, LaserModel, OdometryModel
 from simulation.world import World
@@ -106,14 +106,30 @@ class Simulator:
         self.end_reason = ""
         self._cond = threading.Condition()
         self._alive: set[str] = set()
+        # lock-step handshake with the base station (exploration decisions in sim time)
+        self.sync_period = (
+            cfg.exploration.period_s
+            if cfg.exploration.enabled and cfg.sim.sync_basestation and cfg.sim.clock == "lockstep"
+            else 0.0
+        )
+        self._base_clock = -1.0
+        self.base_syncs = 0
+        self.base_sync_timeouts = 0
 
     # --- wiring -------------------------------------------------------------------------
     def start(self) -> None:
         for rid in self.robots:
             self.bus.subscribe(self.keys.robot(rid, "cmd"), VehicleCommand, self._on_command)
             self.bus.subscribe(self.keys.robot(rid, "state"), RobotState, self._on_state)
+        if self.sync_period:
+            self.bus.subscribe(self.keys.clock("basestation"), ClockSync, self._on_base_clock)
         self.bus.watch_alive("agent", self._on_alive)
         self.bus.declare_alive("sim", "sim")
+
+    def _on_base_clock(self, msg: ClockSync, key: str) -> None:
+        with self._cond:
+            self._base_clock = max(self._base_clock, msg.stamp)
+            self._cond.notify_all()
 
     def _on_alive(self, name: str, alive: bool) -> None:
         with self._cond:
@@ -153,12 +169,16 @@ class Simulator:
         t_wall0 = time.monotonic()
         gt_period = 1.0 / self.cfg.sim.ground_truth_rate_hz
         next_gt = 0.0
+        next_sync = self.sync_period
         self._publish_tick(0.0)
         for r in self.robots.values():
             self._record(r, 0.0)
         while not stop.is_set():
             if lockstep:
                 self._wait_answers(stop)
+                if self.sync_period and self.t >= next_sync - 1e-9:
+                    next_sync += self.sync_period
+                    self._wait_basestation(stop)
             else:
                 delay = t_wall0 + self.t / self.cfg.sim.rate - time.monotonic()
                 if delay > 0:
@@ -204,6 +224,20 @@ class Simulator:
                     )
                     for r in late:
                         self._publish_sensors(r, self.t)
+
+    def _wait_basestation(self, stop: threading.Event) -> None:
+        """Hold the clock at `self.t` until the base station has answered it."""
+        self.base_syncs += 1
+        deadline = time.monotonic() + self.cfg.sim.basestation_timeout_s
+        request = ClockSync("sim", self.t)
+        with self._cond:
+            while not stop.is_set() and self._base_clock < self.t - 1e-9:
+                if time.monotonic() > deadline:
+                    self.base_sync_timeouts += 1
+                    log.warning("t=%.3f: no answer from the base station; going on", self.t)
+                    return
+                self.bus.publish(self.keys.clock("sim"), request)  # again if it was missed
+                self._cond.wait(self.cfg.sim.lockstep_timeout_s)
 
     def _step_physics(self) -> None:
         for r in self.robots.values():
@@ -257,6 +291,8 @@ class Simulator:
             "realtime_factor": self.t / max(self.wall_s, 1e-9),
             "ticks": self.ticks,
             "republished_ticks": self.republished,
+            "basestation_syncs": self.base_syncs,
+            "basestation_sync_timeouts": self.base_sync_timeouts,
             "end_reason": self.end_reason,
             "robots": {
                 rid: {

@@ -13,6 +13,7 @@ from common.geometry import pose4_to_pose7
 from protocol import (
     SCHEMA_VERSION,
     Altimeter,
+    ClockSync,
     Cloud3D,
     Goal,
     Imu,
@@ -62,6 +63,7 @@ def samples() -> list:
         Goal("r0", 1, 2.0, "odom", 3, P7),
         Path("r0", 2, 2.0, "odom", 3, np.zeros((5, 4), np.float32)),
         RobotState("r0", 2.0, "flying", 3, 10, 9, 1, P7, P7),
+        ClockSync("sim", 12.5),
     ]
 
 
@@ -155,6 +157,10 @@ def test_semantic_checks() -> None:
         decode(encode(PoseCorrection("r0", 1, 0.0, np.array([0, 0, 0, 0, 0, 0, 2.0]))))
     with pytest.raises(ProtocolError, match="exactly one"):
         decode(encode(Keyframe("r0", 0, 0.0, P7, P7, np.eye(6), None, None)))
+    with pytest.raises(ProtocolError, match="sender"):
+        decode(encode(ClockSync("intruder", 1.0)))
+    with pytest.raises(ProtocolError, match="stamp"):
+        decode(encode(ClockSync("sim", -1.0)))
     with pytest.raises(ProtocolError, match="expected a KeyframeAck"):
         decode(encode(Altimeter("r0", 0.0, 1.0)), KeyframeAck)
 
@@ -164,6 +170,8 @@ def test_keys_layout() -> None:
     assert k.robot("r1", "keyframe") == "collabslam/fleet1/robot/r1/keyframe"
     assert k.sensor("r1", "scan") == "collabslam/fleet1/robot/r1/sensor/scan"
     assert k.robot_id_of("collabslam/fleet1/robot/r1/sensor/scan") == "r1"
+    assert k.clock("sim") == "collabslam/fleet1/clock/sim"
+    assert k.robot_id_of(k.clock("basestation")) is None
     assert k.robot_id_of("collabslam/other/robot/r1/keyframe") is None
     with pytest.raises(Exception, match="invalid"):
         k.robot("a/b", "keyframe")

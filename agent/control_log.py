@@ -13,6 +13,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 
 from common.errors import FileFormatError
 
@@ -43,6 +44,27 @@ class ControlLog:
         return np.column_stack(
             [self.stamps, self.T_odom_base, self.T_map_odom_raw, self.T_map_odom_applied]
         )
+
+
+def control_positions(T_map_odom: np.ndarray, T_odom_base: np.ndarray) -> np.ndarray:
+    """(N, 3) map-frame positions (m) of T_map_odom · T_odom_base, both (N, 7) pose7."""
+    return T_map_odom[:, :3] + Rotation.from_quat(T_map_odom[:, 3:7]).apply(T_odom_base[:, :3])
+
+
+def correction_steps(
+    T_map_odom: np.ndarray, T_odom_base: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Per-tick steps of the control pose beyond the robot's own (local) motion.
+
+    Translation step k (m) = |C(k)·L(k) − C(k−1)·L(k)| with C = T_map_odom and
+    L = T_odom_base: the jump the change of correction put into the position.
+    Rotation step k (deg) = angle of C(k−1)⁻¹·C(k). Inputs (N, 7); outputs (N−1,).
+    """
+    r = Rotation.from_quat(T_map_odom[:, 3:7])
+    p_prev = T_map_odom[:-1, :3] + r[:-1].apply(T_odom_base[1:, :3])
+    trans = np.linalg.norm(control_positions(T_map_odom, T_odom_base)[1:] - p_prev, axis=1)
+    rot = np.degrees((r[:-1].inv() * r[1:]).magnitude())
+    return trans, rot
 
 
 class ControlRecorder:

@@ -11,6 +11,9 @@ weight of the old correction given by eq. 2,
 translation linearly (`alpha * p_old + (1 - alpha) * p_new`) and rotation by
 quaternion slerp. A correction that arrives mid-blend starts from the value
 applied at that moment. After `duration_s` the new correction is applied in full.
+A correction equal to the current one (the base station re-sends T_map_odom after
+every graph update, most of which do not move it) changes nothing: only an
+optimization that moves T_map_odom starts a blend.
 
 Time `t` is the agent's sensor clock (scan stamps, s), counted from the stamp
 passed to `on_correction`. Poses are pose7 `[x, y, z, qx, qy, qz, qw]`.
@@ -27,6 +30,8 @@ from scipy.spatial.transform import Rotation, Slerp
 from common.config import SmoothingConfig
 
 FloatArray = np.ndarray
+SAME_M = 1e-6  # m: corrections closer than this (and SAME_RAD) are the same value
+SAME_RAD = 1e-6  # rad
 
 
 def blend_alpha(t: float, s: float = 1.5, t_x: float = 3.0) -> float:
@@ -109,6 +114,8 @@ class PoseSmoother:
         if self._target is None or not self.cfg.enabled:
             self._target, self._old, self._slerp = new, None, None
             return
+        if _same(new, self._target):
+            return
         if self.blending(stamp):
             self.restarts += 1
         start = self.applied(stamp)
@@ -130,6 +137,12 @@ class PoseSmoother:
     def pose(self, stamp: float, T_odom_base: ArrayLike) -> FloatArray:
         """The control pose T_map_base (pose7) = applied T_map_odom · T_odom_base (unfiltered)."""
         return pose7_compose(self.applied(stamp), T_odom_base)
+
+
+def _same(a: FloatArray, b: FloatArray) -> bool:
+    """Equal within SAME_M / SAME_RAD (numerical noise of the optimizer)."""
+    angle = 2.0 * math.acos(min(1.0, abs(float(np.dot(a[3:7], b[3:7])))))
+    return bool(np.linalg.norm(a[:3] - b[:3]) < SAME_M and angle < SAME_RAD)
 
 
 def _pose7(p: ArrayLike) -> FloatArray:

@@ -60,6 +60,17 @@ def test_first_correction_without_a_known_start_is_applied_at_once(cfg: Config) 
     assert not sm.blending(1.0)
 
 
+def test_a_repeated_correction_does_not_restart_the_blend(cfg: Config) -> None:
+    sm = PoseSmoother(cfg.agent.smoothing, P(0, 0, 0, 0))
+    sm.on_correction(P(1.0, 0, 0, 0.1), 0.0)
+    expected = sm.applied(3.0)
+    sm.on_correction(P(1.0, 0, 0, 0.1), 2.0)  # the same value, next graph update
+    assert sm.restarts == 0
+    assert_pose_close(sm.applied(3.0), expected)
+    sm.on_correction(P(1.0, 0.01, 0, 0.1), 3.0)  # it moved: a new blend
+    assert sm.restarts == 1
+
+
 def test_disabled_is_raw(cfg: Config) -> None:
     off = dataclasses.replace(cfg.agent.smoothing, enabled=False)
     sm = PoseSmoother(off, P(0, 0, 0, 0))

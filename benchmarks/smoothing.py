@@ -7,9 +7,11 @@ records each control tick (`control_poses/<id>.csv`): T_odom_base, the latest
 raw correction and the correction its PoseSmoother applied. From those:
 
 - step at tick k (m) = |T_map_odom(k)·T_odom_base(k) − T_map_odom(k−1)·T_odom_base(k)|,
-  the change of the control pose between consecutive ticks beyond the robot's
+    the change of the control pose between consecutive ticks beyond the robot's
   own (local SLAM) motion, i.e. the jump the correction introduced;
-- rotation step (deg) = angle of T_map_odom(k−1)⁻¹·T_map_odom(k).
+- rotation step (deg) = angle of T_map_odom(k−1)⁻¹·T_map_odom(k);
+- the price: `max_offset_filtered_vs_raw_m` (how far the smoothed position
+  trails the latest estimate) and `time_offset_over_5cm_s`.
 
 "raw" applies every correction at once (what the controller saw without the
 filter, same flight); "filtered" is the smoothed pose the agent published.
@@ -30,7 +32,12 @@ from typing import Any
 
 import numpy as np
 
-from agent.control_log import ControlLog, correction_steps, read_control_log
+from agent.control_log import (
+    ControlLog,
+    control_positions,
+    correction_steps,
+    read_control_log,
+)
 from benchmarks.smoothing_plot import plot_smoothing
 from collabslam.launcher import Launcher
 from common.config import Config, validate
@@ -54,6 +61,13 @@ def score_log(ctl: ControlLog) -> dict[str, Any]:
     raw_t, raw_r = correction_steps(ctl.T_map_odom_raw, ctl.T_odom_base)
     fil_t, fil_r = correction_steps(ctl.T_map_odom_applied, ctl.T_odom_base)
     changes = np.any(np.abs(np.diff(ctl.T_map_odom_raw, axis=0)) > 0.0, axis=1)
+    # The price of smoothing: how far the smoothed position trails the latest estimate.
+    offset = np.linalg.norm(
+        control_positions(ctl.T_map_odom_applied, ctl.T_odom_base)
+        - control_positions(ctl.T_map_odom_raw, ctl.T_odom_base),
+        axis=1,
+    )
+    dt = np.diff(ctl.stamps, prepend=ctl.stamps[0])
     return {
         "ticks": len(ctl),
         "duration_s": float(ctl.stamps[-1] - ctl.stamps[0]),
@@ -64,6 +78,8 @@ def score_log(ctl: ControlLog) -> dict[str, Any]:
         "max_rot_step_filtered_deg": float(fil_r.max()),
         "steps_over_5cm_raw": int((raw_t > 0.05).sum()),
         "steps_over_5cm_filtered": int((fil_t > 0.05).sum()),
+        "max_offset_filtered_vs_raw_m": float(offset.max()),
+        "time_offset_over_5cm_s": float(dt[offset > 0.05].sum()),
     }
 
 

@@ -31,7 +31,7 @@ from agent.local_trajectory_builder import LocalSlamResult, LocalTrajectoryBuild
 from agent.odometry_tracker import OdometryTracker
 from agent.outbox import Outbox
 from agent.path_follower import PathFollower
-from agent.pose_smoother import PoseSmoother, pose7_compose
+from agent.pose_smoother import IDENTITY7, PoseSmoother, pose7_compose
 from agent.sensor_sources import SensorSource
 from agent.vehicle import NullVehicle, ZenohVehicle
 from common.bus import Bus
@@ -221,7 +221,7 @@ class AgentNode:
         T_odom_base = pose4_to_pose7(pose_odom)
         raw = self.smoother.target
         if raw is None:
-            raw = np.array([0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0])
+            raw = np.array(IDENTITY7)
         applied = self.smoother.applied(stamp)
         self.control_log.add(stamp, T_odom_base, raw, applied)
         self.bus.publish(

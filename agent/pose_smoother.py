@@ -25,13 +25,13 @@ import math
 
 import numpy as np
 from numpy.typing import ArrayLike
-from scipy.spatial.transform import Rotation, Slerp
 
 from common.config import SmoothingConfig
 
 FloatArray = np.ndarray
 SAME_M = 1e-6  # m: corrections closer than this (and SAME_RAD) are the same value
 SAME_RAD = 1e-6  # rad
+IDENTITY7 = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0)
 
 
 def blend_alpha(t: float, s: float = 1.5, t_x: float = 3.0) -> float:
@@ -43,36 +43,70 @@ def blend_alpha(t: float, s: float = 1.5, t_x: float = 3.0) -> float:
     return 1.0 / (1.0 + s * math.exp(z))
 
 
+# Quaternions [qx, qy, qz, qw] in plain floats: this runs every control tick, and
+# scipy's Rotation costs ~50 us per single-pose call (tests check against it).
+
+
+def _qmul(a: list[float], b: list[float]) -> list[float]:
+    ax, ay, az, aw = a
+    bx, by, bz, bw = b
+    return [
+        aw * bx + ax * bw + ay * bz - az * by,
+        aw * by - ax * bz + ay * bw + az * bx,
+        aw * bz + ax * by - ay * bx + az * bw,
+        aw * bw - ax * bx - ay * by - az * bz,
+    ]
+
+
+def _qrotate(q: list[float], v: list[float]) -> list[float]:
+    """v rotated by the unit quaternion q: v + w t + u x t with t = 2 u x v."""
+    ux, uy, uz, w = q
+    vx, vy, vz = v
+    tx, ty, tz = 2.0 * (uy * vz - uz * vy), 2.0 * (uz * vx - ux * vz), 2.0 * (ux * vy - uy * vx)
+    return [
+        vx + w * tx + uy * tz - uz * ty,
+        vy + w * ty + uz * tx - ux * tz,
+        vz + w * tz + ux * ty - uy * tx,
+    ]
+
+
+def _qslerp(q0: list[float], q1: list[float], u: float) -> list[float]:
+    """Slerp from q0 (u = 0) to q1 (u = 1) along the shorter arc."""
+    d = sum(a * b for a, b in zip(q0, q1, strict=True))
+    if d < 0.0:  # q1 and -q1 are the same rotation: take the shorter way
+        q1, d = [-c for c in q1], -d
+    if d > 0.9999995:  # under 1e-3 rad apart: normalized lerp is within 1e-10 of slerp
+        w0, w1 = 1.0 - u, u
+    else:
+        theta = math.acos(d)
+        w0 = math.sin((1.0 - u) * theta) / math.sin(theta)
+        w1 = math.sin(u * theta) / math.sin(theta)
+    return [w0 * a + w1 * b for a, b in zip(q0, q1, strict=True)]
+
+
+def _pose(t: list[float], q: list[float]) -> FloatArray:
+    """pose7 with a unit quaternion, qw >= 0 (q and -q are the same rotation)."""
+    n = math.sqrt(sum(c * c for c in q))
+    sign = -1.0 if q[3] < 0.0 else 1.0
+    return np.array([*t, *(sign * c / n for c in q)], dtype=np.float64)
+
+
 def pose7_compose(T_a_b: ArrayLike, T_b_c: ArrayLike) -> FloatArray:
     """T_a_c = T_a_b · T_b_c for pose7 arrays (3-D rigid transforms)."""
-    a = np.asarray(T_a_b, dtype=np.float64)
-    b = np.asarray(T_b_c, dtype=np.float64)
-    r_a = Rotation.from_quat(a[3:7])
-    t = a[:3] + r_a.apply(b[:3])
-    q = (r_a * Rotation.from_quat(b[3:7])).as_quat()
-    return np.concatenate([t, _canonical(q)])
+    a = np.asarray(T_a_b, dtype=np.float64).tolist()
+    b = np.asarray(T_b_c, dtype=np.float64).tolist()
+    r = _qrotate(a[3:7], b[:3])
+    return _pose([a[0] + r[0], a[1] + r[1], a[2] + r[2]], _qmul(a[3:7], b[3:7]))
 
 
 def pose7_interpolate(T_0: ArrayLike, T_1: ArrayLike, u: float) -> FloatArray:
     """The pose a fraction `u` in [0, 1] of the way from T_0 to T_1: translation
-    linearly, rotation by slerp along the shorter arc."""
-    p0 = np.asarray(T_0, dtype=np.float64)
-    p1 = np.asarray(T_1, dtype=np.float64)
-    slerp = Slerp([0.0, 1.0], Rotation.from_quat(np.stack([p0[3:7], p1[3:7]])))
-    return _blend(p0, p1, slerp, u)
-
-
-def _blend(p0: FloatArray, p1: FloatArray, slerp: Slerp, u: float) -> FloatArray:
+    linearly, rotation by quaternion slerp along the shorter arc."""
+    p0 = np.asarray(T_0, dtype=np.float64).tolist()
+    p1 = np.asarray(T_1, dtype=np.float64).tolist()
     u = min(max(float(u), 0.0), 1.0)
-    q = slerp([u]).as_quat()[0]
-    return np.concatenate([(1.0 - u) * p0[:3] + u * p1[:3], _canonical(q)])
-
-
-def _canonical(q: FloatArray) -> FloatArray:
-    """Unit quaternion with qw >= 0 (q and -q are the same rotation)."""
-    q = np.asarray(q, dtype=np.float64)
-    q = q / np.linalg.norm(q)
-    return -q if q[3] < 0.0 else q
+    t = [(1.0 - u) * a + u * b for a, b in zip(p0[:3], p1[:3], strict=True)]
+    return _pose(t, _qslerp(p0[3:7], p1[3:7], u))
 
 
 class PoseSmoother:
@@ -87,7 +121,6 @@ class PoseSmoother:
         self.cfg = cfg
         self._target: FloatArray | None = None if T_map_odom is None else _pose7(T_map_odom)
         self._old: FloatArray | None = None  # applied value when the blend started
-        self._slerp: Slerp | None = None
         self._t0 = 0.0  # s, sensor time the blend started
         self.corrections = 0  # corrections received
         self.restarts = 0  # corrections that arrived while a blend was running
@@ -112,27 +145,25 @@ class PoseSmoother:
         new = _pose7(T_map_odom)
         self.corrections += 1
         if self._target is None or not self.cfg.enabled:
-            self._target, self._old, self._slerp = new, None, None
+            self._target, self._old = new, None
             return
         if _same(new, self._target):
             return
         if self.blending(stamp):
             self.restarts += 1
-        start = self.applied(stamp)
-        self._old, self._target, self._t0 = start, new, float(stamp)
-        self._slerp = Slerp([0.0, 1.0], Rotation.from_quat(np.stack([start[3:7], new[3:7]])))
+        self._old, self._target, self._t0 = self.applied(stamp), new, float(stamp)
 
     def applied(self, stamp: float) -> FloatArray:
         """T_map_odom (pose7) applied to the control pose at sensor time `stamp` (s);
         the identity before any correction is known."""
         if self._target is None:
-            return np.array([0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0])
-        if self._old is None or self._slerp is None:
+            return np.array(IDENTITY7)
+        if self._old is None:
             return self._target.copy()
         if not self.blending(stamp):
-            self._old = self._slerp = None  # settled: the new value in full
+            self._old = None  # settled: the new value in full
             return self._target.copy()
-        return _blend(self._old, self._target, self._slerp, 1.0 - self.alpha(stamp))
+        return pose7_interpolate(self._old, self._target, 1.0 - self.alpha(stamp))
 
     def pose(self, stamp: float, T_odom_base: ArrayLike) -> FloatArray:
         """The control pose T_map_base (pose7) = applied T_map_odom · T_odom_base (unfiltered)."""
@@ -146,5 +177,5 @@ def _same(a: FloatArray, b: FloatArray) -> bool:
 
 
 def _pose7(p: ArrayLike) -> FloatArray:
-    a = np.asarray(p, dtype=np.float64).reshape(7)
-    return np.concatenate([a[:3], _canonical(a[3:7])])
+    a = np.asarray(p, dtype=np.float64).reshape(7).tolist()
+    return _pose(a[:3], a[3:7])

@@ -7,6 +7,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from scipy.spatial.transform import Rotation, Slerp
 
 from agent.control_log import ControlLog, read_control_log, write_control_log
 from agent.pose_smoother import PoseSmoother, blend_alpha, pose7_compose, pose7_interpolate
@@ -136,6 +137,23 @@ def test_step_per_tick_is_a_small_fraction_of_the_jump(cfg: Config) -> None:
     steps = np.linalg.norm(np.diff(np.array(applied)[:, :3], axis=0), axis=1)
     assert steps.max() <= 0.071  # 1 - alpha(0) = 0.0698 of the jump, then smaller
     assert_pose_close(applied[-1], P(1.0, 0, 0, np.deg2rad(10.0)))
+
+
+def test_quaternion_math_agrees_with_scipy() -> None:
+    rng = np.random.default_rng(7)
+    for _ in range(200):
+        a, b = Rotation.random(2, random_state=rng).as_quat()
+        ta, tb = rng.normal(size=3), rng.normal(size=3)
+        u = float(rng.uniform())
+        got = pose7_compose(np.r_[ta, a], np.r_[tb, b])
+        ra = Rotation.from_quat(a)
+        assert_pose_close(got, np.r_[ta + ra.apply(tb), (ra * Rotation.from_quat(b)).as_quat()])
+        mid = pose7_interpolate(np.r_[ta, a], np.r_[tb, b], u)
+        ref = Slerp([0.0, 1.0], Rotation.from_quat([a, b]))([u]).as_quat()[0]
+        assert_pose_close(mid, np.r_[(1 - u) * ta + u * tb, ref])
+    near = Rotation.from_rotvec([0.0, 0.0, 1e-5]).as_quat()  # nearly equal rotations
+    mid = pose7_interpolate(np.r_[0, 0, 0, 0, 0, 0, 1.0], np.r_[0, 0, 0, near], 0.5)
+    assert_pose_close(mid, np.r_[0, 0, 0, Rotation.from_rotvec([0, 0, 5e-6]).as_quat()])
 
 
 def test_smoothing_config_is_validated() -> None:

@@ -7,6 +7,11 @@ scan with a VehicleCommand (the simulator's lock-step handshake).
 
 Threads: Zenoh callbacks only enqueue sensor messages or update the outbox /
 correction under locks; all SLAM and control runs on the thread calling `run()`.
+
+Every scan is a control tick: the agent publishes a ControlPose on
+`robot/<id>/pose/control` whose `pose_map` blends each new correction in over
+~7 s (`pose_smoother.py`, seed 000 §II). Path following keeps using the latest
+raw correction to place map-frame paths in `odom` (seed 002 eq. 4).
 """
 
 from __future__ import annotations
@@ -20,11 +25,13 @@ from typing import Any
 
 import numpy as np
 
+from agent.control_log import ControlRecorder, write_control_log
 from agent.keyframe_selector import KeyframeSelector
 from agent.local_trajectory_builder import LocalSlamResult, LocalTrajectoryBuilder
 from agent.odometry_tracker import OdometryTracker
 from agent.outbox import Outbox
 from agent.path_follower import PathFollower
+from agent.pose_smoother import IDENTITY7, PoseSmoother, pose7_compose
 from agent.safety_guard import SafetyGuard
 from agent.sensor_sources import SensorSource
 from agent.vehicle import NullVehicle, ZenohVehicle
@@ -34,6 +41,7 @@ from common.geometry import map_to_odom, odom_to_map, pose4_to_pose7, pose7_to_p
 from common.trajectory_io import Trajectory, write_tum
 from protocol import (
     Altimeter,
+    ControlPose,
     Imu,
     Keyframe,
     KeyframeAck,
@@ -94,6 +102,12 @@ class AgentNode:
         self._corr_lock = threading.Lock()
         self.T_map_odom = np.zeros(4) if T_map_odom is None else np.asarray(T_map_odom, float)
         self.epoch = -1
+        # Control pose (main thread only); corrections reach it on the next scan.
+        self.smoother = PoseSmoother(
+            a.smoothing, None if T_map_odom is None else pose4_to_pose7(self.T_map_odom)
+        )
+        self._smoother_pending: np.ndarray | None = None  # pose7 not yet given to it
+        self.control_log = ControlRecorder()
         self._new_correction = True
         self._new_path = False
         self.exploring = cfg.exploration.enabled
@@ -125,6 +139,7 @@ class AgentNode:
                 return
             self.epoch = msg.epoch
             self.T_map_odom = pose7_to_pose4(msg.T_map_odom)
+            self._smoother_pending = np.array(msg.T_map_odom, dtype=np.float64)
             self._new_correction = True
 
     def _on_path(self, msg: PathMsg, key: str) -> None:
@@ -178,6 +193,7 @@ class AgentNode:
         self.last_scan_stamp = scan.stamp
         self.scans += 1
         self.local_trajectory.append((scan.stamp, result.pose))
+        self._publish_control_pose(scan.stamp, result.pose)
         if self.selector.is_due(result.pose) and self.outbox.has_room():
             self._send_keyframe(scan, result)
         self._command(scan.stamp)
@@ -205,6 +221,33 @@ class AgentNode:
         self.outbox.add(self.next_seq, payload)
         self.next_seq += 1
         self.bus.put_raw(self.keys.robot(self.robot_id, "keyframe"), payload)
+
+    def _publish_control_pose(self, stamp: float, pose_odom: np.ndarray) -> None:
+        """One control tick at sensor time `stamp`: the smoothed and raw T_map_base."""
+        with self._corr_lock:
+            pending, self._smoother_pending = self._smoother_pending, None
+            epoch = self.epoch
+        if pending is not None:
+            self.smoother.on_correction(pending, stamp)
+        T_odom_base = pose4_to_pose7(pose_odom)
+        raw = self.smoother.target
+        if raw is None:
+            raw = np.array(IDENTITY7)
+        applied = self.smoother.applied(stamp)
+        self.control_log.add(stamp, T_odom_base, raw, applied)
+        self.bus.publish(
+            self.keys.robot(self.robot_id, "pose/control"),
+            ControlPose(
+                robot_id=self.robot_id,
+                stamp=stamp,
+                epoch=epoch,
+                alpha=self.smoother.alpha(stamp),
+                pose_odom=T_odom_base,
+                pose_map=pose7_compose(applied, T_odom_base),
+                pose_map_raw=pose7_compose(raw, T_odom_base),
+            ),
+            reliable=False,  # a controller wants the newest pose, never a queue
+        )
 
     def _command(self, stamp: float) -> None:
         with self._corr_lock:
@@ -281,12 +324,14 @@ class AgentNode:
             "scans_rejected": self.frontend.rejected_scans,
             "guard_limited_ticks": self.guard.limited_ticks,
             "correction_epoch": self.epoch,
+            "smoothing_restarts": self.smoother.restarts,
             "rejected_messages": dict(self.bus.rejected),
         }
 
     def write_outputs(self, out_dir: str | Path) -> None:
         """agents/<id>.json (statistics) and local_trajectories/<id>.tum (every scan's
-        T_odom_base, the agent's own frame)."""
+        T_odom_base, the agent's own frame) and control_poses/<id>.csv (every control tick:
+        T_odom_base, raw and applied T_map_odom)."""
         out = Path(out_dir)
         (out / "agents").mkdir(parents=True, exist_ok=True)
         (out / "agents" / f"{self.robot_id}.json").write_text(json.dumps(self.stats(), indent=1))
@@ -296,4 +341,8 @@ class AgentNode:
             write_tum(
                 out / "local_trajectories" / f"{self.robot_id}.tum",
                 Trajectory.from_pose4(stamps, poses),
+            )
+        if len(self.control_log):
+            write_control_log(
+                out / "control_poses" / f"{self.robot_id}.csv", self.control_log.log()
             )

@@ -327,6 +327,33 @@ def build_parser() -> argparse.ArgumentParser:
             "strategies": a.strategies.split(","),
         },
     )
+    b = bn.add_parser(
+        "smoothing",
+        help="control-pose steps when loops close, raw vs. smoothed (seed 000 Fig. 1)",
+    )
+    common(b, zenoh=False)
+    b.add_argument("--json", required=True, help="output JSON file (runs and PNG next to it)")
+    b.add_argument("--data-dir", default=str(_default_data_dir()))
+    b.add_argument("--world", default="bshape")
+    b.add_argument("--robots", type=int, default=2)
+    b.add_argument("--length", type=float, default=120.0, help="tour length per robot (m)")
+    b.add_argument("--max-sim-time", type=float, default=150.0, help="s of sim time per flight")
+    b.add_argument(
+        "--scenarios",
+        type=lambda text: tuple(text.split(",")),
+        default="odometry_drift,local_slam",
+        help="comma list of flights: odometry_drift (odometry-only agent), local_slam",
+    )
+    b.set_defaults(
+        func=cmd_bench,
+        bench_kwargs=lambda a: {
+            "world": a.world,
+            "robots": a.robots,
+            "length_m": a.length,
+            "max_sim_time": a.max_sim_time,
+            "scenarios": a.scenarios,
+        },
+    )
 
     sp = sub.add_parser("eval", help="score results against references")
     ev = sp.add_subparsers(dest="eval_command", required=True)

@@ -134,6 +134,18 @@ class LocalSlamConfig:
 
 
 @dataclass
+class SmoothingConfig:
+    """Smoothed pose output for control (seed 000 §II, eq. 2): a new correction
+    T_map_odom is blended in with alpha(t) = 1 / (1 + s * exp(t - t_x)), the weight of
+    the old one (t in s of sensor time since the correction arrived)."""
+
+    enabled: bool = True  # false: the control pose jumps with every correction
+    s: float = 1.5  # eq. 2 scale (dimensionless)
+    t_x_s: float = 3.0  # s, eq. 2 time at which alpha = 1 / (1 + s)
+    duration_s: float = 7.0  # s, after this the new correction is applied in full
+
+
+@dataclass
 class AgentConfig:
     keyframe_distance_m: float = 0.2  # m, seed 002: new base-station keyframe every 0.2 m
     keyframe_angle_rad: float = 0.1  # rad, ... or every 0.1 rad
@@ -162,6 +174,7 @@ class AgentConfig:
     drain_timeout_s: float = 15.0  # s wall: on shutdown wait this long for acks
     replay_max_unacked: int = 200  # --replay: pause the log while this many keyframes wait
     local_slam: LocalSlamConfig = field(default_factory=LocalSlamConfig)
+    smoothing: SmoothingConfig = field(default_factory=SmoothingConfig)
 
 
 @dataclass
@@ -416,6 +429,8 @@ def validate(cfg: Config) -> None:
         ("agent.odom_sigma_min", cfg.agent.odom_sigma_min),
         ("map.resolution_m", cfg.map.resolution_m),
         ("agent.local_slam.resolution_m", cfg.agent.local_slam.resolution_m),
+        ("agent.smoothing.s", cfg.agent.smoothing.s),
+        ("agent.smoothing.duration_s", cfg.agent.smoothing.duration_s),
         ("agent.local_slam.max_range_m", cfg.agent.local_slam.max_range_m),
         ("agent.local_slam.scans_per_submap", cfg.agent.local_slam.scans_per_submap),
         ("agent.local_slam.voxel_filter_size_m", cfg.agent.local_slam.voxel_filter_size_m),
@@ -463,6 +478,10 @@ def validate(cfg: Config) -> None:
         raise ConfigError(
             "exploration.strategy: expected coordinated or greedy, "
             f"got {cfg.exploration.strategy!r}"
+        )
+    if cfg.agent.smoothing.t_x_s < 0.0:
+        raise ConfigError(
+            f"agent.smoothing.t_x_s: expected a value >= 0, got {cfg.agent.smoothing.t_x_s}"
         )
     if not 0.0 < cfg.agent.outbox_warn_fraction <= 1.0:
         raise ConfigError("agent.outbox_warn_fraction: expected a value in (0, 1]")

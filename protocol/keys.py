@@ -4,6 +4,7 @@
     collabslam/<fleet>/robot/<id>/cmd                                agent -> simulator/autopilot
     collabslam/<fleet>/robot/<id>/keyframe                           agent -> base station
     collabslam/<fleet>/robot/<id>/state                              agent -> anyone
+    collabslam/<fleet>/robot/<id>/pose/control                       agent -> controller, anyone
     collabslam/<fleet>/robot/<id>/{ack,correction,goal,path}         base station -> agent
     collabslam/<fleet>/alive/{basestation,agent,sim}/<id>           liveliness tokens
     collabslam/<fleet>/clock/{sim,basestation}                       lock-step handshake
@@ -22,7 +23,7 @@ PREFIX = "collabslam"
 _NAME = re.compile(r"^[A-Za-z0-9_-]{1,32}$")
 
 SENSOR_TOPICS = ("scan", "odom", "imu", "altimeter")
-UPLINK_TOPICS = ("keyframe", "state", "cmd")
+UPLINK_TOPICS = ("keyframe", "state", "cmd", "pose/control")
 DOWNLINK_TOPICS = ("ack", "correction", "goal", "path")
 
 

@@ -299,6 +299,32 @@ class ClockSync:
             raise ProtocolError(f"ClockSync.stamp must be >= 0, got {self.stamp}")
 
 
+@message
+class ControlPose(Message):
+    """The agent's pose for the flight controller, one per control tick (seed 000 §II).
+
+    pose_map: smoothed T_map_base = blended T_map_odom · T_odom_base; pose_map_raw:
+    the same with the latest correction applied at once; pose_odom: T_odom_base
+    (never filtered). alpha: weight of the previous correction in the blend, eq. 2
+    (0 when no blend runs); epoch: the latest correction's epoch (-1: none yet).
+    """
+
+    robot_id: str
+    stamp: float
+    epoch: int
+    alpha: float
+    pose_odom: np.ndarray = array_field("f8", (7,))
+    pose_map: np.ndarray = array_field("f8", (7,))
+    pose_map_raw: np.ndarray = array_field("f8", (7,))
+
+    def validate(self) -> None:
+        super().validate()
+        if not 0.0 <= self.alpha <= 1.0:
+            raise ProtocolError(f"ControlPose.alpha: expected a value in [0, 1], got {self.alpha}")
+        for name in ("pose_odom", "pose_map", "pose_map_raw"):
+            _check_pose7(f"ControlPose.{name}", getattr(self, name))
+
+
 def _check_frame(frame: str) -> None:
     if frame not in ("odom", "map"):
         raise ProtocolError(f"frame must be 'odom' or 'map', got {frame!r}")
@@ -321,5 +347,6 @@ def message_types() -> dict[str, Any]:
             Path,
             RobotState,
             ClockSync,
+            ControlPose,
         )
     }

@@ -15,6 +15,7 @@ from protocol import (
     Altimeter,
     ClockSync,
     Cloud3D,
+    ControlPose,
     Goal,
     Imu,
     Keyframe,
@@ -64,6 +65,7 @@ def samples() -> list:
         Path("r0", 2, 2.0, "odom", 3, np.zeros((5, 4), np.float32)),
         RobotState("r0", 2.0, "flying", 3, 10, 9, 1, P7, P7),
         ClockSync("sim", 12.5),
+        ControlPose("r0", 2.025, 4, 0.93, P7, P7, pose4_to_pose7([1.1, -2.0, 0.5, 0.31])),
     ]
 
 
@@ -155,6 +157,10 @@ def test_nan_and_shape_and_size_rejected() -> None:
 def test_semantic_checks() -> None:
     with pytest.raises(ProtocolError, match="quaternion"):
         decode(encode(PoseCorrection("r0", 1, 0.0, np.array([0, 0, 0, 0, 0, 0, 2.0]))))
+    with pytest.raises(ProtocolError, match="ControlPose.alpha"):
+        decode(encode(ControlPose("r0", 1.0, 0, 1.5, P7, P7, P7)))
+    with pytest.raises(ProtocolError, match="ControlPose.pose_map_raw"):
+        decode(encode(ControlPose("r0", 1.0, 0, 0.5, P7, P7, np.zeros(7))))
     with pytest.raises(ProtocolError, match="exactly one"):
         decode(encode(Keyframe("r0", 0, 0.0, P7, P7, np.eye(6), None, None)))
     with pytest.raises(ProtocolError, match="sender"):
@@ -168,6 +174,7 @@ def test_semantic_checks() -> None:
 def test_keys_layout() -> None:
     k = Keys("fleet1")
     assert k.robot("r1", "keyframe") == "collabslam/fleet1/robot/r1/keyframe"
+    assert k.robot("r1", "pose/control") == "collabslam/fleet1/robot/r1/pose/control"
     assert k.sensor("r1", "scan") == "collabslam/fleet1/robot/r1/sensor/scan"
     assert k.robot_id_of("collabslam/fleet1/robot/r1/sensor/scan") == "r1"
     assert k.clock("sim") == "collabslam/fleet1/clock/sim"

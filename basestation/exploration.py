@@ -55,6 +55,9 @@ class ExplorationManager:
     alternatives: int = 2  # other frontiers tried when other robots block the best one
     w_spread: float = 1.0  # cost per m a frontier lies inside spread_radius_m of a busy goal
     spread_radius_m: float = 5.0  # m
+    speed_mps: float = 1.0  # cruise speed the robots fly their paths at (conflict checks)
+    horizon_s: float = 15.0  # s ahead that paths are checked against each other
+    conflict_margin: float = 1.3  # times robot_clearance_m: slack for speed differences
     _failures: list[tuple[NDArray[np.float64], int]] = field(default_factory=list)
     _stopped: set[str] = field(default_factory=set)
 
@@ -99,13 +102,19 @@ class ExplorationManager:
         P: dict[str, NDArray[np.float64]],
     ) -> NDArray[np.float64] | None:
         """A path for robot r to `goal`, or (coordinated) to the next best frontier when
-        other robots block it; None if there is none."""
+        other robots block it; None if there is none.
+
+        Coordinated: first a path around the other robots' discs only, kept if, flown at
+        cruise speed against their remaining paths, it never comes within the clearance
+        of any of them (time-aware, so a robot may follow another through a door);
+        otherwise a path that avoids their remaining paths altogether."""
         tried: list[NDArray[np.float64]] = []
         while goal is not None:
-            others = [P[o][None, :2] for o in P if o != r]
-            if self.coordinated:
-                others += [self._remaining(o, P[o]) for o in self.tasks if o != r and o in P]
-            path = self.planner.plan(grid, P[r][:2], goal, others)
+            discs = [P[o][None, :2] for o in P if o != r]
+            path = self.planner.plan(grid, P[r][:2], goal, discs)
+            if path is not None and self.coordinated and self._conflict(r, path, P):
+                routes = [self._remaining(o, P[o]) for o in self.tasks if o != r and o in P]
+                path = self.planner.plan(grid, P[r][:2], goal, discs + routes) if routes else None
             if path is not None:
                 self.tasks[r] = _Task(goal, path)
                 return path
@@ -119,6 +128,25 @@ class ExplorationManager:
                 return None
             goal = self._goals({r: P[r]}, grid, exclude=tried).get(r)
         return None
+
+    def _conflict(
+        self, r: str, path: NDArray[np.float64], P: dict[str, NDArray[np.float64]]
+    ) -> bool:
+        """Whether robot r flying `path` (from where it is) would come within the robot
+        clearance of another robot flying the rest of its own path (or hovering), both
+        at cruise speed, over the next `horizon_s`. Points within the clearance of r's
+        own start are not judged (robots that are already close move apart)."""
+        t = np.arange(0.0, self.horizon_s, 0.1)
+        mine = _along(path, self.speed_mps * t)
+        near_start = np.hypot(*(mine - P[r][:2]).T) <= self.planner.robot_clearance_m
+        for o, q in P.items():
+            if o == r:
+                continue
+            theirs = _along(self._remaining(o, q), self.speed_mps * t) if o in self.tasks else q[:2]
+            d = np.hypot(*(mine - theirs).T)
+            if np.any((d < self.planner.robot_clearance_m * self.conflict_margin) & ~near_start):
+                return True
+        return False
 
     def _goals(
         self,
@@ -162,12 +190,8 @@ class ExplorationManager:
         if not any(np.hypot(*(f.goal - t.goal)) < self.frontier_gone_m for f in self.frontiers):
             return True  # explored meanwhile, or no longer a frontier
         rest = self._remaining(r, pose)
-        # another robot now stands on the way (beyond the first clearance around r itself)
-        ahead = rest[np.hypot(*(rest - pose[:2]).T) > self.planner.robot_clearance_m]
-        for o, q in P.items():
-            if o != r and len(ahead):
-                if np.min(np.hypot(*(ahead - q[:2]).T)) < self.planner.robot_clearance_m:
-                    return True
+        if self._conflict(r, rest, P):  # another robot would come too close
+            return True
         # the rest of the path, after the waypoint nearest the robot, must still be free
         return not pm.segment_free(rest[1:] if len(rest) > 1 else rest)
 
@@ -199,8 +223,18 @@ def make_explorer(cfg: Config) -> ExplorationManager:
         planner=PathPlanner(e.inflation_m, e.robot_clearance_m, e.planning_time_s),
         coordinated=e.strategy == "coordinated",
         w_spread=e.w_spread,
+        speed_mps=cfg.agent.cruise_speed_mps,
         spread_radius_m=e.spread_radius_m,
     )
+
+
+def _along(path: NDArray[np.float64], s: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Points at arc lengths `s` (m) along a polyline; its end beyond its length."""
+    seg = np.hypot(*np.diff(path, axis=0).T)
+    cum = np.concatenate([[0.0], np.cumsum(seg)])
+    if cum[-1] <= 0.0:
+        return np.repeat(path[:1], len(s), axis=0)
+    return np.column_stack([np.interp(s, cum, path[:, 0]), np.interp(s, cum, path[:, 1])])
 
 
 def densify(path: NDArray[np.float64], spacing_m: float) -> NDArray[np.float64]:

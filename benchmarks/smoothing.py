@@ -85,6 +85,7 @@ def score_log(ctl: ControlLog) -> dict[str, Any]:
 
 def _scenario_cfg(cfg: Config, name: str, length_m: float) -> Config:
     c = copy.deepcopy(cfg)
+    c.exploration.enabled = False  # scripted tours with loops: the corrections to smooth
     c.sim.tour_length_m = length_m
     if name == "odometry_drift":
         for dotted, value in DRIFT_OVERRIDES.items():

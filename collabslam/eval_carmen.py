@@ -68,6 +68,7 @@ def eval_carmen(
     # A replay runs many times faster than the robots drove: pace it to what the
     # verifier keeps up with (the base station delays acks, the agents wait), as a
     # live run at sensor rate would be, instead of dropping candidates.
+    cfg.exploration.enabled = False  # replayed robots fly nothing
     b = cfg.basestation
     b.pause_intake_backlog = b.pause_intake_backlog or 20
     b.drain_timeout_s = max(b.drain_timeout_s, 600.0)

@@ -248,7 +248,7 @@ class BaseStationConfig:
 class ExplorationConfig:
     """Autonomous exploration (seed 002 §1.2): the base station sends frontier paths."""
 
-    enabled: bool = False  # false: robots fly the scenario's scripted tours
+    enabled: bool = True  # false: robots fly the scenario's scripted tours instead
     # coordinated: joint eq. 3 assignment, distinct goals, paths around the other robots;
     # greedy: the baseline, every robot to its own nearest frontier (explore_lite style)
     strategy: str = "coordinated"

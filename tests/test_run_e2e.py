@@ -51,7 +51,10 @@ def _check_run(out: Path, n_robots: int) -> dict:
 
 def test_two_robots_short_tour(tmp_path: Path) -> None:
     out = tmp_path / "run"
-    res = _run(["--world", "bshape", "--robots", "2", "--out", str(out), "--max-sim-time", "25"])
+    res = _run(
+        ["--world", "bshape", "--robots", "2", "--out", str(out), "--max-sim-time", "25",
+         "--set", "exploration.enabled=false"]
+    )  # fmt: skip
     assert res.returncode == 0, res.stderr[-3000:]
     summary = _check_run(out, 2)
     assert summary["map_accuracy"] >= 0.95
@@ -77,6 +80,8 @@ def test_unseen_world_three_robots(tmp_path: Path) -> None:
             "15",
             "--set",
             "sim.seed=4",
+            "--set",
+            "exploration.enabled=false",
         ]
     )
     assert res.returncode == 0, res.stderr[-3000:]
@@ -94,6 +99,7 @@ def test_robots_started_far_apart_end_in_one_map(tmp_path: Path) -> None:
         [
             "--world", "bshape", "--robots", "3", "--out", str(out),
             "--set", "sim.start_apart=true", "--set", "basestation.known_start_poses=false",
+            "--set", "exploration.enabled=false",
         ],
         timeout=600,
     )  # fmt: skip
@@ -111,8 +117,7 @@ def test_autonomous_exploration_finishes(tmp_path: Path) -> None:
     room set until no frontier is left."""
     out = tmp_path / "run"
     res = _run(
-        ["--world", "rooms15", "--robots", "2", "--out", str(out), "--max-sim-time", "400",
-         "--set", "exploration.enabled=true"],
+        ["--world", "rooms15", "--robots", "2", "--out", str(out), "--max-sim-time", "400"],
         timeout=600,
     )  # fmt: skip
     assert res.returncode == 0, res.stderr[-3000:]

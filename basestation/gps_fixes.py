@@ -5,6 +5,12 @@ with ``t_i <= t <= t_j``: in practice when the first keyframe stamped at or afte
 the fix arrives. A fix older than the chain's first node can never be bracketed
 and is dropped; so is the oldest fix when more than ``max_pending`` wait. Gaps
 between fixes (outages) simply mean no factors.
+
+Fixes are released in batches, once per ``batch_period_s`` of the robot's node
+time (seed 000 feeds GPS to its periodic optimizations, once a minute): each fix
+changes the whole georeferenced trajectory a little, so each iSAM2 update with a
+GPS factor back-substitutes through the whole Bayes tree; batching makes that
+one update per period instead of one per fix.
 """
 
 from __future__ import annotations
@@ -44,9 +50,11 @@ class BracketedFix:
 class GpsFixQueue:
     """Pending fixes per robot; not thread-safe (the pose graph's thread)."""
 
-    def __init__(self, max_pending: int = 1000) -> None:
+    def __init__(self, max_pending: int = 1000, batch_period_s: float = 0.0) -> None:
         self._max_pending = max_pending
+        self._batch_period_s = batch_period_s
         self._pending: dict[str, deque[GpsFix]] = {}
+        self._last_release: dict[str, float] = {}  # node stamp of each robot's last batch
         self.dropped_before_start = 0  # fixes older than the chain's first node
         self.dropped_overflow = 0  # fixes pushed out by max_pending
 
@@ -66,11 +74,17 @@ class GpsFixQueue:
     def pending(self, robot_id: str) -> int:
         return len(self._pending.get(robot_id, ()))
 
-    def ready(self, robot_id: str, node_stamps: list[float]) -> list[BracketedFix]:
-        """Pop every fix of ``robot_id`` that two nodes now bracket (stamps increasing)."""
+    def ready(
+        self, robot_id: str, node_stamps: list[float], flush: bool = False
+    ) -> list[BracketedFix]:
+        """Pop every fix of ``robot_id`` that two nodes now bracket (stamps increasing),
+        if a batch is due (``flush``: whether or not)."""
         queue = self._pending.get(robot_id)
         if not queue or not node_stamps:
             return []
+        last = self._last_release.get(robot_id)
+        if not flush and last is not None and node_stamps[-1] - last < self._batch_period_s:
+            return []  # the next batch is not due yet
         out: list[BracketedFix] = []
         while queue:
             fix = queue[0]
@@ -84,4 +98,6 @@ class GpsFixQueue:
             i = j - 1
             beta = interpolation_factor(node_stamps[i], node_stamps[j], fix.stamp)
             out.append(BracketedFix(i, j, beta, queue.popleft()))
+        if out:
+            self._last_release[robot_id] = node_stamps[-1]
         return out

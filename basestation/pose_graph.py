@@ -134,9 +134,15 @@ class PoseGraph:
         track_changes: bool = True,  # False: no changed_robots, the O(n) estimate is lazy
         gps_weighting: GpsWeighting | None = None,  # None: GpsWeighting() defaults
         max_pending_gps_fixes: int = 1000,  # per robot, fixes waiting for their nodes
+        gps_batch_period_s: float = 0.0,  # s of node time between GPS releases (0: at once)
+        # QR with loose start priors (GPS): gtsam's Cholesky calls a 100 m start prior next
+        # to 1 mm odometry "indeterminate" (information ratio 1e10).
+        factorization: str = "CHOLESKY",
     ) -> None:
         params = gtsam.ISAM2Params()
-        params.setFactorization("CHOLESKY")
+        if factorization not in ("CHOLESKY", "QR"):
+            raise CollabSlamError(f"factorization must be CHOLESKY or QR, got {factorization!r}")
+        params.setFactorization(factorization)
         params.setRelinearizeThreshold(relinearize_threshold)
         params.relinearizeSkip = relinearize_skip
         params.findUnusedFactorSlots = False  # factor slots stay stable for removal
@@ -157,7 +163,7 @@ class PoseGraph:
         self._estimate = np.zeros((0, 3))  # committed poses, rows in key order
         self._estimate_valid = True  # False: recompute on the next full-estimate query
         self._gps_weighting = gps_weighting or GpsWeighting()
-        self._gps = GpsFixQueue(max_pending_gps_fixes)
+        self._gps = GpsFixQueue(max_pending_gps_fixes, gps_batch_period_s)
         self.num_gps_factors = 0
 
     # ----- building the graph -------------------------------------------------------
@@ -274,13 +280,17 @@ class PoseGraph:
             raise CollabSlamError(f"robot {robot_id!r}: node stamps must increase, got {stamp}")
         chain.stamps.append(float(stamp))
 
-    def _attach_gps(self, robot_id: str) -> int:
+    def flush_gps(self) -> int:
+        """Turn every bracketed fix into a factor now, batch due or not (e.g. at shutdown)."""
+        return sum(self._attach_gps(robot_id, flush=True) for robot_id in self._chains)
+
+    def _attach_gps(self, robot_id: str, flush: bool = False) -> int:
         chain = self._chains[robot_id]
         if chain.stamps is None:
             return 0
         w = self._gps_weighting
         added = 0
-        for b in self._gps.ready(robot_id, chain.stamps):
+        for b in self._gps.ready(robot_id, chain.stamps, flush):
             factor = make_gps_factor(
                 gtsam.symbol(chain.char, b.i),
                 gtsam.symbol(chain.char, b.j),
@@ -365,11 +375,16 @@ class PoseGraph:
             for fid, slot in zip(new_ids, result.getNewFactorsIndices(), strict=True):
                 self._factors[fid].isam_index = slot
             iterations = 1
-            for _ in range(max(extra_iterations, self._settle_iterations if merged else 0)):
+            # a merge or a GPS batch moves whole chains: settle them within this update
+            gps = any(self._factors[fid].kind == "gps" for fid in new_ids)
+            settle = self._settle_iterations if merged or gps else 0
+            for _ in range(max(extra_iterations, settle)):
                 iterations += 1
                 extra = self._isam.update(force_relinearize=True)  # even between skips
                 if extra.getVariablesRelinearized() == 0:
                     break
+            if settle:  # back-substitute now (lazy in gtsam: it would land in the next update)
+                self._isam.getDelta()
         except RuntimeError as exc:  # e.g. gtsam's IndeterminantLinearSystemException
             raise CollabSlamError(
                 f"iSAM2 update failed, the pose graph is unusable: {exc}"

@@ -299,6 +299,17 @@ def build_parser() -> argparse.ArgumentParser:
         help="comma list of graph sizes in nodes (<= 3500: M3500 prefix, else city10000)",
     )
     b.set_defaults(func=cmd_bench, bench_kwargs=lambda a: {"sizes": a.sizes})
+    b = bn.add_parser(
+        "gps",
+        help="GPS factors (seed 000 eq. 3-7): georeferenced ATE per weighting, Huber vs. "
+        "multipath outliers, iSAM2 update p95 with/without GPS, Fig. 8-like PNG",
+    )
+    common(b, zenoh=False)
+    b.add_argument("--json", required=True, help="output JSON file (PNG and TUMs next to it)")
+    b.add_argument("--data-dir", default=str(_default_data_dir()))
+    b.add_argument("--world", default="floor30x25")
+    b.add_argument("--length", type=float, default=300.0, help="flight length (m)")
+    b.set_defaults(func=cmd_bench, bench_kwargs=lambda a: {"world": a.world, "length_m": a.length})
 
     sp = sub.add_parser("eval", help="score results against references")
     ev = sp.add_subparsers(dest="eval_command", required=True)

@@ -248,6 +248,9 @@ class GpsConfig:
     start_sigma_xy_m: float = 100.0  # m
     start_sigma_yaw_rad: float = 0.1  # rad, magnetometer heading
     max_pending_fixes: int = 1000  # per robot: fixes waiting for their bracketing nodes
+    # s of keyframe time between GPS batches into iSAM2 (seed 000: at the periodic
+    # optimizations, once a minute); every GPS update moves the whole trajectory.
+    batch_period_s: float = 30.0
 
 
 @dataclass
@@ -512,6 +515,8 @@ def _validate_gps(cfg: Config) -> None:
     for key in ("huber_k", "sigma_min_m", "start_sigma_xy_m", "start_sigma_yaw_rad"):
         _positive(f"basestation.gps.{key}", getattr(p, key))
     _positive("basestation.gps.max_pending_fixes", p.max_pending_fixes)
+    if p.batch_period_s < 0.0:
+        raise ConfigError("basestation.gps.batch_period_s: expected a value >= 0")
 
 
 def config_to_dict(cfg: Config) -> dict[str, Any]:

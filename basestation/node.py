@@ -27,8 +27,9 @@ from basestation.global_slam import GlobalSlam
 from basestation.map_builder import MapBuilder
 from common.bus import Bus
 from common.config import Config
+from common.errors import FileFormatError
 from common.geometry import pose4_to_pose7, pose7_to_pose4
-from common.map_io import write_map
+from common.map_io import read_wgs84_origin, write_map
 from common.picture import render_map_picture
 from common.scenario import Scenario
 from common.trajectory_io import write_tum
@@ -54,6 +55,13 @@ class BaseStationNode:
             if not cfg.basestation.known_start_poses:
                 starts = dict(list(starts.items())[:1])
         self.slam = GlobalSlam(cfg, starts)
+        # With a scenario, map is the world frame: ENU at the world's WGS84 origin (if any).
+        self.wgs84_origin = None
+        if scenario is not None:
+            try:
+                self.wgs84_origin = read_wgs84_origin(scenario.world)
+            except FileFormatError as exc:
+                log.warning("no WGS84 origin for the map: %s", exc)
         self.map = MapBuilder(cfg.map)
         self.explorer = make_explorer(cfg) if cfg.exploration.enabled else None
         self._last_explore = 0.0
@@ -230,10 +238,11 @@ class BaseStationNode:
         self.refresh_map()
         trajs = self.slam.trajectories()
         for rid, traj in trajs.items():
-            write_tum(out / "trajectories" / f"{rid}.tum", traj)
+            write_tum(out / "trajectories" / f"{rid}.tum", traj, wgs84_origin=self.wgs84_origin)
         grid = self.map.gridmap()
         on_map = {rid: t for rid, t in trajs.items() if self.slam.graph.is_anchored(rid)}
         if grid is not None:
+            grid.wgs84_origin = self.wgs84_origin
             write_map(grid, out / "map.yaml", "map.pgm")
             render_map_picture(
                 out / "map.png",

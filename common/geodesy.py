@@ -82,6 +82,14 @@ def enu_to_geodetic(enu: ArrayLike, origin: GeoOrigin) -> FloatArray:
     return np.stack([np.asarray(lat), np.asarray(lon), np.asarray(alt)], axis=-1).astype(np.float64)
 
 
+def wgs84_pose_to_enu(pose7_wgs84: ArrayLike, origin: GeoOrigin) -> FloatArray:
+    """[lat_deg, lon_deg, alt_m, qx, qy, qz, qw] (orientation in ENU) -> pose7 in ``map``."""
+    p = np.asarray(pose7_wgs84, dtype=np.float64).reshape(-1)
+    if p.shape != (7,):
+        raise CollabSlamError(f"expected a pose7 [lat, lon, alt, qx, qy, qz, qw], got {p.shape}")
+    return np.concatenate([geodetic_to_enu(p[:3], origin), p[3:]])
+
+
 def georeferenced_waypoints(lla: ArrayLike, origin: GeoOrigin) -> FloatArray:
     """(N, 3) [lat_deg, lon_deg, alt_m] waypoints -> (N, 3) [x, y, z] in the ENU ``map``."""
     return geodetic_to_enu(np.asarray(lla, dtype=np.float64).reshape(-1, 3), origin)

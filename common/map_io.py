@@ -403,6 +403,16 @@ def _geo_origin(value: object, path: Path) -> GeoOrigin | None:
         raise FileFormatError(f"{path}: bad 'wgs84_origin': {exc}") from None
 
 
+def read_wgs84_origin(yaml_path: str | Path) -> GeoOrigin | None:
+    """The optional ``wgs84_origin`` of a map YAML without reading its image (None: none)."""
+    yaml_path = Path(yaml_path)
+    try:
+        text = yaml_path.read_text(encoding="utf-8")
+    except (OSError, UnicodeDecodeError) as exc:
+        raise FileFormatError(f"{yaml_path}: cannot read map YAML: {exc}") from exc
+    return _geo_origin(_parse_flat_yaml(text, yaml_path).get("wgs84_origin"), yaml_path)
+
+
 def write_map(grid: GridMap, yaml_path: str | Path, image_name: str | None = None) -> None:
     """Write `grid` as a trinary map_server map: P5 PGM (free 254, occupied 0, unknown 205)
     next to `yaml_path`, named `image_name` (default: the YAML's stem + '.pgm').

@@ -228,7 +228,9 @@ class PoseCorrection(Message):
 
 @message
 class Goal(Message):
-    """A navigation goal; `frame` is 'odom' (already in the robot's frame) or 'map'."""
+    """A navigation goal; `frame` is 'odom' (already in the robot's frame), 'map', or
+    'wgs84': then pose is [lat_deg, lon_deg, alt_m, qx, qy, qz, qw] with the
+    orientation in ENU (`common.geodesy.wgs84_pose_to_enu` converts it to `map`)."""
 
     robot_id: str
     goal_id: int
@@ -239,7 +241,7 @@ class Goal(Message):
 
     def validate(self) -> None:
         super().validate()
-        _check_frame(self.frame)
+        _check_frame(self.frame, ("odom", "map", "wgs84"))
         _check_pose7("Goal.pose", self.pose)
 
 
@@ -280,9 +282,9 @@ class RobotState(Message):
             raise ProtocolError(f"RobotState.status {self.status!r} not in {ROBOT_STATUSES}")
 
 
-def _check_frame(frame: str) -> None:
-    if frame not in ("odom", "map"):
-        raise ProtocolError(f"frame must be 'odom' or 'map', got {frame!r}")
+def _check_frame(frame: str, allowed: tuple[str, ...] = ("odom", "map")) -> None:
+    if frame not in allowed:
+        raise ProtocolError(f"frame must be one of {allowed}, got {frame!r}")
 
 
 def message_types() -> dict[str, Any]:

@@ -274,7 +274,9 @@ class Simulator:
         for rid, r in self.robots.items():
             gt = np.array(r.gt)
             write_tum(
-                out / "ground_truth" / f"{rid}.tum", Trajectory.from_pose4(gt[:, 0], gt[:, 1:5])
+                out / "ground_truth" / f"{rid}.tum",
+                Trajectory.from_pose4(gt[:, 0], gt[:, 1:5]),
+                wgs84_origin=self.world.geo_origin,  # the world frame is ENU there
             )
         (out / "simulator.json").write_text(json.dumps(self.stats(), indent=1))
 

@@ -309,7 +309,11 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--data-dir", default=str(_default_data_dir()))
     b.add_argument("--world", default="floor30x25")
     b.add_argument("--length", type=float, default=300.0, help="flight length (m)")
-    b.set_defaults(func=cmd_bench, bench_kwargs=lambda a: {"world": a.world, "length_m": a.length})
+    b.add_argument("--seeds", type=int, default=3, help="GNSS noise draws per setting")
+    b.set_defaults(
+        func=cmd_bench,
+        bench_kwargs=lambda a: {"world": a.world, "length_m": a.length, "gnss_seeds": a.seeds},
+    )
 
     sp = sub.add_parser("eval", help="score results against references")
     ev = sp.add_subparsers(dest="eval_command", required=True)

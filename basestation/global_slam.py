@@ -9,6 +9,12 @@ any known start, the first robot to send a keyframe defines the map frame
 (its odom frame at its first keyframe). Every other robot's chain floats in its
 own frame until verified inter-robot constraints join it to the map; until
 then it gets no correction and is left out of the map.
+
+GPS (``basestation.gps.enabled``): fixes of robots with a known start become GPS
+factors (``PoseGraph.add_gps_fix``); ``map`` must then be the ENU frame at the
+WGS84 origin the fixes are converted with (true in simulation: the world frame).
+Robots without a known start ignore their fixes (no autopilot heading reaches
+the base station yet to start them georeferenced).
 """
 
 from __future__ import annotations
@@ -20,6 +26,7 @@ from typing import Any
 import numpy as np
 
 from basestation.constraint_builder import ConstraintBuilder, Job, Verified, find_candidates
+from basestation.gps_factor import GpsWeighting
 from basestation.keyframe_store import KeyframeStore
 from basestation.loop_closure_manager import LoopClosureManager
 from basestation.pcm import LoopMeasurement
@@ -39,10 +46,16 @@ class GlobalSlam:
     def __init__(self, cfg: Config, known_starts: dict[str, np.ndarray] | None = None) -> None:
         self.cfg = cfg
         b = cfg.basestation
+        self.gps_enabled = b.gps.enabled
+        self.gps_fixes_ignored = 0  # fixes of robots not (yet) anchored by a known start
         self.graph = PoseGraph(
             relinearize_threshold=b.relinearize_threshold,
             relinearize_skip=b.relinearize_skip,
             prior_sigmas=(b.prior_sigma_xy_m, b.prior_sigma_xy_m, b.prior_sigma_yaw_rad),
+            gps_weighting=GpsWeighting.from_config(b.gps),
+            max_pending_gps_fixes=b.gps.max_pending_fixes,
+            gps_batch_period_s=b.gps.batch_period_s,
+            factorization="QR" if b.gps.enabled else "CHOLESKY",
         )
         self.store = KeyframeStore(b.reorder_window)
         self.known_starts = dict(known_starts or {})
@@ -63,8 +76,18 @@ class GlobalSlam:
             self._add_node(k)
         return len(ready)
 
+    def add_gps_fix(
+        self, robot_id: str, stamp: float, enu_xy: np.ndarray, sigmas_enu: np.ndarray
+    ) -> None:
+        """A fix in ``map`` = ENU; used once the robot's chain exists from a known start."""
+        if robot_id not in self.graph.robots() or robot_id not in self.known_starts:
+            self.gps_fixes_ignored += 1
+            return
+        self.graph.add_gps_fix(robot_id, stamp, enu_xy, sigmas_enu)
+
     def _add_node(self, kf: Keyframe) -> None:
         rid = kf.robot_id
+        stamp = float(kf.stamp) if self.gps_enabled else None  # GPS needs increasing stamps
         if kf.seq == 0:
             start = self.known_starts.get(rid)
             if start is None and not self.known_starts and not self.graph.robots():
@@ -72,12 +95,12 @@ class GlobalSlam:
                 self.known_starts[rid] = start
                 log.info("robot %s defines the map frame", rid)
             self.graph.add_robot(rid, start)
-            self.graph.add_node(rid, 0, None, None, initial_guess=start)
+            self.graph.add_node(rid, 0, None, None, initial_guess=start, stamp=stamp)
         else:
             d = kf.delta
             delta = np.array([d[0], d[1], float(quat_to_yaw(d[3:7]))])
             cov = kf.delta_cov[np.ix_([0, 1, 5], [0, 1, 5])]
-            self.graph.add_node(rid, kf.seq, delta, cov)
+            self.graph.add_node(rid, kf.seq, delta, cov, stamp=stamp)
         self._new_nodes.append((rid, kf.seq))
 
     def optimize(self) -> None:
@@ -321,4 +344,6 @@ class GlobalSlam:
             failed = sum(v for k, v in self.builder.stats.items() if k.startswith("failed_"))
         # candidates that failed scan-match verification or the consistency check
         out["rejected_candidates"] = out["rejected_by_pcm"] + failed
+        if self.gps_enabled:
+            out["gps"] = {**self.graph.gps_stats(), "fixes_ignored": self.gps_fixes_ignored}
         return out

@@ -28,12 +28,13 @@ from basestation.map_builder import MapBuilder
 from common.bus import Bus
 from common.config import Config
 from common.errors import FileFormatError
+from common.geodesy import GeoOrigin, geodetic_to_enu
 from common.geometry import pose4_to_pose7, pose7_to_pose4
 from common.map_io import read_wgs84_origin, write_map
 from common.picture import render_map_picture
 from common.scenario import Scenario
 from common.trajectory_io import write_tum
-from protocol import Keyframe, KeyframeAck, PoseCorrection, RobotState
+from protocol import GnssFix, Keyframe, KeyframeAck, PoseCorrection, RobotState
 from protocol import Path as PathMsg
 
 log = logging.getLogger(__name__)
@@ -67,6 +68,7 @@ class BaseStationNode:
         self._last_explore = 0.0
         self._path_id = 0
         self.inbox: queue.Queue[Keyframe] = queue.Queue()
+        self.gnss_inbox: queue.Queue[GnssFix] = queue.Queue()  # basestation.gps.enabled
         self.states: dict[str, RobotState] = {}
         self.epoch = 0
         self.unknown_robot_drops = 0
@@ -82,6 +84,10 @@ class BaseStationNode:
         )
         self.bus.subscribe(self.keys.all_robots("state"), RobotState, self._on_state)
         self.bus.watch_alive("agent", self._on_agent_alive)
+        if self.cfg.basestation.gps.enabled:
+            self.bus.subscribe(
+                self.keys.all_robots("sensor/gnss"), GnssFix, lambda m, k: self.gnss_inbox.put(m)
+            )
         self.bus.declare_alive("basestation", "base")
 
     def _on_state(self, msg: RobotState, key: str) -> None:
@@ -105,6 +111,7 @@ class BaseStationNode:
             admitted = 0
         else:
             admitted = self._take_batch(timeout)
+        self._take_fixes()
         if self.slam.integrate_constraints():
             self._optimized()
         now = time.monotonic()
@@ -138,6 +145,21 @@ class BaseStationNode:
                 self.keys.robot(rid, "path"),
                 PathMsg(rid, 0 if over else self._path_id, time.time(), "map", self.epoch, wp),
             )
+
+    def _take_fixes(self) -> None:
+        """GNSS fixes -> ENU at the map's WGS84 origin (the first fix's, if none) -> graph."""
+        while True:
+            try:
+                fix = self.gnss_inbox.get_nowait()
+            except queue.Empty:
+                return
+            if self.roster is not None and fix.robot_id not in self.roster:
+                continue
+            if self.wgs84_origin is None:
+                self.wgs84_origin = GeoOrigin.from_sequence(fix.lla)
+                log.info("map frame: ENU at the first GNSS fix %s", self.wgs84_origin)
+            enu = geodetic_to_enu(fix.lla, self.wgs84_origin)
+            self.slam.add_gps_fix(fix.robot_id, fix.stamp, enu[:2], fix.sigmas_enu)
 
     def _take_batch(self, timeout: float) -> int:
         batch: list[Keyframe] = []

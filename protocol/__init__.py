@@ -5,6 +5,7 @@ from protocol.keys import Keys
 from protocol.messages import (
     Altimeter,
     Cloud3D,
+    GnssFix,
     Goal,
     Imu,
     Keyframe,
@@ -26,6 +27,7 @@ __all__ = [
     "Keys",
     "Altimeter",
     "Cloud3D",
+    "GnssFix",
     "Goal",
     "Imu",
     "Keyframe",

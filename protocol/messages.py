@@ -115,6 +115,24 @@ class Altimeter(Message):
 
 
 @message
+class GnssFix(Message):
+    """A GNSS receiver fix: WGS84 position and its reported 1-sigma east, north, up
+    (seed 000 eq. 4). lla = [lat deg, lon deg, alt m above the WGS84 ellipsoid]."""
+
+    robot_id: str
+    stamp: float
+    lla: np.ndarray = array_field("f8", (3,))
+    sigmas_enu: np.ndarray = array_field("f8", (3,))  # m
+
+    def validate(self) -> None:
+        super().validate()
+        if abs(self.lla[0]) > 90.0 or abs(self.lla[1]) > 180.0:
+            raise ProtocolError(f"GnssFix.lla: latitude/longitude out of range: {self.lla}")
+        if np.any(self.sigmas_enu <= 0.0):
+            raise ProtocolError(f"GnssFix.sigmas_enu must be > 0, got {self.sigmas_enu}")
+
+
+@message
 class VehicleCommand(Message):
     """Body-frame velocity set-point for the autopilot.
 
@@ -296,6 +314,7 @@ def message_types() -> dict[str, Any]:
             Odometry,
             Imu,
             Altimeter,
+            GnssFix,
             VehicleCommand,
             Keyframe,
             KeyframeAck,

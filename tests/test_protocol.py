@@ -14,6 +14,7 @@ from protocol import (
     SCHEMA_VERSION,
     Altimeter,
     Cloud3D,
+    GnssFix,
     Goal,
     Imu,
     Keyframe,
@@ -62,6 +63,7 @@ def samples() -> list:
         Goal("r0", 1, 2.0, "odom", 3, P7),
         Path("r0", 2, 2.0, "odom", 3, np.zeros((5, 4), np.float32)),
         RobotState("r0", 2.0, "flying", 3, 10, 9, 1, P7, P7),
+        GnssFix("r0", 2.0, np.array([45.8118, 16.0106, 160.5]), np.array([1.5, 1.5, 3.0])),
     ]
 
 
@@ -167,3 +169,12 @@ def test_keys_layout() -> None:
     assert k.robot_id_of("collabslam/other/robot/r1/keyframe") is None
     with pytest.raises(Exception, match="invalid"):
         k.robot("a/b", "keyframe")
+
+
+def test_gnss_fix_validation() -> None:
+    sig = np.array([1.5, 1.5, 3.0])
+    with pytest.raises(ProtocolError, match="latitude"):
+        GnssFix("r0", 1.0, np.array([91.0, 0.0, 0.0]), sig).validate()
+    with pytest.raises(ProtocolError, match="sigmas"):
+        GnssFix("r0", 1.0, np.array([45.0, 16.0, 0.0]), np.array([1.5, 0.0, 3.0])).validate()
+    assert Keys("f").sensor("r0", "gnss") == "collabslam/f/robot/r0/sensor/gnss"

@@ -182,7 +182,7 @@ def run(
     data_dir: Path,
     world: str = "floor30x25",
     length_m: float = 300.0,
-    gnss_seeds: int = 3,
+    gnss_seeds: int = 6,
     specs: list[RunSpec] | None = None,
 ) -> dict[str, Any]:
     """Every spec on one flight with ``gnss_seeds`` independent GNSS noise draws;

@@ -309,7 +309,7 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--data-dir", default=str(_default_data_dir()))
     b.add_argument("--world", default="floor30x25")
     b.add_argument("--length", type=float, default=300.0, help="flight length (m)")
-    b.add_argument("--seeds", type=int, default=3, help="GNSS noise draws per setting")
+    b.add_argument("--seeds", type=int, default=6, help="GNSS noise draws per setting")
     b.set_defaults(
         func=cmd_bench,
         bench_kwargs=lambda a: {"world": a.world, "length_m": a.length, "gnss_seeds": a.seeds},

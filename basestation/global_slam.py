@@ -59,6 +59,8 @@ class GlobalSlam:
         )
         self.store = KeyframeStore(b.reorder_window)
         self.known_starts = dict(known_starts or {})
+        # robots started at a given map pose (not the first robot defining map): GPS-able
+        self._georeferenced = set(self.known_starts)
         self.cc = b.constraints
         self.builder = ConstraintBuilder(self.cc) if self.cc.enabled else None
         self.loops = LoopClosureManager(self.graph, self.cc, self._chain_covariance)
@@ -80,7 +82,7 @@ class GlobalSlam:
         self, robot_id: str, stamp: float, enu_xy: np.ndarray, sigmas_enu: np.ndarray
     ) -> None:
         """A fix in ``map`` = ENU; used once the robot's chain exists from a known start."""
-        if robot_id not in self.graph.robots() or robot_id not in self.known_starts:
+        if robot_id not in self.graph.robots() or robot_id not in self._georeferenced:
             self.gps_fixes_ignored += 1
             return
         self.graph.add_gps_fix(robot_id, stamp, enu_xy, sigmas_enu)

@@ -90,3 +90,13 @@ def test_fixes_travel_over_zenoh_to_the_graph(tmp_path: Path, endpoint: str) -> 
         node.write_outputs(tmp_path / "out")
     text = (tmp_path / "out" / "trajectories" / "r0.tum").read_text()
     assert "# wgs84_origin: 45.8118 16.0106 160.0" in text
+
+
+def test_fixes_of_robots_without_known_start_are_ignored() -> None:
+    slam = GlobalSlam(_cfg(), {})  # the first robot defines map: not an ENU frame
+    for seq in range(5):
+        slam.admit(_keyframe(seq))
+        slam.add_gps_fix("r0", 0.5 * seq - 0.25, np.array([0.1 * seq, 0.0]), SIG)
+    slam.optimize()
+    assert slam.stats()["gps"]["fixes_ignored"] == 5
+    assert slam.graph.gps_stats()["gps_factors"] == 0

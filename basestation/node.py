@@ -48,14 +48,20 @@ class BaseStationNode:
         # With a scenario the roster is closed (other robot ids are dropped). Its start
         # poses are used when basestation.known_start_poses is true; otherwise only the
         # first robot's (it defines the map frame) and the others are found by matching.
+        # With GPS and unknown start poses, robots start from their first GNSS fix with the
+        # scenario's start heading (standing in for the autopilot's compass, seed 000 III-C).
         starts: dict[str, np.ndarray] = {}
+        headings: dict[str, float] = {}
         self.roster: set[str] | None = None
         if scenario is not None:
             self.roster = set(scenario.robot_ids)
             starts = {r.robot_id: r.start_pose for r in scenario.robots}
-            if not cfg.basestation.known_start_poses:
+            if not cfg.basestation.known_start_poses and cfg.basestation.gps.enabled:
+                headings = {rid: float(p[2]) for rid, p in starts.items()}
+                starts = {}
+            elif not cfg.basestation.known_start_poses:
                 starts = dict(list(starts.items())[:1])
-        self.slam = GlobalSlam(cfg, starts)
+        self.slam = GlobalSlam(cfg, starts, headings)
         # With a scenario, map is the world frame: ENU at the world's WGS84 origin (if any).
         self.wgs84_origin = None
         if scenario is not None:
@@ -110,8 +116,8 @@ class BaseStationNode:
             time.sleep(min(timeout, 0.01))
             admitted = 0
         else:
+            self._take_fixes()  # first: a robot's first keyframe may start at its latest fix
             admitted = self._take_batch(timeout)
-        self._take_fixes()
         if self.slam.integrate_constraints():
             self._optimized()
         now = time.monotonic()
@@ -232,6 +238,8 @@ class BaseStationNode:
                     break
                 self._optimized()
             time.sleep(0.01)
+        if self.slam.graph.flush_gps():  # the last GPS batch, due or not
+            self._optimized()
         self.slam.close()
 
     # --- outputs ------------------------------------------------------------------------

@@ -53,13 +53,14 @@ def _fix(t: float, east: float, north: float) -> GnssFix:
 
 def test_global_slam_turns_fixes_into_factors() -> None:
     slam = GlobalSlam(_cfg(), {"r0": np.zeros(3)})
-    slam.add_gps_fix("r0", 0.0, np.zeros(2), SIG)  # before the robot's first keyframe
+    slam.add_gps_fix("r0", 0.0, np.zeros(2), SIG)  # before the first keyframe: waits for it
     for seq in range(20):
         slam.admit(_keyframe(seq))
         slam.add_gps_fix("r0", 0.5 * seq - 0.25, np.array([0.1 * seq - 0.05, 0.0]), SIG)
         slam.optimize()
     stats = slam.stats()["gps"]
-    assert stats["fixes_ignored"] == 1 and stats["gps_factors"] == 19
+    assert stats["fixes_ignored"] == 0 and stats["gps_factors"] == 20
+    assert stats["gps_dropped_before_start"] == 1  # the one at -0.25 s
     np.testing.assert_allclose(slam.graph.poses("r0")[-1, :2], [3.8, 0.0], atol=0.05)
 
 
@@ -100,3 +101,27 @@ def test_fixes_of_robots_without_known_start_are_ignored() -> None:
     slam.optimize()
     assert slam.stats()["gps"]["fixes_ignored"] == 5
     assert slam.graph.gps_stats()["gps_factors"] == 0
+
+
+def test_known_heading_starts_the_robot_at_its_fix() -> None:
+    # seed 000 III-C: no start pose, the autopilot's heading (here 0.5 rad) and GNSS fixes
+    heading = 0.5
+    slam = GlobalSlam(_cfg(), {}, {"r0": heading, "r1": 0.0})
+    truth0 = np.array([12.0, -7.0])
+    direction = np.array([np.cos(heading), np.sin(heading)])
+    slam.add_gps_fix("r0", -0.1, truth0 + [0.8, -0.5], SIG)  # first fix, 1 m off
+    rng = np.random.default_rng(0)
+    for seq in range(60):
+        slam.admit(_keyframe(seq))
+        t = 0.5 * seq + 0.25
+        slam.add_gps_fix("r0", t, truth0 + 0.4 * t * direction + rng.normal(0, 0.3, 2), SIG)
+        slam.optimize()
+    slam.graph.flush_gps()
+    slam.optimize()
+    assert slam.graph.is_anchored("r0")
+    est = slam.graph.poses("r0")
+    np.testing.assert_allclose(est[0, :2], truth0, atol=0.4)
+    assert abs(est[-1, 2] - heading) < 0.05
+    kf = _keyframe(0)
+    slam.admit(Keyframe("r1", 0, 0.0, kf.pose_odom, kf.delta, kf.delta_cov, kf.scan2d, None))
+    assert not slam.graph.is_anchored("r1")  # no fix yet: floats (never defines map)

@@ -71,6 +71,7 @@ class GlobalSlam:
         self.start_headings = dict(start_headings or {}) if b.gps.enabled else {}
         self._last_fix: dict[str, np.ndarray] = {}  # robot -> latest fix [east, north]
         self._early_fixes: dict[str, list[tuple[float, np.ndarray, np.ndarray]]] = {}
+        self._node_stamps: dict[str, float] = {}  # robot -> stamp of its latest node
         self.cc = b.constraints
         self.builder = ConstraintBuilder(self.cc) if self.cc.enabled else None
         self.loops = LoopClosureManager(self.graph, self.cc, self._chain_covariance)
@@ -107,7 +108,7 @@ class GlobalSlam:
 
     def _add_node(self, kf: Keyframe) -> None:
         rid = kf.robot_id
-        stamp = float(kf.stamp) if self.gps_enabled else None  # GPS needs increasing stamps
+        stamp = self._node_stamp(kf) if self.gps_enabled else None
         if kf.seq == 0:
             start = self.known_starts.get(rid)
             start_sigmas = None
@@ -137,6 +138,20 @@ class GlobalSlam:
             cov = kf.delta_cov[np.ix_([0, 1, 5], [0, 1, 5])]
             self.graph.add_node(rid, kf.seq, delta, cov, stamp=stamp)
         self._new_nodes.append((rid, kf.seq))
+
+    def _node_stamp(self, kf: Keyframe) -> float:
+        """The keyframe's stamp, nudged past its predecessor's if time went backwards
+        (bad input must not stop the base station; GPS needs increasing node stamps)."""
+        stamps = self._node_stamps
+        last = stamps.get(kf.robot_id) if kf.seq > 0 else None
+        stamp = float(kf.stamp)
+        if last is not None and not stamp > last:
+            log.warning(
+                "robot %s keyframe %d: stamp %.3f not after %.3f", kf.robot_id, kf.seq, stamp, last
+            )
+            stamp = last + 1e-6
+        stamps[kf.robot_id] = stamp
+        return stamp
 
     def optimize(self) -> None:
         t0 = time.perf_counter()

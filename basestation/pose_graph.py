@@ -213,7 +213,7 @@ class PoseGraph:
         chain = self._chain(robot_id)
         if index != chain.size:
             raise CollabSlamError(f"robot {robot_id!r}: expected node {chain.size}, got {index}")
-        self._record_stamp(robot_id, chain, stamp)
+        self._check_stamp(robot_id, chain, stamp)
         guess = None if initial_guess is None else _vec3(initial_guess, "initial_guess")
         key = gtsam.symbol(chain.char, index)
         if index == 0:
@@ -239,6 +239,10 @@ class PoseGraph:
             prev = gtsam.symbol(chain.char, index - 1)
             self._add_factor(gtsam.BetweenFactorPose2(prev, key, _pose2(d), noise), "odometry")
         chain.pending.append(guess)
+        if stamp is None:
+            chain.stamps = None
+        elif chain.stamps is not None:
+            chain.stamps.append(float(stamp))
         self._attach_gps(robot_id)
 
     def add_gps_fix(
@@ -268,17 +272,13 @@ class PoseGraph:
             "gps_dropped_overflow": self._gps.dropped_overflow,
         }
 
-    def _record_stamp(self, robot_id: str, chain: _Chain, stamp: float | None) -> None:
+    def _check_stamp(self, robot_id: str, chain: _Chain, stamp: float | None) -> None:
         if stamp is None:
             if chain.stamps is not None and self._gps.pending(robot_id):
                 raise CollabSlamError(f"robot {robot_id!r}: GPS fixes wait, nodes need stamps")
-            chain.stamps = None
-            return
-        if chain.stamps is None:
-            return
-        if not np.isfinite(stamp) or (chain.stamps and stamp <= chain.stamps[-1]):
-            raise CollabSlamError(f"robot {robot_id!r}: node stamps must increase, got {stamp}")
-        chain.stamps.append(float(stamp))
+        elif chain.stamps is not None:
+            if not np.isfinite(stamp) or (chain.stamps and stamp <= chain.stamps[-1]):
+                raise CollabSlamError(f"robot {robot_id!r}: node stamps must increase, got {stamp}")
 
     def flush_gps(self) -> int:
         """Turn every bracketed fix into a factor now, batch due or not (e.g. at shutdown)."""

@@ -125,3 +125,15 @@ def test_known_heading_starts_the_robot_at_its_fix() -> None:
     kf = _keyframe(0)
     slam.admit(Keyframe("r1", 0, 0.0, kf.pose_odom, kf.delta, kf.delta_cov, kf.scan2d, None))
     assert not slam.graph.is_anchored("r1")  # no fix yet: floats (never defines map)
+
+
+def test_time_going_backwards_does_not_stop_the_graph() -> None:
+    slam = GlobalSlam(_cfg(), {"r0": np.zeros(3)})
+    for seq in range(4):
+        kf = _keyframe(seq)
+        stamp = 1.0 if seq == 3 else kf.stamp  # keyframe 3 claims an older time
+        slam.admit(
+            Keyframe("r0", seq, stamp, kf.pose_odom, kf.delta, kf.delta_cov, kf.scan2d, None)
+        )
+    slam.optimize()
+    assert slam.graph.num_nodes("r0") == 4

@@ -20,6 +20,11 @@ component's own frame and carries no information. When a constraint joins
 components, surplus gauge priors are removed in the same update (so the merge is
 not biased) and extra iterations let the moved chain settle; if removing a
 constraint splits a component again, a gauge prior is re-added.
+
+GPS (seed 000 §III): ``add_gps_fix`` queues a fix until the node after it exists
+(nodes need stamps), then adds a ``gps_factor`` on the two nodes around it, in
+batches (``gps_batch_period_s``). A GPS chain starts with a loose prior
+(``add_robot(..., start_sigmas)``) and counts as anchored; use QR then.
 """
 
 from __future__ import annotations

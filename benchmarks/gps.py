@@ -3,7 +3,8 @@
 One simulated flight with loops (`benchmarks.gps_flight`), GNSS fixes from
 `simulation.gnss` (sigma 1.5 m, 1 Hz, bias, outages; 10 % multipath outliers in
 the outlier runs, the same fixes otherwise), and the base station's `PoseGraph`
-fed keyframe by keyframe (one iSAM2 update per keyframe), for each setting:
+fed keyframe by keyframe (one iSAM2 update per keyframe, GPS fixes in the
+configured batches), for each setting:
 
 - ``none``: no GPS factor; the start is the first fix with the autopilot's heading
   (the virtual ENU-origin trajectory of §III-C), the only georeference;

@@ -9,6 +9,14 @@ any known start, the first robot to send a keyframe defines the map frame
 (its odom frame at its first keyframe). Every other robot's chain floats in its
 own frame until verified inter-robot constraints join it to the map; until
 then it gets no correction and is left out of the map.
+
+GPS (``basestation.gps.enabled``): ``map`` is the ENU frame the fixes are
+converted to (in simulation also the world frame). A robot with a known start
+uses its fixes as GPS factors (``PoseGraph.add_gps_fix``). A robot with only a
+known *heading* (the autopilot's at takeoff, ``start_headings``) starts on the
+virtual ENU-origin trajectory of seed 000 §III-C: its first node gets a loose
+prior at its latest fix with that heading, and the fixes anchor it. Other robots
+ignore their fixes and float as without GPS.
 """
 
 from __future__ import annotations
@@ -20,6 +28,7 @@ from typing import Any
 import numpy as np
 
 from basestation.constraint_builder import ConstraintBuilder, Job, Verified, find_candidates
+from basestation.gps_factor import GpsWeighting
 from basestation.keyframe_store import KeyframeStore
 from basestation.loop_closure_manager import LoopClosureManager
 from basestation.pcm import LoopMeasurement
@@ -36,16 +45,33 @@ NodeKey = tuple[str, int]
 
 
 class GlobalSlam:
-    def __init__(self, cfg: Config, known_starts: dict[str, np.ndarray] | None = None) -> None:
+    def __init__(
+        self,
+        cfg: Config,
+        known_starts: dict[str, np.ndarray] | None = None,
+        start_headings: dict[str, float] | None = None,  # rad in ENU, GPS only
+    ) -> None:
         self.cfg = cfg
         b = cfg.basestation
+        self.gps_enabled = b.gps.enabled
+        self.gps_fixes_ignored = 0  # fixes of robots not (yet) anchored by a known start
         self.graph = PoseGraph(
             relinearize_threshold=b.relinearize_threshold,
             relinearize_skip=b.relinearize_skip,
             prior_sigmas=(b.prior_sigma_xy_m, b.prior_sigma_xy_m, b.prior_sigma_yaw_rad),
+            gps_weighting=GpsWeighting.from_config(b.gps),
+            max_pending_gps_fixes=b.gps.max_pending_fixes,
+            gps_batch_period_s=b.gps.batch_period_s,
+            factorization="QR" if b.gps.enabled else "CHOLESKY",
         )
         self.store = KeyframeStore(b.reorder_window)
         self.known_starts = dict(known_starts or {})
+        # robots started at a given map pose (not the first robot defining map): GPS-able
+        self._georeferenced = set(self.known_starts)
+        self.start_headings = dict(start_headings or {}) if b.gps.enabled else {}
+        self._last_fix: dict[str, np.ndarray] = {}  # robot -> latest fix [east, north]
+        self._early_fixes: dict[str, list[tuple[float, np.ndarray, np.ndarray]]] = {}
+        self._node_stamps: dict[str, float] = {}  # robot -> stamp of its latest node
         self.cc = b.constraints
         self.builder = ConstraintBuilder(self.cc) if self.cc.enabled else None
         self.loops = LoopClosureManager(self.graph, self.cc, self._chain_covariance)
@@ -63,22 +89,69 @@ class GlobalSlam:
             self._add_node(k)
         return len(ready)
 
+    def add_gps_fix(
+        self, robot_id: str, stamp: float, enu_xy: np.ndarray, sigmas_enu: np.ndarray
+    ) -> None:
+        """A fix in ``map`` = ENU; used once the robot's chain exists from a known start
+        or heading."""
+        self._last_fix[robot_id] = np.asarray(enu_xy, dtype=np.float64)[:2]
+        expected = robot_id in self.known_starts or robot_id in self.start_headings
+        if robot_id not in self.graph.robots() and expected:  # wait for its first keyframe
+            early = self._early_fixes.setdefault(robot_id, [])
+            early.append((stamp, enu_xy, sigmas_enu))
+            del early[: -self.cfg.basestation.gps.max_pending_fixes]
+            return
+        if robot_id not in self.graph.robots() or robot_id not in self._georeferenced:
+            self.gps_fixes_ignored += 1
+            return
+        self.graph.add_gps_fix(robot_id, stamp, enu_xy, sigmas_enu)
+
     def _add_node(self, kf: Keyframe) -> None:
         rid = kf.robot_id
+        stamp = self._node_stamp(kf) if self.gps_enabled else None
         if kf.seq == 0:
             start = self.known_starts.get(rid)
-            if start is None and not self.known_starts and not self.graph.robots():
-                start = np.zeros(3)  # the first robot defines the map frame
-                self.known_starts[rid] = start
-                log.info("robot %s defines the map frame", rid)
-            self.graph.add_robot(rid, start)
-            self.graph.add_node(rid, 0, None, None, initial_guess=start)
+            start_sigmas = None
+            if start is None and rid in self.start_headings and rid in self._last_fix:
+                g = self.cfg.basestation.gps  # virtual ENU-origin trajectory (seed 000 §III-C)
+                start = np.array([*self._last_fix[rid], self.start_headings[rid]])
+                start_sigmas = (g.start_sigma_xy_m, g.start_sigma_xy_m, g.start_sigma_yaw_rad)
+                self._georeferenced.add(rid)
+                log.info("robot %s starts georeferenced at its latest GNSS fix", rid)
+            elif start is None and rid in self.start_headings:
+                log.warning("robot %s: no GNSS fix before its first keyframe, it floats", rid)
+            elif start is None and not self.known_starts and not self.start_headings:
+                if not self.graph.robots():
+                    start = np.zeros(3)  # the first robot defines the map frame
+                    self.known_starts[rid] = start
+                    log.info("robot %s defines the map frame", rid)
+            self.graph.add_robot(rid, start, start_sigmas)
+            self.graph.add_node(rid, 0, None, None, initial_guess=start, stamp=stamp)
+            for fix in self._early_fixes.pop(rid, []):  # fixes older than the node drop
+                if rid in self._georeferenced:
+                    self.graph.add_gps_fix(rid, *fix)
+                else:
+                    self.gps_fixes_ignored += 1
         else:
             d = kf.delta
             delta = np.array([d[0], d[1], float(quat_to_yaw(d[3:7]))])
             cov = kf.delta_cov[np.ix_([0, 1, 5], [0, 1, 5])]
-            self.graph.add_node(rid, kf.seq, delta, cov)
+            self.graph.add_node(rid, kf.seq, delta, cov, stamp=stamp)
         self._new_nodes.append((rid, kf.seq))
+
+    def _node_stamp(self, kf: Keyframe) -> float:
+        """The keyframe's stamp, nudged past its predecessor's if time went backwards
+        (bad input must not stop the base station; GPS needs increasing node stamps)."""
+        stamps = self._node_stamps
+        last = stamps.get(kf.robot_id) if kf.seq > 0 else None
+        stamp = float(kf.stamp)
+        if last is not None and not stamp > last:
+            log.warning(
+                "robot %s keyframe %d: stamp %.3f not after %.3f", kf.robot_id, kf.seq, stamp, last
+            )
+            stamp = last + 1e-6
+        stamps[kf.robot_id] = stamp
+        return stamp
 
     def optimize(self) -> None:
         t0 = time.perf_counter()
@@ -321,4 +394,6 @@ class GlobalSlam:
             failed = sum(v for k, v in self.builder.stats.items() if k.startswith("failed_"))
         # candidates that failed scan-match verification or the consistency check
         out["rejected_candidates"] = out["rejected_by_pcm"] + failed
+        if self.gps_enabled:
+            out["gps"] = {**self.graph.gps_stats(), "fixes_ignored": self.gps_fixes_ignored}
         return out

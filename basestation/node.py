@@ -28,12 +28,14 @@ from basestation.map_builder import MapBuilder
 from basestation.map_history import MapHistory
 from common.bus import Bus
 from common.config import Config
+from common.errors import FileFormatError
+from common.geodesy import GeoOrigin, geodetic_to_enu
 from common.geometry import pose4_to_pose7, pose7_to_pose4
-from common.map_io import write_map
+from common.map_io import read_wgs84_origin, write_map
 from common.picture import render_map_picture
 from common.scenario import Scenario
 from common.trajectory_io import write_tum
-from protocol import ClockSync, Keyframe, KeyframeAck, PoseCorrection, RobotState
+from protocol import ClockSync, GnssFix, Keyframe, KeyframeAck, PoseCorrection, RobotState
 from protocol import Path as PathMsg
 
 log = logging.getLogger(__name__)
@@ -47,19 +49,33 @@ class BaseStationNode:
         # With a scenario the roster is closed (other robot ids are dropped). Its start
         # poses are used when basestation.known_start_poses is true; otherwise only the
         # first robot's (it defines the map frame) and the others are found by matching.
+        # With GPS and unknown start poses, robots start from their first GNSS fix with the
+        # scenario's start heading (standing in for the autopilot's compass, seed 000 III-C).
         starts: dict[str, np.ndarray] = {}
+        headings: dict[str, float] = {}
         self.roster: set[str] | None = None
         if scenario is not None:
             self.roster = set(scenario.robot_ids)
             starts = {r.robot_id: r.start_pose for r in scenario.robots}
-            if not cfg.basestation.known_start_poses:
+            if not cfg.basestation.known_start_poses and cfg.basestation.gps.enabled:
+                headings = {rid: float(p[2]) for rid, p in starts.items()}
+                starts = {}
+            elif not cfg.basestation.known_start_poses:
                 starts = dict(list(starts.items())[:1])
-        self.slam = GlobalSlam(cfg, starts)
+        self.slam = GlobalSlam(cfg, starts, headings)
+        # With a scenario, map is the world frame: ENU at the world's WGS84 origin (if any).
+        self.wgs84_origin = None
+        if scenario is not None:
+            try:
+                self.wgs84_origin = read_wgs84_origin(scenario.world)
+            except FileFormatError as exc:
+                log.warning("no WGS84 origin for the map: %s", exc)
         self.map = MapBuilder(cfg.map)
         self.explorer = make_explorer(cfg) if cfg.exploration.enabled else None
         self._last_explore = 0.0
         self._path_id = 0
         self.inbox: queue.Queue[Keyframe] = queue.Queue()
+        self.gnss_inbox: queue.Queue[GnssFix] = queue.Queue()  # basestation.gps.enabled
         self.states: dict[str, RobotState] = {}
         self.epoch = 0
         self.unknown_robot_drops = 0
@@ -82,6 +98,10 @@ class BaseStationNode:
         if self.explorer is not None:
             self.bus.subscribe(self.keys.clock("sim"), ClockSync, self._on_sim_clock)
         self.bus.watch_alive("agent", self._on_agent_alive)
+        if self.cfg.basestation.gps.enabled:
+            self.bus.subscribe(
+                self.keys.all_robots("sensor/gnss"), GnssFix, lambda m, k: self.gnss_inbox.put(m)
+            )
         self.bus.declare_alive("basestation", "base")
 
     def _on_sim_clock(self, msg: ClockSync, key: str) -> None:
@@ -108,6 +128,7 @@ class BaseStationNode:
             time.sleep(min(timeout, 0.01))
             admitted = 0
         else:
+            self._take_fixes()  # first: a robot's first keyframe may start at its latest fix
             admitted = self._take_batch(timeout)
         if self.slam.integrate_constraints():
             self._optimized()
@@ -171,14 +192,30 @@ class BaseStationNode:
                 self._path_id,
                 rid,
                 *poses[rid][:2],
-                "hold" if path is None else f"{len(path)} points to ({path[-1, 0]:.1f}, "
-                f"{path[-1, 1]:.1f})",
+                "hold"
+                if path is None
+                else f"{len(path)} points to ({path[-1, 0]:.1f}, {path[-1, 1]:.1f})",
             )
             wp = np.column_stack([p, np.full(len(p), z), np.zeros(len(p))]).astype(np.float32)
             self.bus.publish(
                 self.keys.robot(rid, "path"),
                 PathMsg(rid, 0 if over else self._path_id, time.time(), "map", self.epoch, wp),
             )
+
+    def _take_fixes(self) -> None:
+        """GNSS fixes -> ENU at the map's WGS84 origin (the first fix's, if none) -> graph."""
+        while True:
+            try:
+                fix = self.gnss_inbox.get_nowait()
+            except queue.Empty:
+                return
+            if self.roster is not None and fix.robot_id not in self.roster:
+                continue
+            if self.wgs84_origin is None:
+                self.wgs84_origin = GeoOrigin.from_sequence(fix.lla)
+                log.info("map frame: ENU at the first GNSS fix %s", self.wgs84_origin)
+            enu = geodetic_to_enu(fix.lla, self.wgs84_origin)
+            self.slam.add_gps_fix(fix.robot_id, fix.stamp, enu[:2], fix.sigmas_enu)
 
     def _take_batch(self, timeout: float) -> int:
         batch: list[Keyframe] = []
@@ -251,6 +288,8 @@ class BaseStationNode:
                     break
                 self._optimized()
             time.sleep(0.01)
+        if self.slam.graph.flush_gps():  # the last GPS batch, due or not
+            self._optimized()
         self.slam.close()
 
     # --- outputs ------------------------------------------------------------------------
@@ -280,10 +319,11 @@ class BaseStationNode:
         self.refresh_map()
         trajs = self.slam.trajectories()
         for rid, traj in trajs.items():
-            write_tum(out / "trajectories" / f"{rid}.tum", traj)
+            write_tum(out / "trajectories" / f"{rid}.tum", traj, wgs84_origin=self.wgs84_origin)
         grid = self.map.gridmap()
         on_map = {rid: t for rid, t in trajs.items() if self.slam.graph.is_anchored(rid)}
         if grid is not None:
+            grid.wgs84_origin = self.wgs84_origin
             write_map(grid, out / "map.yaml", "map.pgm")
             render_map_picture(
                 out / "map.png",

@@ -20,6 +20,11 @@ component's own frame and carries no information. When a constraint joins
 components, surplus gauge priors are removed in the same update (so the merge is
 not biased) and extra iterations let the moved chain settle; if removing a
 constraint splits a component again, a gauge prior is re-added.
+
+GPS (seed 000 §III): ``add_gps_fix`` queues a fix until the node after it exists
+(nodes need stamps), then adds a ``gps_factor`` on the two nodes around it, in
+batches (``gps_batch_period_s``). A GPS chain starts with a loose prior
+(``add_robot(..., start_sigmas)``) and counts as anchored; use QR then.
 """
 
 from __future__ import annotations
@@ -34,6 +39,8 @@ import gtsam
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from basestation.gps_factor import GpsWeighting, gps_noise, make_gps_factor
+from basestation.gps_fixes import GpsFix, GpsFixQueue
 from common.errors import CollabSlamError
 from common.geometry import se2_compose, wrap_angle
 
@@ -42,7 +49,7 @@ logger = logging.getLogger(__name__)
 FloatArray = NDArray[np.float64]
 ROBOT_KEY_ALPHABET = "abcdefghijklmnopqrstuvwxyz"
 ROBUST_KERNELS = ("huber", "cauchy")
-FactorKind = Literal["odometry", "start", "gauge", "constraint"]  # start: known-start prior
+FactorKind = Literal["odometry", "start", "gauge", "constraint", "gps"]  # start: known-start prior
 
 
 @dataclass(frozen=True)
@@ -74,6 +81,8 @@ class _Chain:
     num_committed: int = 0  # nodes already inside iSAM2
     pending: list[FloatArray] = field(default_factory=list)  # initial guesses not yet inside
     gauge_factor: int | None = None  # factor id of this chain's gauge prior, if any
+    start_sigmas: FloatArray | None = None  # loose start prior (GPS: virtual ENU origin)
+    stamps: list[float] | None = field(default_factory=list)  # node stamps; None: unstamped
 
     @property
     def size(self) -> int:
@@ -128,9 +137,17 @@ class PoseGraph:
         change_epsilon: float = 1e-4,  # m or rad: a robot "changed" beyond this
         settle_iterations: int = 10,  # max extra iterations after components merge
         track_changes: bool = True,  # False: no changed_robots, the O(n) estimate is lazy
+        gps_weighting: GpsWeighting | None = None,  # None: GpsWeighting() defaults
+        max_pending_gps_fixes: int = 1000,  # per robot, fixes waiting for their nodes
+        gps_batch_period_s: float = 0.0,  # s of node time between GPS releases (0: at once)
+        # QR with loose start priors (GPS): gtsam's Cholesky calls a 100 m start prior next
+        # to 1 mm odometry "indeterminate" (information ratio 1e10).
+        factorization: str = "CHOLESKY",
     ) -> None:
         params = gtsam.ISAM2Params()
-        params.setFactorization("CHOLESKY")
+        if factorization not in ("CHOLESKY", "QR"):
+            raise CollabSlamError(f"factorization must be CHOLESKY or QR, got {factorization!r}")
+        params.setFactorization(factorization)
         params.setRelinearizeThreshold(relinearize_threshold)
         params.relinearizeSkip = relinearize_skip
         params.findUnusedFactorSlots = False  # factor slots stay stable for removal
@@ -150,16 +167,37 @@ class PoseGraph:
         self._guesses = gtsam.Values()  # every initial guess handed to iSAM2 (for batch)
         self._estimate = np.zeros((0, 3))  # committed poses, rows in key order
         self._estimate_valid = True  # False: recompute on the next full-estimate query
+        self._gps_weighting = gps_weighting or GpsWeighting()
+        self._gps = GpsFixQueue(max_pending_gps_fixes, gps_batch_period_s)
+        self.num_gps_factors = 0
 
     # ----- building the graph -------------------------------------------------------
-    def add_robot(self, robot_id: str, T_map_first: ArrayLike | None) -> None:
-        """Register a chain; ``T_map_first`` is its known start, or None if it floats."""
+    def add_robot(
+        self,
+        robot_id: str,
+        T_map_first: ArrayLike | None,
+        start_sigmas: ArrayLike | None = None,
+    ) -> None:
+        """Register a chain; ``T_map_first`` is its known start, or None if it floats.
+
+        ``start_sigmas`` ([m, m, rad]) makes the start prior loose instead of the firm
+        ``prior_sigmas``: with GPS, ``T_map_first`` is the first fix with the autopilot's
+        heading (seed 000 §III-C, a virtual ENU-origin trajectory) and the fixes anchor
+        the chain. Such a chain counts as anchored (it lives in ``map``).
+        """
         if robot_id in self._chains:
             raise CollabSlamError(f"robot {robot_id!r} is already registered")
         if len(self._chains) >= len(ROBOT_KEY_ALPHABET):
             raise CollabSlamError(f"at most {len(ROBOT_KEY_ALPHABET)} robots are supported")
         start = None if T_map_first is None else _vec3(T_map_first, "T_map_first")
-        self._chains[robot_id] = _Chain(ROBOT_KEY_ALPHABET[len(self._chains)], start)
+        chain = _Chain(ROBOT_KEY_ALPHABET[len(self._chains)], start)
+        if start_sigmas is not None:
+            if start is None:
+                raise CollabSlamError("start_sigmas needs a T_map_first")
+            chain.start_sigmas = _vec3(start_sigmas, "start_sigmas")
+            if np.any(chain.start_sigmas <= 0):
+                raise CollabSlamError(f"start_sigmas must be > 0, got {start_sigmas!r}")
+        self._chains[robot_id] = chain
 
     def add_node(
         self,
@@ -168,15 +206,19 @@ class PoseGraph:
         delta: ArrayLike | None,
         covariance: ArrayLike | None,
         initial_guess: ArrayLike | None = None,
+        stamp: float | None = None,
     ) -> None:
         """Append node ``index`` to a chain; ``delta`` is T_prev_node (None for index 0).
 
         The initial guess defaults to the previous node's estimate composed with
         ``delta`` (index 0: the known start, or the origin of a floating chain).
+        ``stamp`` (s, increasing along the chain) is needed for GPS fixes; a node
+        added without one turns GPS off for its chain.
         """
         chain = self._chain(robot_id)
         if index != chain.size:
             raise CollabSlamError(f"robot {robot_id!r}: expected node {chain.size}, got {index}")
+        self._check_stamp(robot_id, chain, stamp)
         guess = None if initial_guess is None else _vec3(initial_guess, "initial_guess")
         key = gtsam.symbol(chain.char, index)
         if index == 0:
@@ -186,7 +228,10 @@ class PoseGraph:
             if guess is None:
                 guess = np.zeros(3) if start is None else start
             if start is not None:
-                prior = gtsam.PriorFactorPose2(key, _pose2(start), self._prior_noise)
+                noise = self._prior_noise
+                if chain.start_sigmas is not None:
+                    noise = gtsam.noiseModel.Diagonal.Sigmas(chain.start_sigmas)
+                prior = gtsam.PriorFactorPose2(key, _pose2(start), noise)
                 self._add_factor(prior, "start")
             self._topology_dirty = True
         else:
@@ -199,6 +244,70 @@ class PoseGraph:
             prev = gtsam.symbol(chain.char, index - 1)
             self._add_factor(gtsam.BetweenFactorPose2(prev, key, _pose2(d), noise), "odometry")
         chain.pending.append(guess)
+        if stamp is None:
+            chain.stamps = None
+        elif chain.stamps is not None:
+            chain.stamps.append(float(stamp))
+        self._attach_gps(robot_id)
+
+    def add_gps_fix(
+        self, robot_id: str, stamp: float, enu_xy: ArrayLike, sigmas_enu: ArrayLike
+    ) -> int:
+        """Queue a GPS fix ([east, north] m in ``map`` = ENU, reported [sigma_e, sigma_n,
+        sigma_u] m, eq. 4) taken at ``stamp``; returns how many GPS factors this added
+        (0 while the fix waits for the node after it, see ``basestation.gps_fixes``)."""
+        chain = self._chain(robot_id)
+        if chain.stamps is None:
+            raise CollabSlamError(f"robot {robot_id!r} has unstamped nodes: no GPS possible")
+        xy = np.asarray(enu_xy, dtype=np.float64).reshape(-1)
+        sig = np.asarray(sigmas_enu, dtype=np.float64).reshape(-1)
+        if xy.shape != (2,) or sig.shape != (3,) or not np.all(np.isfinite([*xy, *sig, stamp])):
+            raise CollabSlamError("a GPS fix needs a finite stamp, [east, north] and 3 sigmas")
+        if np.any(sig <= 0):
+            raise CollabSlamError(f"GPS sigmas must be > 0, got {sigmas_enu!r}")
+        self._gps.add(robot_id, GpsFix(float(stamp), xy, sig))
+        return self._attach_gps(robot_id)
+
+    def gps_stats(self) -> dict[str, int]:
+        """GPS factors added, fixes waiting and fixes dropped (too old, queue overflow)."""
+        return {
+            "gps_factors": self.num_gps_factors,
+            "gps_pending": sum(self._gps.pending(r) for r in self._chains),
+            "gps_dropped_before_start": self._gps.dropped_before_start,
+            "gps_dropped_overflow": self._gps.dropped_overflow,
+        }
+
+    def _check_stamp(self, robot_id: str, chain: _Chain, stamp: float | None) -> None:
+        if stamp is None:
+            if chain.stamps is not None and self._gps.pending(robot_id):
+                raise CollabSlamError(f"robot {robot_id!r}: GPS fixes wait, nodes need stamps")
+        elif chain.stamps is not None:
+            if not np.isfinite(stamp) or (chain.stamps and stamp <= chain.stamps[-1]):
+                raise CollabSlamError(f"robot {robot_id!r}: node stamps must increase, got {stamp}")
+
+    def flush_gps(self) -> int:
+        """Turn every bracketed fix into a factor now, batch due or not (e.g. at shutdown)."""
+        return sum(self._attach_gps(robot_id, flush=True) for robot_id in self._chains)
+
+    def _attach_gps(self, robot_id: str, flush: bool = False) -> int:
+        chain = self._chains[robot_id]
+        if chain.stamps is None:
+            return 0
+        w = self._gps_weighting
+        added = 0
+        for b in self._gps.ready(robot_id, chain.stamps, flush):
+            factor = make_gps_factor(
+                gtsam.symbol(chain.char, b.i),
+                gtsam.symbol(chain.char, b.j),
+                b.beta,
+                b.fix.enu_xy,
+                gps_noise(b.fix.sigmas_enu, w),
+                w.lever_arm,
+            )
+            self._add_factor(factor, "gps")
+            added += 1
+        self.num_gps_factors += added
+        return added
 
     def add_constraint(
         self,
@@ -271,11 +380,16 @@ class PoseGraph:
             for fid, slot in zip(new_ids, result.getNewFactorsIndices(), strict=True):
                 self._factors[fid].isam_index = slot
             iterations = 1
-            for _ in range(max(extra_iterations, self._settle_iterations if merged else 0)):
+            # a merge or a GPS batch moves whole chains: settle them within this update
+            gps = any(self._factors[fid].kind == "gps" for fid in new_ids)
+            settle = self._settle_iterations if merged or gps else 0
+            for _ in range(max(extra_iterations, settle)):
                 iterations += 1
                 extra = self._isam.update(force_relinearize=True)  # even between skips
                 if extra.getVariablesRelinearized() == 0:
                     break
+            if settle:  # back-substitute now (lazy in gtsam: it would land in the next update)
+                self._isam.getDelta()
         except RuntimeError as exc:  # e.g. gtsam's IndeterminantLinearSystemException
             raise CollabSlamError(
                 f"iSAM2 update failed, the pose graph is unusable: {exc}"

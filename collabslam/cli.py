@@ -354,6 +354,21 @@ def build_parser() -> argparse.ArgumentParser:
             "scenarios": a.scenarios,
         },
     )
+    b = bn.add_parser(
+        "gps",
+        help="GPS factors (seed 000 eq. 3-7): georeferenced ATE per weighting, Huber vs. "
+        "multipath outliers, iSAM2 update p95 with/without GPS, Fig. 8-like PNG",
+    )
+    common(b, zenoh=False)
+    b.add_argument("--json", required=True, help="output JSON file (PNG and TUMs next to it)")
+    b.add_argument("--data-dir", default=str(_default_data_dir()))
+    b.add_argument("--world", default="floor30x25")
+    b.add_argument("--length", type=float, default=300.0, help="flight length (m)")
+    b.add_argument("--seeds", type=int, default=6, help="GNSS noise draws per setting")
+    b.set_defaults(
+        func=cmd_bench,
+        bench_kwargs=lambda a: {"world": a.world, "length_m": a.length, "gnss_seeds": a.seeds},
+    )
 
     sp = sub.add_parser("eval", help="score results against references")
     ev = sp.add_subparsers(dest="eval_command", required=True)

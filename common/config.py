@@ -75,6 +75,34 @@ class QuadrotorConfig:
 
 
 @dataclass
+class GnssConfig:
+    """Simulated GNSS receiver (seed 000 §III): fixes in WGS84 with ENU sigmas (eq. 4)."""
+
+    enabled: bool = False  # true: the simulator produces fixes (bench gps uses the model directly)
+    rate_hz: float = 1.0  # Hz, fix rate
+    sigma_east_m: float = 1.5  # m, nominal 1-sigma of the reported and true east error
+    sigma_north_m: float = 1.5  # m, north
+    sigma_up_m: float = 3.0  # m, up (GNSS altitude is worse than horizontal)
+    # Log-normal spread of the per-fix sigmas around the nominal ones (0: constant); the
+    # log factor is an AR(1) with this correlation time, so quality changes slowly.
+    sigma_variation: float = 0.3
+    sigma_correlation_s: float = 30.0  # s
+    bias_east_m: float = 0.1  # m, constant error added to every fix
+    bias_north_m: float = -0.1  # m
+    bias_up_m: float = 0.5  # m
+    vertical_drift_mps: float = 0.002  # m/s, slow drift of the up error (barometric-like)
+    outage_rate_per_min: float = 0.5  # outages started per minute of fixes (Poisson)
+    outage_duration_s: float = 10.0  # s without any fix per outage
+    outlier_fraction: float = 0.0  # fraction of fixes with a multipath jump
+    outlier_min_m: float = 5.0  # m, horizontal size of a multipath jump ...
+    outlier_max_m: float = 20.0  # m ... uniform between min and max, random direction
+    # WGS84 origin of a world whose map YAML has none (Zagreb, seed 000's test site).
+    origin_lat_deg: float = 45.8118  # deg
+    origin_lon_deg: float = 16.0106  # deg
+    origin_alt_m: float = 160.0  # m above the WGS84 ellipsoid
+
+
+@dataclass
 class SimConfig:
     clock: str = "lockstep"  # lockstep | realtime (rate x real time)
     rate: float = 1.0  # sim seconds per wall second when clock = realtime
@@ -95,6 +123,7 @@ class SimConfig:
     imu: ImuConfig = field(default_factory=ImuConfig)
     altimeter: AltimeterConfig = field(default_factory=AltimeterConfig)
     quadrotor: QuadrotorConfig = field(default_factory=QuadrotorConfig)
+    gnss: GnssConfig = field(default_factory=GnssConfig)
 
 
 @dataclass
@@ -227,6 +256,29 @@ class ConstraintConfig:
 
 
 @dataclass
+class GpsConfig:
+    """GPS position factors in the pose graph (seed 000 §III, eq. 3-7); map = ENU."""
+
+    enabled: bool = False
+    weighting: str = "inverse"  # inverse (eq. 5) | isotropic (eq. 6, worst sigma) | affine (eq. 7)
+    a: float = 1.0  # eq. 7: weight = a / sigma + b (per axis), 1/m
+    b: float = 0.0  # eq. 7, 1/m
+    huber: bool = True  # Huber loss on the whitened GPS residual
+    huber_k: float = 1.345  # Huber width in whitened units
+    sigma_min_m: float = 0.05  # m, floor on reported sigmas
+    antenna_x_m: float = 0.0  # m, GPS antenna lever arm in the body frame (forward)
+    antenna_y_m: float = 0.0  # m (left)
+    # Virtual ENU-origin trajectory (seed 000 §III-C): the first node gets a prior at the
+    # first fix with the autopilot's heading; loose in position, as firm as a compass in yaw.
+    start_sigma_xy_m: float = 100.0  # m
+    start_sigma_yaw_rad: float = 0.1  # rad, magnetometer heading
+    max_pending_fixes: int = 1000  # per robot: fixes waiting for their bracketing nodes
+    # s of keyframe time between GPS batches into iSAM2 (seed 000: at the periodic
+    # optimizations, once a minute); every GPS update moves the whole trajectory.
+    batch_period_s: float = 30.0
+
+
+@dataclass
 class BaseStationConfig:
     relinearize_threshold: float = 0.1
     relinearize_skip: int = 1
@@ -242,6 +294,7 @@ class BaseStationConfig:
     pause_intake_backlog: int = 0
     drain_timeout_s: float = 60.0  # s wall: at shutdown, finish pending verifications this long
     constraints: ConstraintConfig = field(default_factory=ConstraintConfig)
+    gps: GpsConfig = field(default_factory=GpsConfig)
 
 
 @dataclass
@@ -485,6 +538,34 @@ def validate(cfg: Config) -> None:
         )
     if not 0.0 < cfg.agent.outbox_warn_fraction <= 1.0:
         raise ConfigError("agent.outbox_warn_fraction: expected a value in (0, 1]")
+    _validate_gps(cfg)
+
+
+def _validate_gps(cfg: Config) -> None:
+    g = cfg.sim.gnss
+    for key in ("rate_hz", "sigma_east_m", "sigma_north_m", "sigma_up_m", "sigma_correlation_s"):
+        _positive(f"sim.gnss.{key}", getattr(g, key))
+    for key in ("sigma_variation", "outage_rate_per_min", "outage_duration_s", "outlier_min_m"):
+        if getattr(g, key) < 0.0:
+            raise ConfigError(f"sim.gnss.{key}: expected a value >= 0, got {getattr(g, key)}")
+    if not 0.0 <= g.outlier_fraction < 1.0:
+        raise ConfigError("sim.gnss.outlier_fraction: expected 0 <= f < 1")
+    if g.outlier_max_m < g.outlier_min_m:
+        raise ConfigError("sim.gnss.outlier_max_m: expected >= outlier_min_m")
+    if not -90.0 <= g.origin_lat_deg <= 90.0 or not -180.0 <= g.origin_lon_deg <= 180.0:
+        raise ConfigError("sim.gnss.origin_lat_deg / origin_lon_deg: out of WGS84 range")
+    p = cfg.basestation.gps
+    if p.weighting not in ("inverse", "isotropic", "affine"):
+        raise ConfigError(
+            f"basestation.gps.weighting: expected inverse, isotropic or affine, got {p.weighting!r}"
+        )
+    if p.a < 0.0 or p.b < 0.0 or not (p.a > 0.0 or p.b > 0.0):
+        raise ConfigError("basestation.gps.a / b: expected a, b >= 0, not both 0")
+    for key in ("huber_k", "sigma_min_m", "start_sigma_xy_m", "start_sigma_yaw_rad"):
+        _positive(f"basestation.gps.{key}", getattr(p, key))
+    _positive("basestation.gps.max_pending_fixes", p.max_pending_fixes)
+    if p.batch_period_s < 0.0:
+        raise ConfigError("basestation.gps.batch_period_s: expected a value >= 0")
 
 
 def config_to_dict(cfg: Config) -> dict[str, Any]:

@@ -7,6 +7,10 @@ probability in percent (only produced by `mode: scale` maps).
 
 `origin` is the (x, y, yaw) of the lower-left corner of cell (0, 0) in the map
 frame (metres, rad); collabslam only supports yaw == 0.
+
+Optional `wgs84_origin: [lat_deg, lon_deg, alt_m]` (a collabslam key that
+map_server ignores) is the WGS84 point at the map frame's (0, 0, 0) when the map
+frame is an ENU frame (GPS on, seed 000 §III); maps without it read as before.
 """
 
 from __future__ import annotations
@@ -21,6 +25,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from common.errors import CollabSlamError, FileFormatError
+from common.geodesy import GeoOrigin
 
 logger = logging.getLogger(__name__)
 
@@ -48,6 +53,7 @@ class GridMap:
     data: NDArray[np.int8]  # (H, W), data[iy, ix]
     resolution: float  # m per cell
     origin: tuple[float, float, float]  # (x, y, yaw) of the lower-left corner of cell (0, 0)
+    wgs84_origin: GeoOrigin | None = None  # WGS84 point at map (0, 0, 0) if map is ENU
 
     def __post_init__(self) -> None:
         data = np.asarray(self.data)
@@ -375,12 +381,36 @@ def read_map(yaml_path: str | Path) -> GridMap:
     data[p > occ_th] = OCCUPIED
     data[p < free_th] = FREE
     grid = GridMap(
-        data=np.ascontiguousarray(data[::-1]), resolution=resolution, origin=(ox, oy, 0.0)
+        data=np.ascontiguousarray(data[::-1]),
+        resolution=resolution,
+        origin=(ox, oy, 0.0),
+        wgs84_origin=_geo_origin(meta.get("wgs84_origin"), yaml_path),
     )
     logger.debug(
         "read map %s: %d x %d cells at %.3f m", yaml_path, grid.width, grid.height, resolution
     )
     return grid
+
+
+def _geo_origin(value: object, path: Path) -> GeoOrigin | None:
+    if value is None:
+        return None
+    if not isinstance(value, list) or len(value) != 3:
+        raise FileFormatError(f"{path}: 'wgs84_origin' must be [lat, lon, alt], got {value!r}")
+    try:
+        return GeoOrigin(*(_number(v, "wgs84_origin", path) for v in value))
+    except CollabSlamError as exc:
+        raise FileFormatError(f"{path}: bad 'wgs84_origin': {exc}") from None
+
+
+def read_wgs84_origin(yaml_path: str | Path) -> GeoOrigin | None:
+    """The optional ``wgs84_origin`` of a map YAML without reading its image (None: none)."""
+    yaml_path = Path(yaml_path)
+    try:
+        text = yaml_path.read_text(encoding="utf-8")
+    except (OSError, UnicodeDecodeError) as exc:
+        raise FileFormatError(f"{yaml_path}: cannot read map YAML: {exc}") from exc
+    return _geo_origin(_parse_flat_yaml(text, yaml_path).get("wgs84_origin"), yaml_path)
 
 
 def write_map(grid: GridMap, yaml_path: str | Path, image_name: str | None = None) -> None:
@@ -415,5 +445,8 @@ def write_map(grid: GridMap, yaml_path: str | Path, image_name: str | None = Non
         "occupied_thresh: 0.65",
         "free_thresh: 0.196",
     ]
+    if grid.wgs84_origin is not None:
+        lat, lon, alt = grid.wgs84_origin.as_list()
+        lines.append(f"wgs84_origin: [{lat!r}, {lon!r}, {alt!r}]")
     yaml_path.write_text("\n".join(lines) + "\n", encoding="utf-8")
     logger.debug("wrote map %s (%d x %d)", yaml_path, grid.width, grid.height)

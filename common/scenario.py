@@ -3,6 +3,12 @@
 Written by `collabslam run` into the output folder and read by the simulator
 (where to spawn robots), the agents (which tour to fly) and the base station
 (known start poses, the robot roster). JSON, checked on read.
+
+A robot's tour may be given georeferenced, as ``"tour_wgs84": [[lat_deg, lon_deg,
+alt_m], ...]`` instead of ``"tour"``: it is converted on read into the world
+frame, the ENU frame at the world's ``wgs84_origin`` (its map YAML, or the
+scenario's own ``"wgs84_origin": [lat, lon, alt]``). Altitudes are dropped (tours
+are flown at the cruise altitude).
 """
 
 from __future__ import annotations
@@ -13,7 +19,8 @@ from pathlib import Path
 
 import numpy as np
 
-from common.errors import FileFormatError
+from common.errors import CollabSlamError, FileFormatError
+from common.geodesy import GeoOrigin, georeferenced_waypoints
 from protocol.messages import ROBOT_ID_RE
 
 
@@ -65,12 +72,17 @@ def read_scenario(path: str | Path) -> Scenario:
     try:
         doc = json.loads(Path(path).read_text())
         robots = []
+        origin: GeoOrigin | None = None
         for r in doc["robots"]:
             rid = str(r["id"])
             if not ROBOT_ID_RE.match(rid):
                 raise ValueError(f"invalid robot id {rid!r}")
             start = np.asarray(r["start_pose"], dtype=np.float64)
-            tour = np.asarray(r.get("tour", []), dtype=np.float64).reshape(-1, 2)
+            if "tour_wgs84" in r:
+                origin = origin or _origin(doc)
+                tour = georeferenced_waypoints(r["tour_wgs84"], origin)[:, :2]
+            else:
+                tour = np.asarray(r.get("tour", []), dtype=np.float64).reshape(-1, 2)
             if start.shape != (3,) or not np.all(np.isfinite(start)):
                 raise ValueError(f"robot {rid}: start_pose must be 3 finite numbers")
             robots.append(RobotScenario(rid, start, tour))
@@ -79,5 +91,17 @@ def read_scenario(path: str | Path) -> Scenario:
         return Scenario(str(doc["world"]), robots, int(doc.get("seed", 0)))
     except FileNotFoundError:
         raise FileFormatError(f"scenario file not found: {path}") from None
-    except (KeyError, TypeError, ValueError, json.JSONDecodeError) as exc:
+    except (KeyError, TypeError, ValueError, json.JSONDecodeError, CollabSlamError) as exc:
         raise FileFormatError(f"{path}: invalid scenario: {exc}") from None
+
+
+def _origin(doc: dict) -> GeoOrigin:
+    """The ENU origin for georeferenced waypoints: the scenario's, else its world's."""
+    if "wgs84_origin" in doc:
+        return GeoOrigin.from_sequence(doc["wgs84_origin"])
+    from common.map_io import read_wgs84_origin  # local: map_io is heavier
+
+    origin = read_wgs84_origin(doc["world"])
+    if origin is None:
+        raise ValueError("tour_wgs84 needs a wgs84_origin (in the scenario or its world YAML)")
+    return origin

@@ -2,7 +2,9 @@
 
 Line format: `timestamp tx ty tz qx qy qz qw` (s, m, Hamilton quaternion with the
 scalar last), separated by spaces (commas are accepted on read); lines starting
-with '#' are comments.
+with '#' are comments. A georeferenced trajectory (``map`` = ENU, seed 000 §III)
+carries its frame's WGS84 origin in a comment line that evo ignores:
+``# wgs84_origin: LAT_DEG LON_DEG ALT_M``; files without it read as before.
 """
 
 from __future__ import annotations
@@ -15,11 +17,13 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from common.errors import CollabSlamError, FileFormatError
+from common.geodesy import GeoOrigin
 from common.geometry import quat_to_yaw, yaw_to_quat
 
 logger = logging.getLogger(__name__)
 
 _HEADER = "# timestamp tx ty tz qx qy qz qw"
+_ORIGIN_TAG = "wgs84_origin:"
 
 
 @dataclass(eq=False)
@@ -29,6 +33,7 @@ class Trajectory:
     stamps: NDArray[np.float64]  # (N,) s, non-decreasing
     positions: NDArray[np.float64]  # (N, 3) m
     quats_xyzw: NDArray[np.float64]  # (N, 4) [qx, qy, qz, qw]
+    wgs84_origin: GeoOrigin | None = None  # the frame's ENU origin if georeferenced
 
     def __post_init__(self) -> None:
         self.stamps = np.asarray(self.stamps, dtype=np.float64).reshape(-1)
@@ -66,8 +71,12 @@ def read_tum(path: str | Path) -> Trajectory:
         raise FileFormatError(f"{path}: cannot read trajectory: {exc}") from exc
     rows: list[list[float]] = []
     linenos: list[int] = []
+    origin: GeoOrigin | None = None
     for lineno, raw in enumerate(text.splitlines(), start=1):
         line = raw.strip()
+        if line.startswith("#") and line[1:].strip().startswith(_ORIGIN_TAG):
+            origin = _parse_origin(line[1:].strip()[len(_ORIGIN_TAG) :], f"{path}:{lineno}")
+            continue
         if not line or line.startswith("#"):
             continue
         fields = line.replace(",", " ").split()
@@ -100,14 +109,34 @@ def read_tum(path: str | Path) -> Trajectory:
             f"(norm {norms[int(np.argmax(off))]:.6f})"
         )
     logger.debug("read %d poses from %s", len(data), path)
-    return Trajectory(stamps=data[:, 0], positions=data[:, 1:4], quats_xyzw=data[:, 4:8])
+    return Trajectory(
+        stamps=data[:, 0], positions=data[:, 1:4], quats_xyzw=data[:, 4:8], wgs84_origin=origin
+    )
 
 
-def write_tum(path: str | Path, traj: Trajectory) -> None:
-    """Write `traj` as TUM (stamps '%.9f', values '%.9f'), creating parent directories."""
+def _parse_origin(text: str, where: str) -> GeoOrigin:
+    try:
+        values = [float(v) for v in text.replace(",", " ").split()]
+        return GeoOrigin.from_sequence(values)
+    except (ValueError, CollabSlamError) as exc:
+        raise FileFormatError(
+            f"{where}: expected '# {_ORIGIN_TAG} LAT_DEG LON_DEG ALT_M', got {text!r} ({exc})"
+        ) from None
+
+
+def write_tum(path: str | Path, traj: Trajectory, wgs84_origin: GeoOrigin | None = None) -> None:
+    """Write `traj` as TUM (stamps '%.9f', values '%.9f'), creating parent directories.
+
+    ``wgs84_origin`` (default: ``traj.wgs84_origin``) goes into a header comment.
+    """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     table = np.column_stack([traj.stamps, traj.positions, traj.quats_xyzw])
+    header = _HEADER[2:]
+    origin = wgs84_origin or traj.wgs84_origin
+    if origin is not None:
+        lat, lon, alt = origin.as_list()
+        header += f"\n{_ORIGIN_TAG} {lat!r} {lon!r} {alt!r}"
     with path.open("w", encoding="utf-8") as f:
-        np.savetxt(f, table, fmt="%.9f", delimiter=" ", header=_HEADER[2:], comments="# ")
+        np.savetxt(f, table, fmt="%.9f", delimiter=" ", header=header, comments="# ")
     logger.debug("wrote %d poses to %s", len(traj), path)

@@ -1,6 +1,7 @@
 """The Zenoh key-expression layout, defined in one place.
 
     collabslam/<fleet>/robot/<id>/sensor/{scan,odom,imu,altimeter}   simulator/driver -> agent
+    collabslam/<fleet>/robot/<id>/sensor/gnss                        simulator/driver -> base
     collabslam/<fleet>/robot/<id>/cmd                                agent -> simulator/autopilot
     collabslam/<fleet>/robot/<id>/keyframe                           agent -> base station
     collabslam/<fleet>/robot/<id>/state                              agent -> anyone
@@ -22,7 +23,7 @@ from common.errors import ConfigError
 PREFIX = "collabslam"
 _NAME = re.compile(r"^[A-Za-z0-9_-]{1,32}$")
 
-SENSOR_TOPICS = ("scan", "odom", "imu", "altimeter")
+SENSOR_TOPICS = ("scan", "odom", "imu", "altimeter", "gnss")
 UPLINK_TOPICS = ("keyframe", "state", "cmd", "pose/control")
 DOWNLINK_TOPICS = ("ack", "correction", "goal", "path")
 

@@ -115,6 +115,24 @@ class Altimeter(Message):
 
 
 @message
+class GnssFix(Message):
+    """A GNSS receiver fix: WGS84 position and its reported 1-sigma east, north, up
+    (seed 000 eq. 4). lla = [lat deg, lon deg, alt m above the WGS84 ellipsoid]."""
+
+    robot_id: str
+    stamp: float
+    lla: np.ndarray = array_field("f8", (3,))
+    sigmas_enu: np.ndarray = array_field("f8", (3,))  # m
+
+    def validate(self) -> None:
+        super().validate()
+        if abs(self.lla[0]) > 90.0 or abs(self.lla[1]) > 180.0:
+            raise ProtocolError(f"GnssFix.lla: latitude/longitude out of range: {self.lla}")
+        if np.any(self.sigmas_enu <= 0.0):
+            raise ProtocolError(f"GnssFix.sigmas_enu must be > 0, got {self.sigmas_enu}")
+
+
+@message
 class VehicleCommand(Message):
     """Body-frame velocity set-point for the autopilot.
 
@@ -228,7 +246,9 @@ class PoseCorrection(Message):
 
 @message
 class Goal(Message):
-    """A navigation goal; `frame` is 'odom' (already in the robot's frame) or 'map'."""
+    """A navigation goal; `frame` is 'odom' (already in the robot's frame), 'map', or
+    'wgs84': then pose is [lat_deg, lon_deg, alt_m, qx, qy, qz, qw] with the
+    orientation in ENU (`common.geodesy.wgs84_pose_to_enu` converts it to `map`)."""
 
     robot_id: str
     goal_id: int
@@ -239,7 +259,7 @@ class Goal(Message):
 
     def validate(self) -> None:
         super().validate()
-        _check_frame(self.frame)
+        _check_frame(self.frame, ("odom", "map", "wgs84"))
         _check_pose7("Goal.pose", self.pose)
 
 
@@ -325,9 +345,9 @@ class ControlPose(Message):
             _check_pose7(f"ControlPose.{name}", getattr(self, name))
 
 
-def _check_frame(frame: str) -> None:
-    if frame not in ("odom", "map"):
-        raise ProtocolError(f"frame must be 'odom' or 'map', got {frame!r}")
+def _check_frame(frame: str, allowed: tuple[str, ...] = ("odom", "map")) -> None:
+    if frame not in allowed:
+        raise ProtocolError(f"frame must be one of {allowed}, got {frame!r}")
 
 
 def message_types() -> dict[str, Any]:
@@ -339,6 +359,7 @@ def message_types() -> dict[str, Any]:
             Odometry,
             Imu,
             Altimeter,
+            GnssFix,
             VehicleCommand,
             Keyframe,
             KeyframeAck,

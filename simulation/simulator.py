@@ -29,7 +29,17 @@ from common.errors import ProcessError
 from common.geometry import pose4_to_pose7
 from common.scenario import Scenario
 from common.trajectory_io import Trajectory, write_tum
-from protocol import Altimeter, ClockSync, Imu, LaserScan, Odometry, RobotState, VehicleCommand
+from protocol import (
+    Altimeter,
+    ClockSync,
+    GnssFix,
+    Imu,
+    LaserScan,
+    Odometry,
+    RobotState,
+    VehicleCommand,
+)
+from simulation.gnss import GnssModel, world_origin
 from simulation.quadrotor import Quadrotor
 from simulation.sensors import AltimeterModel, ImuModel, LaserModel, OdometryModel
 from simulation.world import World
@@ -45,6 +55,7 @@ class SimRobot:
     imu: ImuModel
     altimeter: AltimeterModel
     rng: np.random.Generator
+    gnss: GnssModel | None = None  # sim.gnss.enabled
     command: tuple[float, float, float, float] = (0.0, 0.0, 0.0, 0.0)
     answered: float = -1.0  # stamp of the last tick this robot's agent answered
     status: str = "starting"
@@ -98,6 +109,9 @@ class Simulator:
                     noise_std=s.altimeter.noise_std_m, bias=s.altimeter.bias_m
                 ),
                 rng=np.random.default_rng([s.seed, i]),
+                gnss=GnssModel(s.gnss, world_origin(world.geo_origin, s.gnss), 1000 * s.seed + i)
+                if s.gnss.enabled
+                else None,
             )
         self.t = 0.0
         self.ticks = 0
@@ -268,6 +282,9 @@ class Simulator:
             keys.sensor(rid, "altimeter"),
             Altimeter(rid, t, float(r.altimeter.measure(float(v.pose[2]), r.rng))),
         )
+        fix = r.gnss.measure(t, v.pose[:3]) if r.gnss is not None else None
+        if fix is not None:  # world frame = ENU at the world's origin; antenna at the body
+            self.bus.publish(keys.sensor(rid, "gnss"), GnssFix(rid, t, fix.lla, fix.sigmas_enu))
         pose = v.pose
         ranges = self.laser.measure(self.world, np.array([pose[0], pose[1], pose[3]]), r.rng)
         self.bus.publish(
@@ -310,7 +327,9 @@ class Simulator:
         for rid, r in self.robots.items():
             gt = np.array(r.gt)
             write_tum(
-                out / "ground_truth" / f"{rid}.tum", Trajectory.from_pose4(gt[:, 0], gt[:, 1:5])
+                out / "ground_truth" / f"{rid}.tum",
+                Trajectory.from_pose4(gt[:, 0], gt[:, 1:5]),
+                wgs84_origin=self.world.geo_origin,  # the world frame is ENU there
             )
         (out / "simulator.json").write_text(json.dumps(self.stats(), indent=1))
 

@@ -170,6 +170,8 @@ class World:
         self.free: NDArray[np.bool_] = grid.free_mask()
         self.resolution = float(grid.resolution)
         self.origin_xy = np.array(grid.origin[:2], dtype=np.float64)
+        # WGS84 point at map (0, 0, 0): the world frame is ENU there (None: not given)
+        self.geo_origin = grid.wgs84_origin
         # (H, W) metres from each cell centre to the nearest occupied cell.
         self.clearance_grid = _clearance_field(self.occupied, self.resolution)
         self._not_free = ~self.free

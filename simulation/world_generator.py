@@ -32,6 +32,7 @@ from pathlib import Path
 import numpy as np
 
 from common.errors import CollabSlamError, ConfigError
+from common.geodesy import GeoOrigin
 from common.logging_setup import setup_logging
 from common.map_io import GridMap, write_map
 from simulation.floor_plan import (
@@ -157,9 +158,11 @@ def generate_world(
     if not (resolution > 0.0 and math.isfinite(resolution)):
         raise ConfigError(f"resolution must be > 0, got {resolution}")
     if kind == "random":
-        return random_floor(
+        grid = random_floor(
             seed, width_m, height_m, resolution=resolution, furniture_per_room=furniture_per_room
         )
+        grid.wgs84_origin = WGS84_ORIGINS["bshape"]
+        return grid
     plans = {"bshape": _bshape_plan, "rooms15": _rooms15_plan, "floor30x25": _floor30x25_plan}
     if kind not in plans:
         raise ConfigError(f"unknown world kind {kind!r}; expected one of {[*plans, 'random']}")
@@ -168,7 +171,17 @@ def generate_world(
         furnish(plan, np.random.default_rng(seed), furniture_per_room, resolution)
     grid = rasterize(plan, resolution)
     validate_world(grid)
+    grid.wgs84_origin = WGS84_ORIGINS[kind]
     return grid
+
+
+# Every shipped world is georeferenced: the WGS84 point at its map (0, 0, 0) (ENU origin).
+# Spread over Zagreb's Borongaj campus, seed 000's test site; random worlds get the first.
+WGS84_ORIGINS = {
+    "bshape": GeoOrigin(45.8118, 16.0106, 160.0),
+    "rooms15": GeoOrigin(45.8125, 16.0120, 160.0),
+    "floor30x25": GeoOrigin(45.8110, 16.0095, 160.0),
+}
 
 
 def main(argv: Sequence[str] | None = None) -> int:

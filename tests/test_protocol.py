@@ -16,6 +16,7 @@ from protocol import (
     ClockSync,
     Cloud3D,
     ControlPose,
+    GnssFix,
     Goal,
     Imu,
     Keyframe,
@@ -66,6 +67,7 @@ def samples() -> list:
         RobotState("r0", 2.0, "flying", 3, 10, 9, 1, P7, P7),
         ClockSync("sim", 12.5),
         ControlPose("r0", 2.025, 4, 0.93, P7, P7, pose4_to_pose7([1.1, -2.0, 0.5, 0.31])),
+        GnssFix("r0", 2.0, np.array([45.8118, 16.0106, 160.5]), np.array([1.5, 1.5, 3.0])),
     ]
 
 
@@ -182,3 +184,12 @@ def test_keys_layout() -> None:
     assert k.robot_id_of("collabslam/other/robot/r1/keyframe") is None
     with pytest.raises(Exception, match="invalid"):
         k.robot("a/b", "keyframe")
+
+
+def test_gnss_fix_validation() -> None:
+    sig = np.array([1.5, 1.5, 3.0])
+    with pytest.raises(ProtocolError, match="latitude"):
+        GnssFix("r0", 1.0, np.array([91.0, 0.0, 0.0]), sig).validate()
+    with pytest.raises(ProtocolError, match="sigmas"):
+        GnssFix("r0", 1.0, np.array([45.0, 16.0, 0.0]), np.array([1.5, 0.0, 3.0])).validate()
+    assert Keys("f").sensor("r0", "gnss") == "collabslam/f/robot/r0/sensor/gnss"

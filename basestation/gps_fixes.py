@@ -1,0 +1,110 @@
+"""GPS fixes waiting for the two nodes that bracket them in time (seed 000 §III-A).
+
+A fix at ``t`` becomes a factor once its robot has nodes ``i`` and ``j = i + 1``
+with ``t_i <= t <= t_j``: in practice when the first keyframe stamped at or after
+the fix arrives. A fix older than the chain's first node can never be bracketed
+and is dropped; so is the oldest fix when more than ``max_pending`` wait. Gaps
+between fixes (outages) simply mean no factors.
+
+Fixes are released in batches, once per ``batch_period_s`` of the robot's node
+time (seed 000 feeds GPS to its periodic optimizations, once a minute): each fix
+changes the whole georeferenced trajectory a little, so each iSAM2 update with a
+GPS factor back-substitutes through the whole Bayes tree; batching makes that
+one update per period instead of one per fix. Early on, while few fixes are in,
+a batch is also due as soon as as many fixes wait as were released so far
+(1, 1, 2, 4, 8, ...): the first minute gets georeferenced quickly at the cost of
+a logarithmic number of extra batches.
+"""
+
+from __future__ import annotations
+
+import bisect
+import logging
+from collections import deque
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+from basestation.gps_factor import interpolation_factor
+
+logger = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class GpsFix:
+    """One fix in the ``map`` (ENU) frame."""
+
+    stamp: float  # s, same clock as the keyframe stamps
+    enu_xy: NDArray[np.float64]  # (2,) east, north, m
+    sigmas_enu: NDArray[np.float64]  # (3,) reported sigma east, north, up (eq. 4), m
+
+
+@dataclass(frozen=True)
+class BracketedFix:
+    """A fix with the nodes around it and its interpolation factor (eq. 3)."""
+
+    i: int
+    j: int
+    beta: float
+    fix: GpsFix
+
+
+class GpsFixQueue:
+    """Pending fixes per robot; not thread-safe (the pose graph's thread)."""
+
+    def __init__(self, max_pending: int = 1000, batch_period_s: float = 0.0) -> None:
+        self._max_pending = max_pending
+        self._batch_period_s = batch_period_s
+        self._pending: dict[str, deque[GpsFix]] = {}
+        self._last_release: dict[str, float] = {}  # node stamp of each robot's last batch
+        self._released: dict[str, int] = {}  # fixes released per robot so far
+        self.dropped_before_start = 0  # fixes older than the chain's first node
+        self.dropped_overflow = 0  # fixes pushed out by max_pending
+
+    def add(self, robot_id: str, fix: GpsFix) -> None:
+        queue = self._pending.setdefault(robot_id, deque())
+        if queue and fix.stamp < queue[-1].stamp:  # keep time order (rare: late delivery)
+            items = sorted([*queue, fix], key=lambda f: f.stamp)
+            queue.clear()
+            queue.extend(items)
+        else:
+            queue.append(fix)
+        while len(queue) > self._max_pending:
+            queue.popleft()
+            self.dropped_overflow += 1
+            logger.warning("robot %r: too many GPS fixes wait for nodes, oldest dropped", robot_id)
+
+    def pending(self, robot_id: str) -> int:
+        return len(self._pending.get(robot_id, ()))
+
+    def ready(
+        self, robot_id: str, node_stamps: list[float], flush: bool = False
+    ) -> list[BracketedFix]:
+        """Pop every fix of ``robot_id`` that two nodes now bracket (stamps increasing),
+        if a batch is due (``flush``: whether or not)."""
+        queue = self._pending.get(robot_id)
+        if not queue or not node_stamps:
+            return []
+        last = self._last_release.get(robot_id)
+        if not flush and last is not None and node_stamps[-1] - last < self._batch_period_s:
+            waiting = bisect.bisect_right([f.stamp for f in queue], node_stamps[-1])
+            if waiting < self._released.get(robot_id, 0):
+                return []  # the next batch is not due yet
+        out: list[BracketedFix] = []
+        while queue:
+            fix = queue[0]
+            if fix.stamp < node_stamps[0]:
+                queue.popleft()
+                self.dropped_before_start += 1
+                continue
+            if fix.stamp > node_stamps[-1] or len(node_stamps) < 2:
+                break  # waits for a later node
+            j = max(bisect.bisect_left(node_stamps, fix.stamp), 1)
+            i = j - 1
+            beta = interpolation_factor(node_stamps[i], node_stamps[j], fix.stamp)
+            out.append(BracketedFix(i, j, beta, queue.popleft()))
+        if out:
+            self._last_release[robot_id] = node_stamps[-1]
+            self._released[robot_id] = self._released.get(robot_id, 0) + len(out)
+        return out

@@ -1,0 +1,139 @@
+"""GNSS fixes over real Zenoh into the base station's graph (basestation.gps.enabled)."""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+import numpy as np
+
+from basestation.global_slam import GlobalSlam
+from basestation.node import BaseStationNode
+from common.bus import Bus
+from common.config import Config, ZenohConfig, load_config
+from common.geodesy import GeoOrigin, enu_to_geodetic
+from common.geometry import pose4_to_pose7
+from common.map_io import GridMap, write_map
+from common.scenario import RobotScenario, Scenario
+from protocol import GnssFix, Keyframe, Scan2D
+
+ORIGIN = GeoOrigin(45.8118, 16.0106, 160.0)
+SIG = np.array([1.5, 1.5, 3.0])
+
+
+def _cfg(**extra: object) -> Config:
+    return load_config(
+        overrides={
+            "basestation.gps.enabled": True,
+            "basestation.gps.batch_period_s": 0.0,
+            "basestation.constraints.enabled": False,
+            **extra,
+        }
+    )
+
+
+def _keyframe(seq: int) -> Keyframe:
+    angles = np.linspace(-np.pi / 2, np.pi / 2, 181)
+    ranges = 2.0 / np.maximum(np.cos(angles), 0.2)
+    return Keyframe(
+        "r0",
+        seq,
+        0.5 * seq,
+        pose4_to_pose7([0.2 * seq, 0, 1, 0]),
+        pose4_to_pose7([0.2 if seq else 0.0, 0, 0, 0]),
+        np.eye(6) * 1e-4,
+        Scan2D.from_ranges(-np.pi / 2, np.pi / 180, 30.0, ranges),
+        None,
+    )
+
+
+def _fix(t: float, east: float, north: float) -> GnssFix:
+    return GnssFix("r0", t, enu_to_geodetic([east, north, 1.0], ORIGIN), SIG)
+
+
+def test_global_slam_turns_fixes_into_factors() -> None:
+    slam = GlobalSlam(_cfg(), {"r0": np.zeros(3)})
+    slam.add_gps_fix("r0", 0.0, np.zeros(2), SIG)  # before the first keyframe: waits for it
+    for seq in range(20):
+        slam.admit(_keyframe(seq))
+        slam.add_gps_fix("r0", 0.5 * seq - 0.25, np.array([0.1 * seq - 0.05, 0.0]), SIG)
+        slam.optimize()
+    stats = slam.stats()["gps"]
+    assert stats["fixes_ignored"] == 0 and stats["gps_factors"] == 20
+    assert stats["gps_dropped_before_start"] == 1  # the one at -0.25 s
+    np.testing.assert_allclose(slam.graph.poses("r0")[-1, :2], [3.8, 0.0], atol=0.05)
+
+
+def test_fixes_travel_over_zenoh_to_the_graph(tmp_path: Path, endpoint: str) -> None:
+    grid = GridMap(np.zeros((10, 10), np.int8), 0.1, (0.0, 0.0, 0.0), wgs84_origin=ORIGIN)
+    write_map(grid, tmp_path / "w.yaml")
+    scenario = Scenario(str(tmp_path / "w.yaml"), [RobotScenario("r0", np.zeros(3))])
+    cfg = _cfg()
+    with Bus(ZenohConfig(listen=[endpoint]), "default") as base_bus:
+        node = BaseStationNode(cfg, base_bus, scenario)
+        node.start()
+        assert node.wgs84_origin == ORIGIN
+        with Bus(ZenohConfig(connect=[endpoint]), "default") as robot_bus:
+            time.sleep(0.5)
+            kf_key = robot_bus.keys.robot("r0", "keyframe")
+            gnss_key = robot_bus.keys.sensor("r0", "gnss")
+            for seq in range(10):
+                robot_bus.publish(kf_key, _keyframe(seq))
+                robot_bus.publish(gnss_key, _fix(0.5 * seq + 0.25, 0.1 * seq + 0.05, 0.0))
+            deadline = time.monotonic() + 15.0
+            while time.monotonic() < deadline:
+                node.step(timeout=0.05)
+                if node.slam.graph.gps_stats()["gps_factors"] >= 9:
+                    break
+        stats = node.stats()
+        assert stats["gps"]["gps_factors"] == 9  # the fix after the last keyframe waits
+        assert stats["gps"]["gps_pending"] == 1
+        node.write_outputs(tmp_path / "out")
+    text = (tmp_path / "out" / "trajectories" / "r0.tum").read_text()
+    assert "# wgs84_origin: 45.8118 16.0106 160.0" in text
+
+
+def test_fixes_of_robots_without_known_start_are_ignored() -> None:
+    slam = GlobalSlam(_cfg(), {})  # the first robot defines map: not an ENU frame
+    for seq in range(5):
+        slam.admit(_keyframe(seq))
+        slam.add_gps_fix("r0", 0.5 * seq - 0.25, np.array([0.1 * seq, 0.0]), SIG)
+    slam.optimize()
+    assert slam.stats()["gps"]["fixes_ignored"] == 5
+    assert slam.graph.gps_stats()["gps_factors"] == 0
+
+
+def test_known_heading_starts_the_robot_at_its_fix() -> None:
+    # seed 000 III-C: no start pose, the autopilot's heading (here 0.5 rad) and GNSS fixes
+    heading = 0.5
+    slam = GlobalSlam(_cfg(), {}, {"r0": heading, "r1": 0.0})
+    truth0 = np.array([12.0, -7.0])
+    direction = np.array([np.cos(heading), np.sin(heading)])
+    slam.add_gps_fix("r0", -0.1, truth0 + [0.8, -0.5], SIG)  # first fix, 1 m off
+    rng = np.random.default_rng(0)
+    for seq in range(60):
+        slam.admit(_keyframe(seq))
+        t = 0.5 * seq + 0.25
+        slam.add_gps_fix("r0", t, truth0 + 0.4 * t * direction + rng.normal(0, 0.3, 2), SIG)
+        slam.optimize()
+    slam.graph.flush_gps()
+    slam.optimize()
+    assert slam.graph.is_anchored("r0")
+    est = slam.graph.poses("r0")
+    np.testing.assert_allclose(est[0, :2], truth0, atol=0.4)
+    assert abs(est[-1, 2] - heading) < 0.05
+    kf = _keyframe(0)
+    slam.admit(Keyframe("r1", 0, 0.0, kf.pose_odom, kf.delta, kf.delta_cov, kf.scan2d, None))
+    assert not slam.graph.is_anchored("r1")  # no fix yet: floats (never defines map)
+
+
+def test_time_going_backwards_does_not_stop_the_graph() -> None:
+    slam = GlobalSlam(_cfg(), {"r0": np.zeros(3)})
+    for seq in range(4):
+        kf = _keyframe(seq)
+        stamp = 1.0 if seq == 3 else kf.stamp  # keyframe 3 claims an older time
+        slam.admit(
+            Keyframe("r0", seq, stamp, kf.pose_odom, kf.delta, kf.delta_cov, kf.scan2d, None)
+        )
+    slam.optimize()
+    assert slam.graph.num_nodes("r0") == 4

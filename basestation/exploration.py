@@ -37,6 +37,7 @@ log = logging.getLogger(__name__)
 class _Task:
     goal: NDArray[np.float64]
     path: NDArray[np.float64]  # (N, 2) map frame
+    support: bool = False  # no frontier of its own: closing in on another robot's
 
 
 @dataclass
@@ -58,6 +59,7 @@ class ExplorationManager:
     speed_mps: float = 1.0  # cruise speed the robots fly their paths at (conflict checks)
     horizon_s: float = 15.0  # s ahead that paths are checked against each other
     conflict_margin: float = 1.3  # times robot_clearance_m: slack for speed differences
+    support_min_m: float = 1.0  # m, shortest move worth sending an idle robot
     _failures: list[tuple[NDArray[np.float64], int]] = field(default_factory=list)
     _stopped: set[str] = field(default_factory=set)
 
@@ -92,7 +94,40 @@ class ExplorationManager:
         for r in need:
             self.tasks.pop(r, None)
         goals = self._goals({r: P[r] for r in need}, grid)
-        return {r: self._plan(r, goals.get(r), grid, P) for r in need}
+        out = {r: self._plan(r, goals.get(r), grid, P) for r in need}
+        if self.coordinated:  # robots left without a frontier move up behind the others
+            for r in [r for r in need if out[r] is None]:
+                out[r] = self._support(r, grid, P)
+        return out
+
+    def _support(
+        self, r: str, grid: GridMap, P: dict[str, NDArray[np.float64]]
+    ) -> NDArray[np.float64] | None:
+        """A path toward the nearest frontier (taken by another robot, or one it could
+        not plan to) that stops where it keeps the clearance to every other robot and
+        path: an idle robot waits near where the map is growing instead of where it
+        happened to stop. None if no such path is at least `support_min_m` long."""
+        goals = np.array([f.goal for f in self.frontiers])
+        dist = travel_distances(grid, P[r][None, :2], goals, self.planner.robot_radius_m)[0]
+        discs = [P[o][None, :2] for o in P if o != r]
+        others = [t.goal for o, t in self.tasks.items() if o != r]
+        keep = 2.0 * self.planner.robot_clearance_m
+        for j in np.argsort(dist)[:3]:
+            if not np.isfinite(dist[j]):
+                break
+            path = self.planner.plan(grid, P[r][:2], goals[j], discs)
+            if path is None:
+                continue
+            length = float(np.sum(np.hypot(*np.diff(path, axis=0).T)))
+            for cut in np.arange(length - keep, self.support_min_m - 1e-9, -0.5):
+                prefix = _along(path, np.linspace(0.0, cut, max(2, int(cut / 0.25) + 1)))
+                end = prefix[-1]
+                if any(np.hypot(*(end - g)) < keep for g in others):
+                    continue
+                if not self._conflict(r, prefix, P):
+                    self.tasks[r] = _Task(end, prefix, support=True)
+                    return prefix
+        return None
 
     def _plan(
         self,
@@ -182,7 +217,7 @@ class ExplorationManager:
 
     def _needs_new_path(self, r: str, P: dict[str, NDArray[np.float64]], pm: PlanningMap) -> bool:
         t = self.tasks.get(r)
-        if t is None:
+        if t is None or t.support:  # supporting: look for a frontier of its own again
             return True
         pose = P[r]
         if np.hypot(*(pose[:2] - t.goal)) < self.goal_reached_m:

@@ -59,6 +59,8 @@ def _load_cfg(args: argparse.Namespace) -> Any:
         overrides["zenoh.listen"] = args.listen
     if getattr(args, "connect", None):
         overrides["zenoh.connect"] = args.connect
+    if getattr(args, "zenoh_config", None):
+        overrides["zenoh.config_file"] = args.zenoh_config
     return load_config(args.config, overrides)
 
 
@@ -241,6 +243,12 @@ def build_parser() -> argparse.ArgumentParser:
                 metavar="ENDPOINT",
                 help="Zenoh endpoint to connect to",
             )
+            sp.add_argument(
+                "--zenoh-config",
+                metavar="PATH",
+                help="Zenoh JSON5 config merged under our endpoints, e.g. the TLS + "
+                "access-control files made by deploy/make_zenoh_configs.py",
+            )
 
     sp = sub.add_parser("sim", help="run the simulator process")
     common(sp)
@@ -299,6 +307,19 @@ def build_parser() -> argparse.ArgumentParser:
         help="comma list of graph sizes in nodes (<= 3500: M3500 prefix, else city10000)",
     )
     b.set_defaults(func=cmd_bench, bench_kwargs=lambda a: {"sizes": a.sizes})
+    b = bn.add_parser(
+        "security",
+        help="secure base station (mTLS + access control) vs. unauthorized clients and robots",
+    )
+    common(b, zenoh=False)
+    b.add_argument("--json", required=True, help="output JSON file")
+    b.add_argument("--data-dir", default=str(_default_data_dir()))
+    b.add_argument("--keyframes", type=int, default=5, help="legitimate keyframes per robot")
+    b.add_argument("--base-mode", choices=("router", "peer"), default="router")
+    b.set_defaults(
+        func=cmd_bench,
+        bench_kwargs=lambda a: {"keyframes": a.keyframes, "base_mode": a.base_mode},
+    )
 
     sp = sub.add_parser("eval", help="score results against references")
     ev = sp.add_subparsers(dest="eval_command", required=True)

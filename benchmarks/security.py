@@ -1,0 +1,282 @@
+"""`collabslam bench security`: the base station under the secure deploy config, attacked.
+
+A real `collabslam basestation` process runs with the Zenoh config that
+`deploy/make_zenoh_configs.py` would write (mutual TLS listener on
+`tls/127.0.0.1:<port>`, access control keyed by certificate common name), in router
+mode so that it would forward traffic between robots if the rules allowed it.
+Certificates are made at run time by `deploy/make_certs.sh` (fleet CA with r0, r1 and
+r9; a second, unrelated CA with its own r0). Robots r0 and r1 connect through our
+`Bus` with their robot configs and stream real `Keyframe` messages; they must all
+be acknowledged and end up in the graph (`legitimate_ok`).
+
+Attempts (each `rejected` is decided by what the base station or the robots saw):
+
+- `client_without_certificate`: a client that trusts the fleet CA but has no client
+  certificate. Rejected if the TLS handshake fails (Zenoh refuses to open the session).
+- `certificate_from_other_ca`: a client presenting "r0" signed by another CA.
+  Rejected if the session cannot open.
+- `robot_A_publishes_keyframes_as_robot_B`: r0 puts keyframes (robot_id r1, r1's next
+  seqs) on r1's keyframe key. Rejected if r1's ack never moves past its own keyframes
+  and the base station's graph holds exactly r1's own keyframes at the end.
+- `robot_A_subscribes_to_robot_B_paths`: r0 subscribes to everything under
+  `robot/r1/**` (r1's keyframes and its ack/correction/goal/path downlink) from the
+  start. Rejected if r0 gets no sample while r1 receives its acks and corrections.
+- `unlisted_robot_certificate`: a valid fleet certificate (CN r9) that no ACL policy
+  names publishes keyframes on its own key. Rejected if the base station never saw
+  them (its unknown-robot counter stays 0; r9 is not in the scenario roster).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import signal
+import subprocess
+import threading
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import zenoh
+
+from collabslam.supervisor import ProcessGroup, free_port
+from common.bus import Bus
+from common.config import Config, ZenohConfig
+from common.errors import CollabSlamError
+from common.geometry import pose4_to_pose7
+from common.scenario import RobotScenario, Scenario, write_scenario
+from common.zenoh_security import basestation_config, robot_config, write_json5
+from protocol import Keyframe, KeyframeAck, PoseCorrection, Scan2D
+
+log = logging.getLogger(__name__)
+REPO = Path(__file__).resolve().parents[1]
+MAKE_CERTS = REPO / "deploy" / "make_certs.sh"
+ROBOTS = ("r0", "r1")
+
+
+def make_certs(out: Path, robots: list[str], ca_name: str = "collabslam fleet CA") -> Path:
+    """Run deploy/make_certs.sh (CA + basestation + one certificate per robot) into `out`."""
+    env = dict(os.environ, CA_NAME=ca_name, BASE_HOSTS="localhost,127.0.0.1")
+    res = subprocess.run(
+        ["bash", str(MAKE_CERTS), str(out), *robots], env=env, capture_output=True, text=True
+    )
+    if res.returncode != 0:
+        raise CollabSlamError(f"{MAKE_CERTS} failed: {res.stderr.strip()}")
+    return out
+
+
+def make_keyframe(robot: str, seq: int, x0: float = 0.0) -> Keyframe:
+    """A valid keyframe: the robot 0.2 m further along x per seq, a wall 2 m ahead."""
+    angles = np.linspace(-np.pi / 2, np.pi / 2, 181)
+    ranges = 2.0 / np.maximum(np.cos(angles), 0.2)
+    return Keyframe(
+        robot,
+        seq,
+        0.5 * seq,
+        pose4_to_pose7([x0 + 0.2 * seq, 0.0, 1.0, 0.0]),
+        pose4_to_pose7([0.2 if seq else 0.0, 0.0, 0.0, 0.0]),
+        np.eye(6) * 1e-4,
+        Scan2D.from_ranges(-np.pi / 2, np.pi / 180, 30.0, ranges),
+        None,
+    )
+
+
+def try_open(conf: dict[str, Any]) -> str | None:
+    """Open a client session with `conf`; None if it opened (then closed), else the error."""
+    c = zenoh.Config.from_json5(json.dumps({**conf, "mode": "client"}))
+    try:
+        session = zenoh.open(c)
+    except Exception as exc:  # zenoh raises ZError when no endpoint accepts us
+        return str(exc).split(" at ")[0]
+    session.close()
+    return None
+
+
+def wait_for(pred: Callable[[], bool], timeout: float) -> bool:
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if pred():
+            return True
+        time.sleep(0.05)
+    return bool(pred())
+
+
+class _Robot:
+    """A legitimate robot: our Bus with its robot config; records its acks/corrections."""
+
+    def __init__(self, rid: str, conf_file: Path, fleet: str) -> None:
+        self.rid = rid
+        self.bus = Bus(ZenohConfig(mode="peer", config_file=str(conf_file)), fleet)
+        self.acks: list[int] = []
+        self.corrections = 0
+        self._lock = threading.Lock()
+        self.bus.subscribe(self.bus.keys.robot(rid, "ack"), KeyframeAck, self._on_ack)
+        self.bus.subscribe(self.bus.keys.robot(rid, "correction"), PoseCorrection, self._on_corr)
+        self.base_alive = threading.Event()
+        self.bus.watch_alive("basestation", lambda n, a: self.base_alive.set() if a else None)
+
+    def _on_ack(self, m: KeyframeAck, key: str) -> None:
+        with self._lock:
+            self.acks.append(m.acked_seq)
+
+    def _on_corr(self, m: PoseCorrection, key: str) -> None:
+        with self._lock:
+            self.corrections += 1
+
+    def last_ack(self) -> int:
+        with self._lock:
+            return max(self.acks, default=-1)
+
+    def send(self, seqs: range, robot: str | None = None, x0: float = 0.0) -> None:
+        """Publish keyframes `seqs`; with `robot`, forged ones on that robot's key."""
+        target = robot or self.rid
+        for seq in seqs:
+            self.bus.publish(
+                self.bus.keys.robot(target, "keyframe"), make_keyframe(target, seq, x0)
+            )
+
+
+def run(
+    cfg: Config,
+    out_prefix: Path,
+    data_dir: Path,
+    keyframes: int = 5,
+    base_mode: str = "router",
+    access_control: bool = True,
+) -> dict[str, Any]:
+    """Run the attacks against a secure base station; returns the bench JSON.
+
+    `access_control=False` (a control run, not a CLI option) keeps mTLS but turns the
+    ACL off: the robot-level attempts must then succeed, showing the checks can fail.
+    """
+    del data_dir  # no data set: everything is generated
+    work = Path(out_prefix)
+    work.mkdir(parents=True, exist_ok=True)
+    t0 = time.monotonic()
+    certs = make_certs(work / "certs", [*ROBOTS, "r9"])
+    other = make_certs(work / "other_ca", ["r0"], ca_name="another CA")
+    port = free_port()
+    ep = f"tls/127.0.0.1:{port}"
+    zdir = work / "zenoh"
+    base_conf = basestation_config(certs, cfg.fleet, list(ROBOTS), [ep])
+    base_conf["access_control"]["enabled"] = access_control
+    base_file = write_json5(base_conf, zdir / "basestation.json5")
+    robot_files = {
+        r: write_json5(robot_config(certs, r, [ep]), zdir / f"{r}.json5") for r in ROBOTS
+    }
+    write_scenario(
+        work / "scenario.json",
+        Scenario(
+            "none", [RobotScenario(r, np.array([0.0, 3.0 * i, 0.0])) for i, r in enumerate(ROBOTS)]
+        ),
+    )
+    group = ProcessGroup(work)
+    base = group.spawn(
+        "basestation",
+        [
+            "basestation",
+            "--out", str(work / "basestation"),
+            "--scenario", str(work / "scenario.json"),
+            "--zenoh-config", str(base_file),
+            "--set", f"fleet={cfg.fleet}",
+            "--set", f"zenoh.mode={base_mode}",
+        ],
+    )  # fmt: skip
+    attempts: list[dict[str, Any]] = []
+    robots: dict[str, _Robot] = {}
+    try:
+        robots = {r: _Robot(r, robot_files[r], cfg.fleet) for r in ROBOTS}
+        r0, r1 = robots["r0"], robots["r1"]
+        # Robot A's spy: its own session (another process holding r0's certificate).
+        spy = _Robot("r0", robot_files["r0"], cfg.fleet)
+        robots["r0-spy"] = spy
+        spied: list[str] = []
+        spy.bus.session.declare_subscriber(
+            f"{spy.bus.keys.root}/robot/r1/**", lambda s: spied.append(str(s.key_expr))
+        )  # undeclared when the spy's session closes
+        for r in robots.values():
+            if not r.base_alive.wait(60.0):
+                group.check([base])
+                raise CollabSlamError(f"robot {r.rid} never saw the secure base station alive")
+
+        # Legitimate traffic: every keyframe acknowledged.
+        for r in (r0, r1):
+            r.send(range(keyframes))
+        acked = wait_for(lambda: all(r.last_ack() == keyframes - 1 for r in (r0, r1)), 30.0)
+
+        # Unauthenticated or foreign-CA clients (each trusts the fleet CA as server).
+        nocert = {"connect": {"endpoints": [ep]}}
+        nocert["transport"] = {"link": {"tls": {"root_ca_certificate": str(certs / "ca.pem")}}}
+        err = try_open(nocert)
+        attempts.append(
+            {"name": "client_without_certificate", "rejected": err is not None, "detail": err}
+        )
+        foreign = robot_config(other, "r0", [ep])
+        foreign["transport"]["link"]["tls"]["root_ca_certificate"] = str(certs / "ca.pem")
+        err = try_open(foreign)
+        attempts.append(
+            {"name": "certificate_from_other_ca", "rejected": err is not None, "detail": err}
+        )
+
+        # r0 forges r1's next keyframes on r1's key; an unlisted certificate publishes.
+        r0.send(range(keyframes, keyframes + 3), robot="r1", x0=50.0)
+        r9 = _Robot(
+            "r9", write_json5(robot_config(certs, "r9", [ep]), zdir / "r9.json5"), cfg.fleet
+        )
+        r9.base_alive.wait(2.0)  # an unlisted CN may not even see the base station
+        r9.send(range(3))
+        # r1 keeps going: its downlink keeps flowing while r0's spy listens.
+        r1.send(range(keyframes, keyframes + 2))
+        r1_more = wait_for(lambda: r1.last_ack() >= keyframes + 1, 20.0)
+        time.sleep(1.0)  # any forged/spied sample in flight arrives by now
+        r9.bus.close()
+        r1_acks_ok = max(r1.acks, default=-1) <= keyframes + 1
+        spy_ok = not spied and r1.corrections > 0 and r1_more
+    finally:
+        for r in robots.values():
+            r.bus.close()
+        if base.proc.poll() is None:
+            base.proc.send_signal(signal.SIGINT)
+        try:
+            base.proc.wait(60)
+        except subprocess.TimeoutExpired:
+            pass
+        group.terminate_all()
+    if base.proc.returncode != 0:
+        raise CollabSlamError(group.died(base, base.proc.returncode))
+    stats = json.loads((work / "basestation" / "basestation.json").read_text())
+    in_graph = {r: stats["robots"].get(r, {}).get("keyframes_in_graph", 0) for r in ROBOTS}
+    attempts.append(
+        {
+            "name": "robot_A_publishes_keyframes_as_robot_B",
+            "rejected": r1_acks_ok and in_graph["r1"] == keyframes + 2,
+            "detail": f"r1 acked up to {r1.last_ack()}; {in_graph['r1']} r1 keyframes in graph",
+        }
+    )
+    attempts.append(
+        {
+            "name": "robot_A_subscribes_to_robot_B_paths",
+            "rejected": spy_ok,
+            "detail": f"r0 got {len(spied)} samples of r1's keys, r1 {r1.corrections} corrections",
+        }
+    )
+    attempts.append(
+        {
+            "name": "unlisted_robot_certificate",
+            "rejected": stats["unknown_robot_drops"] == 0 and "r9" not in stats["robots"],
+            "detail": f"base station unknown-robot drops: {stats['unknown_robot_drops']}",
+        }
+    )
+    legit = acked and r1_more and in_graph == {"r0": keyframes, "r1": keyframes + 2}
+    return {
+        "attempts": attempts,
+        "legitimate_ok": bool(legit),
+        "all_rejected": all(a["rejected"] for a in attempts),
+        "keyframes_in_graph": in_graph,
+        "base_mode": base_mode,
+        "endpoint": ep,
+        "wall_time_s": round(time.monotonic() - t0, 2),
+    }

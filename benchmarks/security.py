@@ -32,6 +32,7 @@ import json
 import logging
 import os
 import signal
+import socket
 import subprocess
 import threading
 import time
@@ -93,6 +94,14 @@ def try_open(conf: dict[str, Any]) -> str | None:
         return str(exc).split(" at ")[0]
     session.close()
     return None
+
+
+def _port_open(port: int) -> bool:
+    try:
+        socket.create_connection(("127.0.0.1", port), timeout=0.2).close()
+        return True
+    except OSError:
+        return False
 
 
 def wait_for(pred: Callable[[], bool], timeout: float) -> bool:
@@ -188,6 +197,10 @@ def run(
     attempts: list[dict[str, Any]] = []
     robots: dict[str, _Robot] = {}
     try:
+        if not wait_for(lambda: _port_open(port), 60.0):
+            group.check([base])
+            raise CollabSlamError(f"the base station never listened on {ep}")
+        log.info("base station listening after %.1f s", time.monotonic() - t0)
         robots = {r: _Robot(r, robot_files[r], cfg.fleet) for r in ROBOTS}
         r0, r1 = robots["r0"], robots["r1"]
         # Robot A's spy: its own session (another process holding r0's certificate).
@@ -202,6 +215,7 @@ def run(
                 group.check([base])
                 raise CollabSlamError(f"robot {r.rid} never saw the secure base station alive")
 
+        log.info("robots connected after %.1f s", time.monotonic() - t0)
         # Legitimate traffic: every keyframe acknowledged.
         for r in (r0, r1):
             r.send(range(keyframes))
@@ -235,6 +249,7 @@ def run(
         r9.bus.close()
         r1_acks_ok = max(r1.acks, default=-1) <= keyframes + 1
         spy_ok = not spied and r1.corrections > 0 and r1_more
+        log.info("attempts done after %.1f s", time.monotonic() - t0)
     finally:
         for r in robots.values():
             r.bus.close()

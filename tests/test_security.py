@@ -13,6 +13,7 @@ import json
 import subprocess
 import sys
 import threading
+from contextlib import ExitStack
 from pathlib import Path
 
 import pytest
@@ -36,12 +37,27 @@ def certs(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path]:
     return make_certs(root / "fleet", ["r0", "r1"]), make_certs(root / "other", ["r0"], "evil CA")
 
 
-def _secure_base(tmp: Path, certs: Path, mode: str = "peer", acl: bool = True) -> tuple[Bus, str]:
+def _secure_base(
+    stack: ExitStack, tmp: Path, certs: Path, topology: str = "peer", acl: bool = True
+) -> tuple[Bus, str]:
+    """The base station's Bus on the secure config; returns it and the robots' endpoint.
+
+    topology: "peer" or "router" (the base station's own session listens, as
+    collabslam-basestation.service runs it), or "zenohd" (the router option: a router
+    session on router.json5's content holds the ACL, the base station is its client
+    with the CN=basestation certificate).
+    """
     ep = f"tls/127.0.0.1:{free_port()}"
     conf = basestation_config(certs, FLEET, ["r0", "r1"], [ep])
     conf["access_control"]["enabled"] = acl
-    path = write_json5(conf, tmp / "basestation.json5")
-    bus = Bus(ZenohConfig(mode=mode, config_file=str(path)), FLEET)
+    if topology == "zenohd":
+        router = zenoh.open(zenoh.Config.from_json5(json.dumps({"mode": "router", **conf})))
+        stack.callback(router.close)
+        path = write_json5(robot_config(certs, "basestation", [ep]), tmp / "base-client.json5")
+        zc = ZenohConfig(mode="client", config_file=str(path))
+    else:
+        zc = ZenohConfig(mode=topology, config_file=str(write_json5(conf, tmp / "base.json5")))
+    bus = stack.enter_context(Bus(zc, FLEET))
     bus.declare_alive("basestation", "base")
     return bus, ep
 
@@ -75,8 +91,8 @@ def test_make_certs_chains_and_common_names(certs: tuple[Path, Path]) -> None:
 
 def test_unknown_clients_are_refused(tmp_path: Path, certs: tuple[Path, Path]) -> None:
     fleet, other = certs
-    base, ep = _secure_base(tmp_path, fleet)
-    with base:
+    with ExitStack() as stack:
+        _, ep = _secure_base(stack, tmp_path, fleet)
         tls_root = {"root_ca_certificate": str(fleet / "ca.pem")}
         no_cert = {"connect": {"endpoints": [ep]}, "transport": {"link": {"tls": tls_root}}}
         assert try_open(no_cert) is not None, "a client without a certificate got in"
@@ -89,25 +105,26 @@ def test_unknown_clients_are_refused(tmp_path: Path, certs: tuple[Path, Path]) -
         assert try_open(robot_config(fleet, "r0", [ep])) is None
 
 
-@pytest.mark.parametrize(("mode", "acl"), [("peer", True), ("router", True), ("router", False)])
+@pytest.mark.parametrize(
+    ("topology", "acl"), [("peer", True), ("router", True), ("zenohd", True), ("router", False)]
+)
 def test_robot_cannot_write_or_read_another_robots_keys(
-    tmp_path: Path, certs: tuple[Path, Path], mode: str, acl: bool
+    tmp_path: Path, certs: tuple[Path, Path], topology: str, acl: bool
 ) -> None:
     """r0's put on r1's key is dropped while its own arrives; r0's subscription to r1's
     downlink gets nothing while r1's own does. With the ACL off (control) both leak."""
     fleet = certs[0]
-    base, ep = _secure_base(tmp_path, fleet, mode, acl)
     got: list[tuple[str, int]] = []
-    base.subscribe(
-        base.keys.all_robots("keyframe"), Keyframe, lambda m, k: got.append((m.robot_id, m.seq))
-    )
-    with (
-        base,
-        _robot(tmp_path, fleet, "r0", ep) as r0,
-        _robot(tmp_path, fleet, "r1", ep) as r1,
-        _robot(tmp_path, fleet, "r0", ep) as spy,  # another process of robot A
-    ):
-        spied: list[str] = []
+    spied: list[str] = []
+    with ExitStack() as stack:
+        base, ep = _secure_base(stack, tmp_path, fleet, topology, acl)
+        base.subscribe(
+            base.keys.all_robots("keyframe"), Keyframe, lambda m, k: got.append((m.robot_id, m.seq))
+        )
+        r0, r1, spy = (
+            stack.enter_context(_robot(tmp_path, fleet, rid, ep))
+            for rid in ("r0", "r1", "r0")  # spy: another process of robot A
+        )
         r0_acks: list[int] = []
         r1_acks: list[int] = []
         spy.subscribe(spy.keys.robot("r1", "ack"), KeyframeAck, lambda m, k: spied.append(k))

@@ -25,6 +25,9 @@ import json
 from pathlib import Path
 from typing import Any
 
+import zenoh
+
+from common.errors import ConfigError
 from protocol.keys import DOWNLINK_TOPICS, Keys
 
 BASESTATION_CN = "basestation"
@@ -39,6 +42,33 @@ _ALL_MESSAGES = [
     "declare_liveliness_subscriber",
     "liveliness_query",
 ]
+
+
+TLS_FILE_KEYS = (
+    "root_ca_certificate",
+    "listen_private_key",
+    "listen_certificate",
+    "connect_private_key",
+    "connect_certificate",
+)
+
+
+def check_tls_files(conf: zenoh.Config, source: str) -> None:
+    """Raise ConfigError naming the key if a TLS file of `conf` cannot be read.
+
+    Zenoh itself would only fail the link (a peer then retries forever in silence).
+    """
+    for key in TLS_FILE_KEYS:
+        path = json.loads(conf.get_json(f"transport/link/tls/{key}"))
+        if path is None:
+            continue
+        try:
+            with open(path, "rb"):
+                pass
+        except OSError as exc:
+            raise ConfigError(
+                f"{source}: transport.link.tls.{key} {path!r}: {exc.strerror}"
+            ) from None
 
 
 def _rule(rule_id: str, flow: str, messages: list[str], key_exprs: list[str]) -> dict[str, Any]:

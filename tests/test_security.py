@@ -23,6 +23,7 @@ from benchmarks.security import make_certs, make_keyframe, try_open, wait_for
 from collabslam.cli import _load_cfg, build_parser
 from common.bus import Bus, zenoh_config
 from common.config import ZenohConfig
+from common.errors import ConfigError
 from common.zenoh_security import basestation_config, robot_config, write_json5
 from protocol import Keyframe, KeyframeAck
 from tests.conftest import free_port
@@ -202,3 +203,10 @@ def test_zenoh_config_cli_option_and_merge(tmp_path: Path, certs: tuple[Path, Pa
     assert json.loads(conf.get_json("transport/link/tls/enable_mtls")) is True
     zc.connect = ["tcp/127.0.0.1:9999"]
     assert json.loads(zenoh_config(zc).get_json("connect/endpoints")) == ["tcp/127.0.0.1:9999"]
+
+
+def test_missing_certificate_file_is_a_clear_config_error(tmp_path: Path) -> None:
+    conf = robot_config(tmp_path / "nowhere", "r0", ["tls/127.0.0.1:7447"])
+    path = write_json5(conf, tmp_path / "r0.json5")
+    with pytest.raises(ConfigError, match="root_ca_certificate .*nowhere/ca.pem"):
+        Bus(ZenohConfig(config_file=str(path)), FLEET)

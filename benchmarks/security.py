@@ -7,7 +7,10 @@ mode so that it would forward traffic between robots if the rules allowed it.
 Certificates are made at run time by `deploy/make_certs.sh` (fleet CA with r0, r1 and
 r9; a second, unrelated CA with its own r0). Robots r0 and r1 connect through our
 `Bus` with their robot configs and stream real `Keyframe` messages; they must all
-be acknowledged and end up in the graph (`legitimate_ok`).
+be acknowledged and end up in the graph (`legitimate_ok`). When the shared Intel
+log is there, a real `collabslam agent` process (robot r2, its own certificate)
+also replays its first `agent_seconds` through the secure link, and every keyframe
+it sends must be acknowledged (`agent_process`).
 
 Attempts (each `rejected` is decided by what the base station or the robots saw):
 
@@ -37,12 +40,14 @@ import subprocess
 import threading
 import time
 from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import zenoh
 
+from agent.carmen_log import read_carmen
 from collabslam.supervisor import ProcessGroup, free_port
 from common.bus import Bus
 from common.config import Config, ZenohConfig
@@ -55,7 +60,9 @@ from protocol import Keyframe, KeyframeAck, PoseCorrection, Scan2D
 log = logging.getLogger(__name__)
 REPO = Path(__file__).resolve().parents[1]
 MAKE_CERTS = REPO / "deploy" / "make_certs.sh"
-ROBOTS = ("r0", "r1")
+ROBOTS = ("r0", "r1")  # the legitimate robots driven by this process
+AGENT_ROBOT = "r2"  # a real `collabslam agent` process, when the log is there
+AGENT_LOG = Path("carmen") / "intel.clf.bz2"
 
 
 def make_certs(out: Path, robots: list[str], ca_name: str = "collabslam fleet CA") -> Path:
@@ -148,6 +155,51 @@ class _Robot:
             )
 
 
+@dataclass
+class _Setup:
+    """Certificates, configs and the scenario of one bench run, under `work`."""
+
+    work: Path
+    port: int
+    certs: Path
+    other_ca: Path
+    base_file: Path
+    robot_files: dict[str, Path]
+
+    @property
+    def endpoint(self) -> str:
+        return f"tls/127.0.0.1:{self.port}"
+
+
+def _setup(work: Path, fleet: str, legit: list[str], access_control: bool) -> _Setup:
+    certs = make_certs(work / "certs", [*legit, "r9"])
+    other = make_certs(work / "other_ca", ["r0"], ca_name="another CA")
+    port = free_port()
+    ep = f"tls/127.0.0.1:{port}"
+    zdir = work / "zenoh"
+    base_conf = basestation_config(certs, fleet, legit, [ep])
+    base_conf["access_control"]["enabled"] = access_control
+    files = {r: write_json5(robot_config(certs, r, [ep]), zdir / f"{r}.json5") for r in legit}
+    files["r9"] = write_json5(robot_config(certs, "r9", [ep]), zdir / "r9.json5")
+    starts = [RobotScenario(r, np.array([0.0, 3.0 * i, 0.0])) for i, r in enumerate(legit)]
+    write_scenario(work / "scenario.json", Scenario("none", starts))
+    return _Setup(
+        work, port, certs, other, write_json5(base_conf, zdir / "basestation.json5"), files
+    )
+
+
+def _agent_args(st: _Setup, fleet: str, log_path: Path, seconds: float) -> list[str]:
+    """`collabslam agent` replaying the first `seconds` of a CARMEN log as robot r2."""
+    first = next(iter(read_carmen(log_path))).stamp
+    return [
+        "agent", "--robot-id", AGENT_ROBOT,
+        "--replay", str(log_path), "--segment", f"{first}:{first + seconds}",
+        "--zenoh-config", str(st.robot_files[AGENT_ROBOT]),
+        "--out", str(st.work / f"agent-{AGENT_ROBOT}"),
+        "--set", f"fleet={fleet}",
+    ]  # fmt: skip
+
+
 def run(
     cfg: Config,
     out_prefix: Path,
@@ -155,33 +207,24 @@ def run(
     keyframes: int = 5,
     base_mode: str = "router",
     access_control: bool = True,
+    agent_seconds: float = 45.0,
 ) -> dict[str, Any]:
     """Run the attacks against a secure base station; returns the bench JSON.
 
+    With `data_dir/carmen/intel.clf.bz2` present (and `agent_seconds` > 0), a real
+    `collabslam agent` process (robot r2, its own certificate) replays the log's first
+    `agent_seconds` through the same secure link; all its keyframes must be acked.
     `access_control=False` (a control run, not a CLI option) keeps mTLS but turns the
     ACL off: the robot-level attempts must then succeed, showing the checks can fail.
     """
-    del data_dir  # no data set: everything is generated
     work = Path(out_prefix)
     work.mkdir(parents=True, exist_ok=True)
     t0 = time.monotonic()
-    certs = make_certs(work / "certs", [*ROBOTS, "r9"])
-    other = make_certs(work / "other_ca", ["r0"], ca_name="another CA")
-    port = free_port()
-    ep = f"tls/127.0.0.1:{port}"
-    zdir = work / "zenoh"
-    base_conf = basestation_config(certs, cfg.fleet, list(ROBOTS), [ep])
-    base_conf["access_control"]["enabled"] = access_control
-    base_file = write_json5(base_conf, zdir / "basestation.json5")
-    robot_files = {
-        r: write_json5(robot_config(certs, r, [ep]), zdir / f"{r}.json5") for r in ROBOTS
-    }
-    write_scenario(
-        work / "scenario.json",
-        Scenario(
-            "none", [RobotScenario(r, np.array([0.0, 3.0 * i, 0.0])) for i, r in enumerate(ROBOTS)]
-        ),
-    )
+    log_path = Path(data_dir) / AGENT_LOG
+    with_agent = agent_seconds > 0 and log_path.is_file()
+    legit_ids = [*ROBOTS, AGENT_ROBOT] if with_agent else list(ROBOTS)
+    st = _setup(work, cfg.fleet, legit_ids, access_control)
+    ep = st.endpoint
     group = ProcessGroup(work)
     base = group.spawn(
         "basestation",
@@ -189,22 +232,25 @@ def run(
             "basestation",
             "--out", str(work / "basestation"),
             "--scenario", str(work / "scenario.json"),
-            "--zenoh-config", str(base_file),
+            "--zenoh-config", str(st.base_file),
             "--set", f"fleet={cfg.fleet}",
             "--set", f"zenoh.mode={base_mode}",
         ],
     )  # fmt: skip
     attempts: list[dict[str, Any]] = []
     robots: dict[str, _Robot] = {}
+    agent = None
     try:
-        if not wait_for(lambda: _port_open(port), 60.0):
+        if not wait_for(lambda: _port_open(st.port), 60.0):
             group.check([base])
             raise CollabSlamError(f"the base station never listened on {ep}")
         log.info("base station listening after %.1f s", time.monotonic() - t0)
-        robots = {r: _Robot(r, robot_files[r], cfg.fleet) for r in ROBOTS}
+        if with_agent:
+            agent = group.spawn("agent-r2", _agent_args(st, cfg.fleet, log_path, agent_seconds))
+        robots = {r: _Robot(r, st.robot_files[r], cfg.fleet) for r in ROBOTS}
         r0, r1 = robots["r0"], robots["r1"]
         # Robot A's spy: its own session (another process holding r0's certificate).
-        spy = _Robot("r0", robot_files["r0"], cfg.fleet)
+        spy = _Robot("r0", st.robot_files["r0"], cfg.fleet)
         robots["r0-spy"] = spy
         spied: list[str] = []
         spy.bus.session.declare_subscriber(
@@ -214,7 +260,6 @@ def run(
             if not r.base_alive.wait(60.0):
                 group.check([base])
                 raise CollabSlamError(f"robot {r.rid} never saw the secure base station alive")
-
         log.info("robots connected after %.1f s", time.monotonic() - t0)
         # Legitimate traffic: every keyframe acknowledged.
         for r in (r0, r1):
@@ -222,24 +267,17 @@ def run(
         acked = wait_for(lambda: all(r.last_ack() == keyframes - 1 for r in (r0, r1)), 30.0)
 
         # Unauthenticated or foreign-CA clients (each trusts the fleet CA as server).
-        nocert = {"connect": {"endpoints": [ep]}}
-        nocert["transport"] = {"link": {"tls": {"root_ca_certificate": str(certs / "ca.pem")}}}
-        err = try_open(nocert)
-        attempts.append(
-            {"name": "client_without_certificate", "rejected": err is not None, "detail": err}
-        )
-        foreign = robot_config(other, "r0", [ep])
-        foreign["transport"]["link"]["tls"]["root_ca_certificate"] = str(certs / "ca.pem")
+        ca = {"root_ca_certificate": str(st.certs / "ca.pem")}
+        err = try_open({"connect": {"endpoints": [ep]}, "transport": {"link": {"tls": ca}}})
+        attempts.append(_attempt("client_without_certificate", err is not None, err or "opened"))
+        foreign = robot_config(st.other_ca, "r0", [ep])
+        foreign["transport"]["link"]["tls"].update(ca)
         err = try_open(foreign)
-        attempts.append(
-            {"name": "certificate_from_other_ca", "rejected": err is not None, "detail": err}
-        )
+        attempts.append(_attempt("certificate_from_other_ca", err is not None, err or "opened"))
 
         # r0 forges r1's next keyframes on r1's key; an unlisted certificate publishes.
         r0.send(range(keyframes, keyframes + 3), robot="r1", x0=50.0)
-        r9 = _Robot(
-            "r9", write_json5(robot_config(certs, "r9", [ep]), zdir / "r9.json5"), cfg.fleet
-        )
+        r9 = _Robot("r9", st.robot_files["r9"], cfg.fleet)
         r9.base_alive.wait(2.0)  # an unlisted CN may not even see the base station
         r9.send(range(3))
         # r1 keeps going: its downlink keeps flowing while r0's spy listens.
@@ -249,6 +287,8 @@ def run(
         r9.bus.close()
         r1_acks_ok = max(r1.acks, default=-1) <= keyframes + 1
         spy_ok = not spied and r1.corrections > 0 and r1_more
+        if agent is not None:
+            group.wait([agent], 120.0)  # it ends by itself: replay done, outbox drained
         log.info("attempts done after %.1f s", time.monotonic() - t0)
     finally:
         for r in robots.values():
@@ -263,31 +303,43 @@ def run(
     if base.proc.returncode != 0:
         raise CollabSlamError(group.died(base, base.proc.returncode))
     stats = json.loads((work / "basestation" / "basestation.json").read_text())
-    in_graph = {r: stats["robots"].get(r, {}).get("keyframes_in_graph", 0) for r in ROBOTS}
+    in_graph = {r: stats["robots"].get(r, {}).get("keyframes_in_graph", 0) for r in legit_ids}
     attempts.append(
-        {
-            "name": "robot_A_publishes_keyframes_as_robot_B",
-            "rejected": r1_acks_ok and in_graph["r1"] == keyframes + 2,
-            "detail": f"r1 acked up to {r1.last_ack()}; {in_graph['r1']} r1 keyframes in graph",
-        }
+        _attempt(
+            "robot_A_publishes_keyframes_as_robot_B",
+            r1_acks_ok and in_graph["r1"] == keyframes + 2,
+            f"r1 acked up to {r1.last_ack()}; {in_graph['r1']} r1 keyframes in graph",
+        )
     )
     attempts.append(
-        {
-            "name": "robot_A_subscribes_to_robot_B_paths",
-            "rejected": spy_ok,
-            "detail": f"r0 got {len(spied)} samples of r1's keys, r1 {r1.corrections} corrections",
-        }
+        _attempt(
+            "robot_A_subscribes_to_robot_B_paths",
+            spy_ok,
+            f"r0 got {len(spied)} samples of r1's keys, r1 {r1.corrections} corrections",
+        )
     )
+    drops = stats["unknown_robot_drops"]
     attempts.append(
-        {
-            "name": "unlisted_robot_certificate",
-            "rejected": stats["unknown_robot_drops"] == 0 and "r9" not in stats["robots"],
-            "detail": f"base station unknown-robot drops: {stats['unknown_robot_drops']}",
-        }
+        _attempt(
+            "unlisted_robot_certificate",
+            drops == 0 and "r9" not in stats["robots"],
+            f"base station unknown-robot drops: {drops}",
+        )
     )
-    legit = acked and r1_more and in_graph == {"r0": keyframes, "r1": keyframes + 2}
-    return {
-        "attempts": attempts,
+    legit = acked and r1_more and in_graph["r0"] == keyframes and in_graph["r1"] == keyframes + 2
+    result: dict[str, Any] = {"attempts": attempts}
+    if with_agent:
+        a = json.loads(
+            (work / f"agent-{AGENT_ROBOT}" / "agents" / f"{AGENT_ROBOT}.json").read_text()
+        )
+        sent, acked_n = a["keyframes_sent"], a["keyframes_acked"]
+        legit = legit and sent > 0 and acked_n == sent == in_graph[AGENT_ROBOT]
+        result["agent_process"] = {
+            "robot": AGENT_ROBOT,
+            "keyframes_sent": sent,
+            "keyframes_acked": acked_n,
+        }
+    return result | {
         "legitimate_ok": bool(legit),
         "all_rejected": all(a["rejected"] for a in attempts),
         "keyframes_in_graph": in_graph,
@@ -295,3 +347,7 @@ def run(
         "endpoint": ep,
         "wall_time_s": round(time.monotonic() - t0, 2),
     }
+
+
+def _attempt(name: str, rejected: bool, detail: str) -> dict[str, Any]:
+    return {"name": name, "rejected": bool(rejected), "detail": detail}

@@ -316,9 +316,19 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--data-dir", default=str(_default_data_dir()))
     b.add_argument("--keyframes", type=int, default=5, help="legitimate keyframes per robot")
     b.add_argument("--base-mode", choices=("router", "peer"), default="router")
+    b.add_argument(
+        "--agent-seconds",
+        type=float,
+        default=45.0,
+        help="also run a real agent replaying this much of DATA_DIR/carmen/intel.clf.bz2 (0: no)",
+    )
     b.set_defaults(
         func=cmd_bench,
-        bench_kwargs=lambda a: {"keyframes": a.keyframes, "base_mode": a.base_mode},
+        bench_kwargs=lambda a: {
+            "keyframes": a.keyframes,
+            "base_mode": a.base_mode,
+            "agent_seconds": a.agent_seconds,
+        },
     )
 
     sp = sub.add_parser("eval", help="score results against references")

@@ -153,7 +153,17 @@ def test_bench_security_end_to_end(tmp_path: Path) -> None:
     rejected, the legitimate robots' keyframes all in the graph."""
     out = tmp_path / "sec.json"
     res = subprocess.run(
-        [sys.executable, "-m", "collabslam.cli", "bench", "security", "--json", str(out)],
+        [
+            sys.executable,
+            "-m",
+            "collabslam.cli",
+            "bench",
+            "security",
+            "--json",
+            str(out),
+            "--agent-seconds",
+            "0",  # the agent-process leg is left to the bench run itself
+        ],  # fmt: skip
         capture_output=True,
         text=True,
         timeout=180,
@@ -169,6 +179,7 @@ def test_bench_security_end_to_end(tmp_path: Path) -> None:
     } <= names
     assert all(a["rejected"] for a in result["attempts"]), result["attempts"]
     assert result["legitimate_ok"] is True
+    assert result["keyframes_in_graph"] == {"r0": 5, "r1": 7} and "agent_process" not in result
 
 
 def test_deploy_configs_match_the_generator_and_load(tmp_path: Path) -> None:

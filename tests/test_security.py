@@ -126,6 +126,11 @@ def test_robot_cannot_write_or_read_another_robots_keys(
             stack.enter_context(_robot(tmp_path, fleet, rid, ep))
             for rid in ("r0", "r1", "r0")  # spy: another process of robot A
         )
+        agents: set[str] = set()
+        base.watch_alive("agent", lambda n, a: agents.add(n) if a else agents.discard(n))
+        spy.declare_alive("agent", "r1")  # robot A claims to be robot B (sent first)...
+        r0.declare_alive("agent", "r0")
+        assert wait_for(lambda: "r0" in agents, 10.0), agents  # ...so it would be here now
         r0_acks: list[int] = []
         r1_acks: list[int] = []
         spy.subscribe(spy.keys.robot("r1", "ack"), KeyframeAck, lambda m, k: spied.append(k))
@@ -141,11 +146,14 @@ def test_robot_cannot_write_or_read_another_robots_keys(
         base.publish(base.keys.robot("r1", "ack"), KeyframeAck("r1", 0))
         base.publish(base.keys.robot("r0", "ack"), KeyframeAck("r0", 0))
         assert wait_for(lambda: bool(r0_acks) and bool(r1_acks), 10.0)
+        alive = set(agents)
     if acl:
         assert ("r1", 100) not in got, "r0's forged keyframe for r1 reached the base station"
         assert spied == [], "r0 received r1's downlink"
+        assert alive == {"r0"}, "r0's liveliness token for r1 reached the base station"
     else:
         assert ("r1", 100) in got and spied, "control without ACL: the attack should work"
+        assert alive == {"r0", "r1"}
 
 
 def test_bench_security_end_to_end(tmp_path: Path) -> None:

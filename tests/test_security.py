@@ -19,7 +19,7 @@ from pathlib import Path
 import pytest
 import zenoh
 
-from benchmarks.security import make_certs, make_keyframe, try_open, wait_for
+from benchmarks.security_clients import make_certs, make_keyframe, try_open, wait_for
 from collabslam.cli import _load_cfg, build_parser
 from common.bus import Bus, zenoh_config
 from common.config import ZenohConfig

@@ -156,6 +156,7 @@ def test_robot_cannot_write_or_read_another_robots_keys(
         assert alive == {"r0", "r1"}
 
 
+@pytest.mark.e2e
 def test_bench_security_end_to_end(tmp_path: Path) -> None:
     """`collabslam bench security` with a real base-station process: every attempt
     rejected, the legitimate robots' keyframes all in the graph."""

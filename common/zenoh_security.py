@@ -194,11 +194,14 @@ def robot_config(
     """Zenoh config of robot `robot_id`: mTLS client certificate (CN = robot id).
 
     `connect` are the base station's `tls/...` endpoints; `listen` optional local
-    endpoints (e.g. `tcp/127.0.0.1:7448` for the drone's own sensor driver).
+    endpoints (e.g. `tcp/127.0.0.1:7448` for the drone's own sensor driver). Without
+    them the session listens nowhere (a Zenoh peer's default is `tcp/[::]:0`: every
+    interface, no TLS, out of the base station's access control).
     """
     d = Path(cert_dir)
     conf: dict[str, Any] = {
         "connect": {"endpoints": list(connect)},
+        "listen": {"endpoints": list(listen or [])},
         "scouting": _no_scouting(),
         "transport": {
             "link": {
@@ -212,8 +215,6 @@ def robot_config(
             }
         },
     }
-    if listen:
-        conf["listen"] = {"endpoints": list(listen)}
     return conf
 
 

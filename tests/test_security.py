@@ -221,6 +221,7 @@ def test_zenoh_config_cli_option_and_merge(tmp_path: Path, certs: tuple[Path, Pa
     conf = zenoh_config(zc)
     assert json.loads(conf.get_json("connect/endpoints")) == ["tls/127.0.0.1:7447"]
     assert json.loads(conf.get_json("transport/link/tls/enable_mtls")) is True
+    assert json.loads(conf.get_json("listen/endpoints")) == []  # not Zenoh's tcp/[::]:0
     zc.connect = ["tcp/127.0.0.1:9999"]
     assert json.loads(zenoh_config(zc).get_json("connect/endpoints")) == ["tcp/127.0.0.1:9999"]
 

@@ -231,3 +231,14 @@ def test_missing_certificate_file_is_a_clear_config_error(tmp_path: Path) -> Non
     path = write_json5(conf, tmp_path / "r0.json5")
     with pytest.raises(ConfigError, match="root_ca_certificate .*nowhere/ca.pem"):
         Bus(ZenohConfig(config_file=str(path)), FLEET)
+
+
+def test_secure_base_station_refuses_a_plain_tcp_listener(
+    tmp_path: Path, certs: tuple[Path, Path]
+) -> None:
+    """With the secure config, `--listen tcp/...` fails instead of opening a hole."""
+    conf = basestation_config(certs[0], FLEET, ["r0"], [f"tls/127.0.0.1:{free_port()}"])
+    path = write_json5(conf, tmp_path / "base.json5")
+    zc = ZenohConfig(config_file=str(path), listen=[f"tcp/127.0.0.1:{free_port()}"])
+    with pytest.raises(ConfigError, match="(?i)unsupported protocol: tcp"):
+        Bus(zc, FLEET)

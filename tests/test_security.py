@@ -21,12 +21,12 @@ import zenoh
 
 from benchmarks.security_clients import make_certs, make_keyframe, try_open, wait_for
 from collabslam.cli import _load_cfg, build_parser
+from collabslam.supervisor import free_port
 from common.bus import Bus, zenoh_config
 from common.config import ZenohConfig
 from common.errors import ConfigError
 from common.zenoh_security import basestation_config, robot_config, write_json5
 from protocol import Keyframe, KeyframeAck
-from tests.conftest import free_port
 
 REPO = Path(__file__).resolve().parents[1]
 FLEET = "default"

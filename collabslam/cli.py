@@ -59,6 +59,8 @@ def _load_cfg(args: argparse.Namespace) -> Any:
         overrides["zenoh.listen"] = args.listen
     if getattr(args, "connect", None):
         overrides["zenoh.connect"] = args.connect
+    if getattr(args, "zenoh_config", None):
+        overrides["zenoh.config_file"] = args.zenoh_config
     return load_config(args.config, overrides)
 
 
@@ -241,6 +243,12 @@ def build_parser() -> argparse.ArgumentParser:
                 metavar="ENDPOINT",
                 help="Zenoh endpoint to connect to",
             )
+            sp.add_argument(
+                "--zenoh-config",
+                metavar="PATH",
+                help="Zenoh JSON5 config merged under our endpoints, e.g. the TLS + "
+                "access-control files made by deploy/make_zenoh_configs.py",
+            )
 
     sp = sub.add_parser("sim", help="run the simulator process")
     common(sp)
@@ -368,6 +376,30 @@ def build_parser() -> argparse.ArgumentParser:
     b.set_defaults(
         func=cmd_bench,
         bench_kwargs=lambda a: {"world": a.world, "length_m": a.length, "gnss_seeds": a.seeds},
+    )
+
+    b = bn.add_parser(
+        "security",
+        help="secure base station (mTLS + access control) vs. unauthorized clients and robots",
+    )
+    common(b, zenoh=False)
+    b.add_argument("--json", required=True, help="output JSON file")
+    b.add_argument("--data-dir", default=str(_default_data_dir()))
+    b.add_argument("--keyframes", type=int, default=5, help="legitimate keyframes per robot")
+    b.add_argument("--base-mode", choices=("router", "peer"), default="router")
+    b.add_argument(
+        "--agent-seconds",
+        type=float,
+        default=45.0,
+        help="also run a real agent replaying this much of DATA_DIR/carmen/intel.clf.bz2 (0: no)",
+    )
+    b.set_defaults(
+        func=cmd_bench,
+        bench_kwargs=lambda a: {
+            "keyframes": a.keyframes,
+            "base_mode": a.base_mode,
+            "agent_seconds": a.agent_seconds,
+        },
     )
 
     sp = sub.add_parser("eval", help="score results against references")

@@ -25,6 +25,7 @@ import zenoh
 
 from common.config import ZenohConfig
 from common.errors import ConfigError, ProtocolError
+from common.zenoh_security import check_tls_files
 from protocol.codec import DEFAULT_MAX_BYTES, decode, encode
 from protocol.keys import Keys
 
@@ -38,6 +39,8 @@ def zenoh_config(zc: ZenohConfig) -> zenoh.Config:
         conf = zenoh.Config.from_file(zc.config_file) if zc.config_file else zenoh.Config()
     except Exception as exc:
         raise ConfigError(f"zenoh.config_file {zc.config_file!r}: {exc}") from None
+    if zc.config_file:
+        check_tls_files(conf, f"zenoh.config_file {zc.config_file!r}")
     settings = {
         "mode": zc.mode,
         "scouting/multicast/enabled": zc.multicast_scouting,

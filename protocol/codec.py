@@ -133,8 +133,8 @@ def _from_wire(cls: type, data: Any, path: str) -> Any:
     extra = set(data) - set(fields)
     if missing:
         raise ProtocolError(f"{path}: missing fields {sorted(missing)}")
-    if extra:
-        raise ProtocolError(f"{path}: unknown fields {sorted(extra)}")
+    if extra:  # names may be bytes as well as str: sort their reprs
+        raise ProtocolError(f"{path}: unknown fields {sorted(map(repr, extra))}")
     hints = _hints(cls)
     kwargs = {
         name: _field_from_wire(f, hints[name], data[name], f"{path}.{name}")

@@ -1,0 +1,119 @@
+"""Coordination pieces of exploration: travel distances, time-aware conflicts between
+robots, the greedy baseline, map history and coverage-over-time metrics."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from basestation.exploration import ExplorationManager, _along, _Task
+from basestation.goal_assigner import GoalAssigner
+from basestation.map_history import MapHistory, read_map_history
+from basestation.travel_distance import travel_distances
+from benchmarks.exploration import speedups
+from common.errors import CollabSlamError
+from common.map_io import GridMap
+from common.metrics import coverage_curve, min_separation, reachable_free, time_to_coverage
+from common.trajectory_io import Trajectory
+
+
+def _grid_with_wall() -> GridMap:
+    """10 x 10 m free, a wall at y = 5 m from x = 0 to 8 m."""
+    data = np.zeros((200, 200), np.int8)
+    data[100:102, :160] = 100
+    return GridMap(data, 0.05, (0.0, 0.0, 0.0))
+
+
+def test_travel_distance_goes_around_walls() -> None:
+    g = _grid_with_wall()
+    d = travel_distances(g, [[1.0, 1.0]], [[1.0, 9.0], [7.0, 1.0], [1.0, 1.0]])[0]
+    assert d[2] == pytest.approx(0.0, abs=1e-9)
+    assert d[1] == pytest.approx(6.0, abs=0.3)  # same side: the straight line
+    assert d[0] > 2.0 * 8.0  # around the wall's end at x = 8 m and back, not 8 m straight
+    closed = g.data.copy()
+    closed[100:102, :] = 100  # the wall now spans the whole floor
+    d2 = travel_distances(GridMap(closed, 0.05, (0, 0, 0)), [[1.0, 1.0]], [[1.0, 9.0]])
+    assert np.isinf(d2[0, 0])
+
+
+def test_along_interpolates_by_arc_length_and_holds_the_end() -> None:
+    path = np.array([[0.0, 0.0], [2.0, 0.0], [2.0, 2.0]])
+    pts = _along(path, np.array([0.0, 1.0, 3.0, 10.0]))
+    np.testing.assert_allclose(pts, [[0, 0], [1, 0], [2, 1], [2, 2]])
+
+
+def _mgr() -> ExplorationManager:
+    return ExplorationManager(speed_mps=1.0, horizon_s=15.0, conflict_margin=1.0)
+
+
+def test_head_on_paths_conflict_but_following_does_not() -> None:
+    m = _mgr()
+    P = {"a": np.array([0.0, 0.0, 0.0]), "b": np.array([8.0, 0.0, np.pi])}
+    m.tasks["b"] = _Task(np.array([0.0, 0.2]), np.array([[8.0, 0.0], [0.0, 0.2]]))
+    assert m._conflict("a", np.array([[0.0, 0.0], [8.0, 0.0]]), P)  # they meet halfway
+    # b flies away along +x from x = 2; a follows 2 m behind on the same line
+    P["b"] = np.array([2.0, 0.0, 0.0])
+    m.tasks["b"] = _Task(np.array([20.0, 0.0]), np.array([[2.0, 0.0], [20.0, 0.0]]))
+    assert not m._conflict("a", np.array([[0.0, 0.0], [15.0, 0.0]]), P)
+    # ... but not into b's goal where b will hover
+    m.tasks["b"] = _Task(np.array([6.0, 0.0]), np.array([[2.0, 0.0], [6.0, 0.0]]))
+    assert m._conflict("a", np.array([[0.0, 0.0], [15.0, 0.0]]), P)
+
+
+def test_greedy_baseline_sends_robots_to_their_own_nearest_frontier() -> None:
+    a = GoalAssigner()
+    frontiers = [np.array([5.0, 0.0]), np.array([-20.0, 0.0])]
+    goals = a.nearest({"r0": [0.0, 0.0, 0.0], "r1": [1.0, 0.0, 0.0]}, frontiers)
+    np.testing.assert_allclose(goals["r0"], [5.0, 0.0])
+    np.testing.assert_allclose(goals["r1"], [5.0, 0.0])  # no coordination: the same one
+    joint = a.assign({"r0": [0.0, 0.0, 0.0], "r1": [1.0, 0.0, 0.0]}, frontiers)
+    assert not np.allclose(joint["r0"], joint["r1"])  # coordinated: distinct goals
+
+
+def test_unreachable_frontiers_are_assigned_last() -> None:
+    a = GoalAssigner()
+    frontiers = [np.array([1.0, 0.0]), np.array([9.0, 0.0])]
+    goals = a.assign({"r0": [0.0, 0.0, 0.0]}, frontiers, {"r0": np.array([np.inf, 9.0])})
+    np.testing.assert_allclose(goals["r0"], [9.0, 0.0])
+
+
+def test_map_history_round_trip_and_coverage_over_time(tmp_path) -> None:
+    world = _grid_with_wall()
+    region = reachable_free(world, [[1.0, 1.0]])
+    assert region.sum() == (world.data == 0).sum()  # the wall leaves a way round
+    h = MapHistory()
+    for t, upto in ((1.0, 50), (2.0, 120), (3.0, 200)):
+        data = np.full((200, 200), -1, np.int8)
+        data[:upto] = world.data[:upto]
+        h.add(t, GridMap(data, 0.05, (0.0, 0.0, 0.0)))
+    h.write(tmp_path / "h.npz")
+    back = read_map_history(tmp_path / "h.npz")
+    assert [t for t, _ in back] == [1.0, 2.0, 3.0]
+    np.testing.assert_array_equal(back[2][1].free_mask(), world.free_mask())
+    t, c = coverage_curve(back, world, region)
+    assert np.all(np.diff(c) > 0) and c[-1] == pytest.approx(1.0)
+    assert time_to_coverage(t, c, 0.95) == 3.0
+    assert time_to_coverage(t, c[:2], 0.95) is None
+    with pytest.raises(CollabSlamError):
+        read_map_history(tmp_path / "missing.npz")
+
+
+def test_min_separation_and_reachable_region_errors() -> None:
+    t = np.arange(5.0)
+    a = Trajectory.from_pose4(t, np.column_stack([t, 0 * t, 0 * t, 0 * t]))
+    b = Trajectory.from_pose4(t, np.column_stack([4.0 - t, 0 * t + 1.0, 0 * t, 0 * t]))
+    assert min_separation([a, b]) == pytest.approx(1.0)
+    assert min_separation([a]) is None
+    with pytest.raises(CollabSlamError):
+        reachable_free(_grid_with_wall(), [[5.0, 5.04]])  # inside the wall
+
+
+def test_bench_speedups_from_rows() -> None:
+    rows = {
+        "ours": [{"robots": 1, "time_to_95_s": 60.0}, {"robots": 3, "time_to_95_s": 20.0}],
+        "baseline": [{"robots": 1, "time_to_95_s": 60.0}, {"robots": 3, "time_to_95_s": None}],
+    }
+    s = speedups(rows, [1, 3], max_sim_time=100.0)
+    assert s["ours_speedup_3"] == 3.0
+    assert s["baseline_speedup_3"] == 0.6  # never reached: counted as the max sim time
+    assert s["ours_faster_than_baseline_pct_3"] == 80.0

@@ -60,6 +60,7 @@ class ExplorationManager:
     horizon_s: float = 15.0  # s ahead that paths are checked against each other
     conflict_margin: float = 1.3  # times robot_clearance_m: slack for speed differences
     support_min_m: float = 1.0  # m, shortest move worth sending an idle robot
+    busy_radius_factor: float = 2.0  # frontiers within this x clearance of a busy goal: taken
     _failures: list[tuple[NDArray[np.float64], int]] = field(default_factory=list)
     _stopped: set[str] = field(default_factory=set)
 
@@ -191,11 +192,13 @@ class ExplorationManager:
     ) -> dict[str, NDArray[np.float64] | None]:
         if not self.coordinated:
             return self.assigner.nearest(poses, [f.goal for f in self.frontiers])
-        busy = [t.goal for r, t in self.tasks.items() if r not in poses]
-        taken = busy + (exclude or [])
+        busy = [t.goal for r, t in self.tasks.items() if r not in poses and not t.support]
+        # a frontier this close to another robot's goal is that robot's to see
+        near = self.busy_radius_factor * self.planner.robot_clearance_m
         candidates = [
             f.goal for f in self.frontiers
-            if all(np.hypot(*(f.goal - g)) > self.frontier_gone_m for g in taken)
+            if all(np.hypot(*(f.goal - g)) > near for g in busy)
+            and all(np.hypot(*(f.goal - g)) > self.frontier_gone_m for g in exclude or [])
         ]  # fmt: skip
         if not candidates:
             return self.assigner.assign(poses, [])

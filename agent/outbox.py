@@ -49,10 +49,21 @@ class Outbox:
         self.acked_seq = -1  # highest seq the base station confirmed
         self.resent = 0
         self.high_water = 0
+        self.deferred = 0  # has_room() calls answered False
 
     def has_room(self) -> bool:
+        """False while full (a keyframe due now is not cut: counted in `deferred`)."""
         with self._lock:
-            return len(self._pending) < self.max_len
+            room = len(self._pending) < self.max_len
+            if not room:
+                self.deferred += 1
+        if not room and self.deferred == 1:
+            log.warning(
+                "outbox full (%d keyframes unacknowledged): no new keyframes until acks "
+                "arrive; the next one will span the gap",
+                self.max_len,
+            )
+        return room
 
     def add(self, seq: int, payload: bytes) -> None:
         """Queue a keyframe; seq must increase by one each call."""
@@ -85,6 +96,13 @@ class Outbox:
             if len(self._pending) < self.warn_len:
                 self._warned = False
         return released
+
+    def kick(self) -> None:
+        """The base station is (back) up: resend at the next `due_for_resend` call,
+        without the backoff built up while it was gone."""
+        with self._lock:
+            self._backoff = 1
+            self._last_progress = self._clock() - self.resend_timeout_s
 
     def due_for_resend(self) -> list[bytes]:
         """The oldest unacknowledged payloads if the ack has stalled, else []."""

@@ -59,6 +59,8 @@ def _load_cfg(args: argparse.Namespace) -> Any:
         overrides["zenoh.listen"] = args.listen
     if getattr(args, "connect", None):
         overrides["zenoh.connect"] = args.connect
+    if getattr(args, "db", None):
+        overrides["basestation.db_path"] = args.db
     return load_config(args.config, overrides)
 
 
@@ -264,6 +266,12 @@ def build_parser() -> argparse.ArgumentParser:
     common(sp)
     sp.add_argument("--scenario", help="scenario JSON (robot roster, known start poses)")
     sp.add_argument("--out", required=True, help="folder for the map and trajectories")
+    sp.add_argument(
+        "--db",
+        metavar="PATH",
+        help="SQLite database: persist everything before acknowledging it, and resume "
+        "from it after a crash (sets basestation.db_path)",
+    )
     sp.set_defaults(func=cmd_basestation)
 
     sp = sub.add_parser("run", help="simulate a whole team on this machine")

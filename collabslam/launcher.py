@@ -71,6 +71,9 @@ class Launcher:
         self.out.mkdir(parents=True, exist_ok=True)
         scenario = make_scenario(self.cfg, self.world_yaml, self.n_robots)
         write_scenario(self.out / "scenario.json", scenario)
+        if self.cfg.basestation.db_path:  # a new mission: never resume an old one
+            for suffix in ("", "-wal", "-shm"):
+                Path(self.cfg.basestation.db_path + suffix).unlink(missing_ok=True)
         dump_config(self.cfg, self.out / "config.toml")
         common = [
             "--config",

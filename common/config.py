@@ -216,6 +216,10 @@ class BaseStationConfig:
     # keeps up with; live robots keep flying and their outboxes hold the keyframes.
     pause_intake_backlog: int = 0
     drain_timeout_s: float = 60.0  # s wall: at shutdown, finish pending verifications this long
+    # SQLite file for crash recovery (basestation/persistence.py): every admitted keyframe,
+    # match, epoch and path is written there before it is acknowledged or published, and
+    # a restart with the same file resumes the mission. Empty: no persistence.
+    db_path: str = ""
     constraints: ConstraintConfig = field(default_factory=ConstraintConfig)
 
 

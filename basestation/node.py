@@ -90,7 +90,7 @@ class BaseStationNode:
                 wp = decode(payload, PathMsg, max_bytes=len(payload) + 1).waypoints
                 if len(wp):
                     self.explorer.restore_task(rid, np.asarray(wp[:, :2], dtype=np.float64))
-        self.refresh_map()
+        self._map_dirty = True  # rebuilt by run(), after the acks have gone out
         self.recovered = {
             "keyframes": len(rec.keyframes),
             "matches": len(rec.constraints),

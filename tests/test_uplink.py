@@ -51,12 +51,43 @@ def test_outbox_acks_and_resends_in_order() -> None:
         ob.add(9, b"x")
 
 
+def test_outbox_drains_at_ack_pace_after_an_outage() -> None:
+    clock = FakeClock()
+    ob = Outbox(max_len=100, warn_fraction=0.8, resend_timeout_s=1.0, resend_batch=3, clock=clock)
+    for s in range(8):  # sent while the base station was gone
+        ob.add(s, bytes([s]))
+    clock.t = 5.0
+    assert ob.due_for_resend() == [b"\x00", b"\x01", b"\x02"]
+    ob.ack(1)  # part of the batch: wait for the rest
+    assert ob.due_for_resend() == []
+    ob.ack(2)  # the whole batch: the next one goes at once, in order
+    assert ob.due_for_resend() == [b"\x03", b"\x04", b"\x05"]
+    ob.ack(5)
+    assert ob.due_for_resend() == [b"\x06", b"\x07"]
+    ob.ack(7)
+    assert len(ob) == 0 and ob.due_for_resend() == []
+    ob.add(8, b"\x08")  # live again: normal timeout before any resend
+    assert ob.due_for_resend() == []
+
+
+def test_outbox_kick_resends_at_once() -> None:
+    clock = FakeClock()
+    ob = Outbox(max_len=10, warn_fraction=0.8, resend_timeout_s=1.0, resend_batch=5, clock=clock)
+    ob.add(0, b"a")
+    clock.t = 1.5
+    assert ob.due_for_resend() == [b"a"]  # backoff now 2 s
+    clock.t = 2.0
+    assert ob.due_for_resend() == []
+    ob.kick()  # the base station is back
+    assert ob.due_for_resend() == [b"a"]
+
+
 def test_outbox_bound() -> None:
     ob = Outbox(max_len=3, warn_fraction=0.5, resend_timeout_s=1.0, resend_batch=3)
     for s in range(3):
         assert ob.has_room()
         ob.add(s, b"x")
-    assert not ob.has_room() and ob.high_water == 3
+    assert not ob.has_room() and ob.high_water == 3 and ob.deferred == 1
     ob.ack(0)
     assert ob.has_room()
 

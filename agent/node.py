@@ -226,8 +226,7 @@ class AgentNode:
         batch = self.outbox.due_for_resend()
         if batch:
             log.info(
-                "no ack for %.1f s: resending %d keyframes after seq %d",
-                self.cfg.agent.resend_timeout_s,
+                "resending %d keyframes after seq %d (the last acknowledged)",
                 len(batch),
                 self.outbox.acked_seq,
             )

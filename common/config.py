@@ -28,6 +28,9 @@ class ZenohConfig:
     listen: list[str] = field(default_factory=list)  # e.g. ["tcp/127.0.0.1:7447"]
     connect: list[str] = field(default_factory=list)
     multicast_scouting: bool = False  # off by default: explicit endpoints only
+    # Learn other peers' endpoints from the peers one is connected to (and connect to
+    # them). Off: only the configured endpoints (e.g. a drone behind a radio relay).
+    gossip_scouting: bool = True
     config_file: str = ""  # optional Zenoh JSON5 config (deploy/); its settings come first
 
 

@@ -307,6 +307,33 @@ def build_parser() -> argparse.ArgumentParser:
         help="comma list of graph sizes in nodes (<= 3500: M3500 prefix, else city10000)",
     )
     b.set_defaults(func=cmd_bench, bench_kwargs=lambda a: {"sizes": a.sizes})
+    b = bn.add_parser(
+        "faults",
+        help="3-robot mission with base-station SIGKILLs, link cuts, duplicated/reordered "
+        "keyframes and malformed messages, vs. the same mission undisturbed",
+    )
+    common(b, zenoh=False)
+    b.add_argument("--json", required=True, help="output JSON file")
+    b.add_argument("--data-dir", default=str(_default_data_dir()))
+    b.add_argument("--world", default="bshape")
+    b.add_argument("--robots", type=int, default=3)
+    b.add_argument("--restarts", type=int, default=3, help="base-station SIGKILL + restart")
+    b.add_argument("--restart-period", type=float, default=15.0, help="s wall between kills")
+    b.add_argument("--cut", type=float, default=30.0, help="s each agent's link is cut")
+    b.add_argument("--dup-fraction", type=float, default=0.1, help="keyframes re-put")
+    b.add_argument("--malformed", type=int, default=10000, help="bad messages injected")
+    b.set_defaults(
+        func=cmd_bench,
+        bench_kwargs=lambda a: {
+            "world": a.world,
+            "robots": a.robots,
+            "restarts": a.restarts,
+            "restart_period_s": a.restart_period,
+            "cut_s": a.cut,
+            "dup_fraction": a.dup_fraction,
+            "malformed": a.malformed,
+        },
+    )
 
     sp = sub.add_parser("eval", help="score results against references")
     ev = sp.add_subparsers(dest="eval_command", required=True)

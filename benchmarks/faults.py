@@ -33,6 +33,7 @@ import json
 import logging
 import os
 import signal
+import socket
 import sqlite3
 import time
 from pathlib import Path
@@ -41,7 +42,7 @@ from typing import Any
 from benchmarks.fault_injection import Replayer, bad_payloads
 from collabslam.launcher import Launcher, make_scenario
 from collabslam.summary import build_summary
-from collabslam.supervisor import Child, ProcessGroup, free_port
+from collabslam.supervisor import Child, ProcessGroup
 from common.bus import Bus, endpoint
 from common.config import Config, ZenohConfig, dump_config
 from common.errors import ProcessError
@@ -61,10 +62,12 @@ class _Mission:
         self.db = out / "base.db"
         self.common = ["--config", str(out / "config.toml"), "--scenario"]
         self.common += [str(out / "scenario.json"), "--out", str(out)]
-        self.base_port, self.sim_ep, self.tap_ep = free_port(), endpoint(free_port()), None
+        ports = _free_ports(3 + n_robots)  # all at once: no two alike
+        self.base_port, self.sim_ep, self.tap_port = ports[0], endpoint(ports[1]), ports[2]
         self.group = ProcessGroup(out)
         self.relays = {
-            r.robot_id: LinkRelay(("127.0.0.1", self.base_port)) for r in self.scenario.robots
+            r.robot_id: LinkRelay(("127.0.0.1", self.base_port), port)
+            for r, port in zip(self.scenario.robots, ports[3:], strict=True)
         }
         self.base: Child | None = None
         self.restarts = 0
@@ -99,6 +102,18 @@ def _stored(db: Path) -> dict[str, list[int]]:
     return out
 
 
+def _free_ports(n: int) -> list[int]:
+    """n distinct free loopback ports (held together while the kernel picks them)."""
+    socks = [socket.socket() for _ in range(n)]
+    try:
+        for s in socks:
+            s.bind(("127.0.0.1", 0))
+        return [int(s.getsockname()[1]) for s in socks]
+    finally:
+        for s in socks:
+            s.close()
+
+
 def _log_has(path: Path, text: str) -> bool:
     return path.is_file() and text in path.read_text()
 
@@ -124,17 +139,22 @@ def run_faulted(
     out.mkdir(parents=True, exist_ok=True)
     m = _Mission(cfg, out, world, n_robots)
     g = m.group
-    tap_port = free_port()  # the replayer hears the agents here ...
-    tap = Bus(ZenohConfig(listen=[endpoint(tap_port)], gossip_scouting=False), cfg.fleet)
-    push = Bus(  # ... and puts to the base station on a separate session
-        ZenohConfig(connect=[endpoint(m.base_port)], gossip_scouting=False), cfg.fleet
-    )
-    replayer = Replayer(tap, push, dup_fraction, lambda r: m.relays[r].is_cut, seed=cfg.sim.seed)
     injected = 0
     timeline: list[dict[str, Any]] = []
     t_start = time.monotonic()
+    tap = push = replayer = None
     try:
         m.spawn_base()
+        blog = out / "logs" / "basestation.log"
+        while not _log_has(blog, "base station running"):  # connect only to a listener
+            m.watch([m.base])
+            time.sleep(0.2)
+        tap_port = m.tap_port  # the replayer hears the agents here ...
+        tap = Bus(ZenohConfig(listen=[endpoint(tap_port)], gossip_scouting=False), cfg.fleet)
+        push = Bus(  # ... and puts to the base station on a separate session
+            ZenohConfig(connect=[endpoint(m.base_port)], gossip_scouting=False), cfg.fleet
+        )
+        replayer = Replayer(tap, push, dup_fraction, lambda r: m.relays[r].is_cut, cfg.sim.seed)
         sim = g.spawn("sim", ["sim", *m.common, "--listen", m.sim_ep, "--max-sim-time", "100000"])
         agents = [
             g.spawn(
@@ -208,12 +228,14 @@ def run_faulted(
             m.crashes.append(str(exc))
         log.error("faulted run: %s", exc)
     finally:
-        replayer.close()
+        if replayer is not None:
+            replayer.close()
         g.terminate_all()
         for relay in m.relays.values():
             relay.close()
-        tap.close()
-        push.close()
+        for bus in (tap, push):
+            if bus is not None:
+                bus.close()
     wall = time.monotonic() - t_start
     summary = build_summary(out, world, m.scenario.robot_ids, wall)
     stats = out / "basestation.json"
@@ -243,8 +265,8 @@ def run_faulted(
         "malformed_injected": injected,
         "malformed_rejected": rejected,
         "rejected_by_reason": base.get("rejected_messages", {}),
-        "keyframes_duplicated": replayer.duplicated,
-        "keyframes_reordered": replayer.reordered,
+        "keyframes_duplicated": 0 if replayer is None else replayer.duplicated,
+        "keyframes_reordered": 0 if replayer is None else replayer.reordered,
         "link_cuts": sum(r.cuts for r in m.relays.values()),
         "crashes": len(m.crashes),
         "crash_details": m.crashes,

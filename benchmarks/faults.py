@@ -8,7 +8,8 @@ relays are the only way. Faults, on a wall-clock schedule after the sim clock
 starts:
 
 (a) the base station is SIGKILLed and restarted on the same database `restarts`
-    times, every `restart_period_s`;
+    times, every `restart_period_s` (each kill waits until the current one has
+    recovered and serves; `base_recoveries` counts restarts that resumed);
 (b) each agent's link is cut for `cut_s` (staggered starts, 8 s apart);
 (c) throughout, `dup_fraction` of the keyframes are put to the base station
     again, half at once (duplicates), half 0.2-2 s late (out of order), by
@@ -84,6 +85,14 @@ class _Mission:
         self.base.proc.wait()
         self.restarts += 1
 
+    def wait_running(self, others: list[Child]) -> None:
+        """Until the current base station has recovered and serves."""
+        assert self.base is not None
+        path = self.out / "logs" / f"{self.base.name}.log"
+        while not _log_has(path, "base station running"):
+            self.watch([self.base, *others])
+            time.sleep(0.2)
+
     def watch(self, children: list[Child]) -> None:
         """Record children that exited on their own (crashes) and raise."""
         for c in children:
@@ -145,10 +154,7 @@ def run_faulted(
     tap = push = replayer = None
     try:
         m.spawn_base()
-        blog = out / "logs" / "basestation.log"
-        while not _log_has(blog, "base station running"):  # connect only to a listener
-            m.watch([m.base])
-            time.sleep(0.2)
+        m.wait_running([])  # connect only to a listener
         tap_port = m.tap_port  # the replayer hears the agents here ...
         tap = Bus(ZenohConfig(listen=[endpoint(tap_port)], gossip_scouting=False), cfg.fleet)
         push = Bus(  # ... and puts to the base station on a separate session
@@ -196,6 +202,7 @@ def run_faulted(
             timeline.append({"t_s": round(time.monotonic() - t0, 1), "event": what, "robot": who})
             log.info("fault t=%.1f s: %s %s", time.monotonic() - t0, what, who)
             if what == "kill":
+                m.wait_running([sim, *agents])  # kill a serving base station, not a starting one
                 m.kill_base()
                 time.sleep(2.0)
                 m.spawn_base()
@@ -204,12 +211,8 @@ def run_faulted(
             elif what == "restore":
                 m.relays[who].restore()
             else:
-                blog = out / "logs" / f"basestation{m.restarts + 1}.log"
-                if m.restarts:  # the last base station must be up before we inject
-                    while not _log_has(blog, "base station running"):
-                        m.watch([sim, *agents, m.base])
-                        time.sleep(0.2)
-                    time.sleep(1.0)
+                m.wait_running([sim, *agents])  # the last base station must be up
+                time.sleep(1.0)
                 for key, payload, _ in bad_payloads(
                     malformed, push.keys, m.scenario.robot_ids, cfg.protocol.max_message_bytes
                 ):
@@ -262,6 +265,7 @@ def run_faulted(
         "keyframes_lost": lost,
         "duplicates_in_graph": dup_graph,
         "base_restarts": m.restarts,
+        "base_recoveries": max(0, (base.get("persistence") or {}).get("starts", 1) - 1),
         "malformed_injected": injected,
         "malformed_rejected": rejected,
         "rejected_by_reason": base.get("rejected_messages", {}),

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import logging
+
 import numpy as np
 import pytest
 
@@ -82,14 +84,25 @@ def test_outbox_kick_resends_at_once() -> None:
     assert ob.due_for_resend() == [b"a"]
 
 
-def test_outbox_bound() -> None:
-    ob = Outbox(max_len=3, warn_fraction=0.5, resend_timeout_s=1.0, resend_batch=3)
-    for s in range(3):
-        assert ob.has_room()
-        ob.add(s, b"x")
-    assert not ob.has_room() and ob.high_water == 3 and ob.deferred == 1
+def test_outbox_bound(caplog: pytest.LogCaptureFixture) -> None:
+    """Stated policy: warn at warn_fraction, refuse new keyframes when full (the
+    agent then cuts none), never drop a queued one."""
+    ob = Outbox(max_len=4, warn_fraction=0.5, resend_timeout_s=1.0, resend_batch=3)
+    with caplog.at_level(logging.WARNING, logger="agent.outbox"):
+        ob.add(0, b"0")
+        assert not caplog.records
+        ob.add(1, b"1")  # half full: one warning
+        assert [r.getMessage() for r in caplog.records] == [
+            "outbox is 2/4 full: the base station is not acknowledging"
+        ]
+        for s in range(2, 4):
+            assert ob.has_room()
+            ob.add(s, bytes([s]))
+        assert not ob.has_room() and not ob.has_room()
+        assert ob.high_water == 4 and ob.deferred == 2 and len(ob) == 4
+        assert "outbox full" in caplog.records[-1].getMessage()
     ob.ack(0)
-    assert ob.has_room()
+    assert ob.has_room() and len(ob) == 3
 
 
 def test_keyframe_selector_thresholds(cfg) -> None:

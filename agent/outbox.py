@@ -52,15 +52,18 @@ class Outbox:
         self.resent = 0
         self.high_water = 0
         self.deferred = 0  # has_room() calls answered False
+        self._full = False
         self._resent_upto = -1  # last seq of the last resent batch (-1: none outstanding)
 
     def has_room(self) -> bool:
         """False while full (a keyframe due now is not cut: counted in `deferred`)."""
         with self._lock:
             room = len(self._pending) < self.max_len
+            first = not room and not self._full  # warn once each time it fills up
+            self._full = not room
             if not room:
                 self.deferred += 1
-        if not room and self.deferred == 1:
+        if first:
             log.warning(
                 "outbox full (%d keyframes unacknowledged): no new keyframes until acks "
                 "arrive; the next one will span the gap",

@@ -10,8 +10,10 @@ import numpy as np
 import pytest
 
 from basestation.global_slam import GlobalSlam
+from basestation.node import BaseStationNode
 from basestation.pcm import LoopMeasurement
 from basestation.persistence import Batch, KeyframeDatabase, NullDatabase, open_database
+from common.bus import Bus
 from common.config import Config
 from common.errors import PersistenceError
 from common.geometry import pose4_to_pose7, se2_compose
@@ -154,3 +156,30 @@ def test_global_slam_rebuilt_from_database(tmp_path: Path, cfg: Config) -> None:
     # a resent keyframe after the restart is a duplicate, never a second node
     assert back.admit(r0[5]) == 0 and back.store.robot("r0").duplicates == 1
     db2.close()
+
+
+def test_node_resumes_epochs_paths_and_acks(tmp_path: Path, cfg: Config, endpoint: str) -> None:
+    """A base-station node on an existing database continues above every epoch and path
+    id sent before, gives the robot back its path, and acks what is stored."""
+    db = KeyframeDatabase(tmp_path / "base.db")
+    wp = np.array([[0, 0, 1, 0], [2, 1, 1, 0], [4, 1, 1, 0]], np.float32)
+    path = PathMsg("r0", 7, 1.0, "map", 3, wp)
+    db.commit(Batch(_square_keyframes("r0", np.zeros(3), 3), paths=[("r0", 7, encode(path))]))
+    db.reserve_epochs(1000)
+    db.close()
+    cfg.exploration.enabled = True
+    cfg.basestation.db_path = str(tmp_path / "base.db")
+    cfg.zenoh.listen = [endpoint]
+    with Bus(cfg.zenoh, cfg.fleet) as bus:
+        node = BaseStationNode(cfg, bus, None)
+        node.recover()
+        assert node.slam.store.acked_seq("r0") == 2 and node.slam.graph.num_nodes("r0") == 3
+        assert node.epoch == 1000 and node._path_id == 7
+        assert node.explorer is not None
+        assert np.allclose(node.explorer.tasks["r0"].path, wp[:, :2])
+        node.publish_corrections()
+        assert node.epoch == 1001
+        node.drain(1.0)
+    again = KeyframeDatabase(tmp_path / "base.db")
+    assert again.load().epoch >= 1001 + 999 and again.starts == 3  # the next epoch block
+    again.close()

@@ -117,6 +117,7 @@ class AgentNode:
         self.last_state_stamp = -np.inf
         self.scans = 0
         self.local_trajectory: list[tuple[float, np.ndarray]] = []  # every scan, odom frame
+        self.base_links = {"joins": 0, "losses": 0}  # base-station liveliness events
 
     # --- wiring -------------------------------------------------------------------------
     def start(self) -> None:
@@ -128,7 +129,23 @@ class AgentNode:
         self.bus.subscribe(self.keys.robot(rid, "ack"), KeyframeAck, self._on_ack)
         self.bus.subscribe(self.keys.robot(rid, "correction"), PoseCorrection, self._on_correction)
         self.bus.subscribe(self.keys.robot(rid, "path"), PathMsg, self._on_path)
+        self.bus.watch_alive("basestation", self._on_base_alive)
         self.bus.declare_alive("agent", rid)
+
+    def _on_base_alive(self, name: str, alive: bool) -> None:
+        """Base-station liveliness (Zenoh thread). Gone: keep flying on local SLAM, the
+        outbox keeps every keyframe. Back: resend from the oldest unacknowledged at once."""
+        self.base_links["joins" if alive else "losses"] += 1
+        if alive:
+            if self.base_links["joins"] > 1:
+                log.info("base station %s is back: resending %d keyframes", name, len(self.outbox))
+            self.outbox.kick()
+        else:
+            log.warning(
+                "base station %s lost: flying on local SLAM, %d keyframes kept in the outbox",
+                name,
+                len(self.outbox),
+            )
 
     def _on_ack(self, msg: KeyframeAck, key: str) -> None:
         self.outbox.ack(msg.acked_seq)
@@ -265,8 +282,7 @@ class AgentNode:
         batch = self.outbox.due_for_resend()
         if batch:
             log.info(
-                "no ack for %.1f s: resending %d keyframes after seq %d",
-                self.cfg.agent.resend_timeout_s,
+                "resending %d keyframes after seq %d (the last acknowledged)",
                 len(batch),
                 self.outbox.acked_seq,
             )
@@ -319,6 +335,8 @@ class AgentNode:
             "keyframes_acked": self.outbox.acked_seq + 1,
             "keyframes_resent": self.outbox.resent,
             "outbox_high_water": self.outbox.high_water,
+            "keyframes_deferred": self.outbox.deferred,
+            "base_station_links": dict(self.base_links),
             "scans": self.scans,
             "odom_distance_m": self.frontend.distance_m,
             "scans_rejected": self.frontend.rejected_scans,

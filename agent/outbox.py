@@ -5,7 +5,9 @@ cumulative ack covers them. If no ack makes progress for `resend_timeout_s`
 (wall time), the oldest `resend_batch` are sent again, in order; the base
 station drops duplicates, so resending is harmless. While acks stay stalled the
 wait doubles after each resend (up to `max_backoff` times the timeout), so a base
-station that is busy, not gone, is not flooded with duplicates.
+station that is busy, not gone, is not flooded with duplicates. Once an ack covers
+a whole resent batch, the next batch goes at once: after an outage the outbox
+drains, in order, at the pace of the acks.
 
 Bound policy: the outbox holds at most `max_len` keyframes. It warns once when
 it passes `warn_fraction` of that; when full, `has_room()` is False and the
@@ -49,10 +51,25 @@ class Outbox:
         self.acked_seq = -1  # highest seq the base station confirmed
         self.resent = 0
         self.high_water = 0
+        self.deferred = 0  # has_room() calls answered False
+        self._full = False
+        self._resent_upto = -1  # last seq of the last resent batch (-1: none outstanding)
 
     def has_room(self) -> bool:
+        """False while full (a keyframe due now is not cut: counted in `deferred`)."""
         with self._lock:
-            return len(self._pending) < self.max_len
+            room = len(self._pending) < self.max_len
+            first = not room and not self._full  # warn once each time it fills up
+            self._full = not room
+            if not room:
+                self.deferred += 1
+        if first:
+            log.warning(
+                "outbox full (%d keyframes unacknowledged): no new keyframes until acks "
+                "arrive; the next one will span the gap",
+                self.max_len,
+            )
+        return room
 
     def add(self, seq: int, payload: bytes) -> None:
         """Queue a keyframe; seq must increase by one each call."""
@@ -82,9 +99,20 @@ class Outbox:
                 released += 1
             self._last_progress = self._clock()
             self._backoff = 1
+            if self._resent_upto >= 0 and acked_seq >= self._resent_upto:
+                self._resent_upto = -1
+                if self._pending:  # catching up after an outage: the next batch now
+                    self._last_progress -= self.resend_timeout_s
             if len(self._pending) < self.warn_len:
                 self._warned = False
         return released
+
+    def kick(self) -> None:
+        """The base station is (back) up: resend at the next `due_for_resend` call,
+        without the backoff built up while it was gone."""
+        with self._lock:
+            self._backoff = 1
+            self._last_progress = self._clock() - self.resend_timeout_s
 
     def due_for_resend(self) -> list[bytes]:
         """The oldest unacknowledged payloads if the ack has stalled, else []."""
@@ -94,9 +122,9 @@ class Outbox:
                 return []
             self._last_progress = self._clock()
             self._backoff = min(2 * self._backoff, self.max_backoff)
-            batch = [
-                p for _, p in zip(range(self.resend_batch), self._pending.values(), strict=False)
-            ]
+            seqs = [s for _, s in zip(range(self.resend_batch), self._pending, strict=False)]
+            batch = [self._pending[s] for s in seqs]
+            self._resent_upto = seqs[-1]
         self.resent += len(batch)
         return batch
 

@@ -246,6 +246,11 @@ class ExplorationManager:
                 return
         self._failures.append((goal.copy(), 1))
 
+    def restore_task(self, robot: str, path: ArrayLike) -> None:
+        """After a restart: the robot is following `path` ((N, 2), map frame) to its end."""
+        p = np.asarray(path, dtype=np.float64).reshape(-1, 2)
+        self.tasks[robot] = _Task(p[-1].copy(), p)
+
     def release(self, robot: str) -> None:
         """Forget a robot (gone silent): its goal is free for the others."""
         self.tasks.pop(robot, None)

@@ -32,6 +32,7 @@ from basestation.gps_factor import GpsWeighting
 from basestation.keyframe_store import KeyframeStore
 from basestation.loop_closure_manager import LoopClosureManager
 from basestation.pcm import LoopMeasurement
+from basestation.persistence import Batch, Recovered, StoredConstraint
 from basestation.pose_graph import PoseGraph
 from common.config import Config
 from common.errors import CollabSlamError
@@ -80,6 +81,7 @@ class GlobalSlam:
         self._false_rng = np.random.default_rng(self.cc.false_match_seed)
         self._global_map: tuple[object, list[np.ndarray], list[np.ndarray]] | None = None
         self._last_candidate: dict[tuple[str, str], int] = {}  # (robot, target robot) -> index
+        self._unsaved: list[Keyframe] = []  # admitted since the last take_journal()
 
     # --- keyframes ----------------------------------------------------------------------
     def admit(self, kf: Keyframe) -> int:
@@ -87,6 +89,7 @@ class GlobalSlam:
         ready = self.store.admit(kf)
         for k in ready:
             self._add_node(k)
+        self._unsaved.extend(ready)
         return len(ready)
 
     def add_gps_fix(
@@ -105,6 +108,50 @@ class GlobalSlam:
             self.gps_fixes_ignored += 1
             return
         self.graph.add_gps_fix(robot_id, stamp, enu_xy, sigmas_enu)
+
+    def take_journal(self) -> Batch:
+        """What changed since the last call (admitted keyframes, new matches, matches
+        entering or leaving the graph), for the database."""
+        constraints, changes = self.loops.take_journal()
+        batch = Batch(self._unsaved, constraints, changes)
+        self._unsaved = []
+        return batch
+
+    def restore(self, rec: Recovered) -> None:
+        """Rebuild the graph from the database: keyframes and stored matches are replayed
+        through the same admission path and the same loop-closure manager (PCM), batch by
+        batch in the order they were first written; the graph is optimized before each
+        batch of matches, as it was then. Stored matches are not verified again."""
+        kfs: dict[int, list[Keyframe]] = {}
+        for b, kf in rec.keyframes:
+            kfs.setdefault(b, []).append(kf)
+        cons: dict[int, list[StoredConstraint]] = {}
+        for c in rec.constraints:
+            cons.setdefault(c.batch, []).append(c)
+        for b in sorted(kfs.keys() | cons.keys()):
+            for kf in kfs.get(b, []):
+                if self.admit(kf) == 0:
+                    log.error("stored keyframe %s/%d was not admitted", kf.robot_id, kf.seq)
+            if b not in cons:
+                continue
+            self.optimize()
+            for c in cons[b]:
+                m = c.measurement
+                try:
+                    self.loops.add(
+                        (m.robot_a, m.index_a), (m.robot_b, m.index_b), m.T_a_b,
+                        m.covariance, c.kind, measurement_id=m.id,
+                    )  # fmt: skip
+                except CollabSlamError as e:
+                    log.error("stored match %d not restored: %s", m.id, e)
+            self.optimize()
+        self.optimize()
+        self._new_nodes.clear()  # their candidates were searched before the crash
+        self.take_journal()  # all of it is on disk already
+        accepted = self.loops.accepted
+        differ = sum(c.in_graph != (c.measurement.id in accepted) for c in rec.constraints)
+        if differ:
+            log.warning("%d restored matches changed in/out of the graph on replay", differ)
 
     def _add_node(self, kf: Keyframe) -> None:
         rid = kf.robot_id

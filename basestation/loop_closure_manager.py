@@ -22,6 +22,7 @@ import numpy as np
 from basestation.pcm import IncrementalPcm, LoopMeasurement
 from basestation.pose_graph import PoseGraph
 from common.config import ConstraintConfig
+from common.errors import CollabSlamError
 from common.geometry import se2_between, se2_inverse
 
 log = logging.getLogger(__name__)
@@ -60,8 +61,25 @@ class LoopClosureManager:
         self._next_id = 0
         self.accepted: set[int] = set()
         self.kinds: dict[int, str] = {}
+        # Since the last take_journal(): new measurements, and in-graph changes (id -> in).
+        self.journal: list[tuple[LoopMeasurement, str]] = []
+        self.changes: dict[int, bool] = {}
 
-    def add(self, a: NodeKey, b: NodeKey, T_a_b: np.ndarray, cov: np.ndarray, kind: str) -> None:
+    def add(
+        self,
+        a: NodeKey,
+        b: NodeKey,
+        T_a_b: np.ndarray,
+        cov: np.ndarray,
+        kind: str,
+        measurement_id: int | None = None,
+    ) -> None:
+        """Offer a verified match; `measurement_id` (replay from the database) must not
+        be below the next free id."""
+        if measurement_id is not None:
+            if measurement_id < self._next_id:
+                raise CollabSlamError(f"measurement id {measurement_id} is already used")
+            self._next_id = measurement_id
         if a[0] > b[0] or (a[0] == b[0] and a[1] > b[1]):
             (a, b), (T_a_b, cov) = (b, a), invert_with_covariance(T_a_b, cov)
         m = LoopMeasurement(
@@ -69,6 +87,7 @@ class LoopClosureManager:
         )
         self.kinds[m.id] = kind
         self._next_id += 1
+        self.journal.append((m, kind))
         group = self.groups.get((a[0], b[0]))
         if group is None:
             group = self.groups[(a[0], b[0])] = _Group(IncrementalPcm(self.cfg.pcm_chi2))
@@ -108,9 +127,11 @@ class LoopClosureManager:
                     robust_k=self.cfg.robust_k,
                 )
                 self.accepted.add(mid)
+                self.changes[mid] = True
             elif mid not in consistent and mid in group.in_graph:
                 self.graph.remove_constraint(group.in_graph.pop(mid))
                 self.accepted.discard(mid)
+                self.changes[mid] = False
                 log.info("constraint %d (%s) no longer consistent: removed", mid, self.kinds[mid])
 
     def _enough_to_merge(self, group: _Group, consistent: set[int]) -> bool:
@@ -124,6 +145,12 @@ class LoopClosureManager:
         P = self.graph.poses(ms[0].robot_b)[[m.index_b for m in ms], :2]
         spread = float(np.max(np.hypot(*(P[:, None] - P[None]).transpose(2, 0, 1))))
         return spread >= self.cfg.merge_min_spread_m
+
+    def take_journal(self) -> tuple[list[tuple[LoopMeasurement, str]], dict[int, bool]]:
+        """New measurements (with kind) and in-graph changes since the last call."""
+        out = (self.journal, self.changes)
+        self.journal, self.changes = [], {}
+        return out
 
     def pending_links(self) -> list[LoopMeasurement]:
         """The newest match of each robot pair whose maps are still separate (waiting

@@ -2,9 +2,10 @@
 
 Receives every robot's keyframes, hands them to global SLAM (in order per robot,
 one iSAM2 graph, loop closures and inter-robot constraints), acknowledges them
-once they are in the graph, publishes each robot's T_map_odom after every
-optimization, and keeps the global occupancy grid up to date. At shutdown it
-writes the map, the trajectories and its statistics.
+once they are in the graph (and, with `basestation.db_path`, on disk: see
+basestation/persistence.py; a restart with the same database resumes), publishes
+each robot's T_map_odom after every optimization, and keeps the global occupancy
+grid up to date. At shutdown it writes the map, the trajectories and its statistics.
 
 Threads: Zenoh callbacks only enqueue; the constraint builder verifies matches on
 its own worker; everything else runs on `run()`'s thread.
@@ -26,6 +27,7 @@ from basestation.exploration import densify, make_explorer
 from basestation.global_slam import GlobalSlam
 from basestation.map_builder import MapBuilder
 from basestation.map_history import MapHistory
+from basestation.persistence import EPOCH_BLOCK, Batch, open_database
 from common.bus import Bus
 from common.config import Config
 from common.errors import FileFormatError
@@ -35,7 +37,16 @@ from common.map_io import read_wgs84_origin, write_map
 from common.picture import render_map_picture
 from common.scenario import Scenario
 from common.trajectory_io import write_tum
-from protocol import ClockSync, GnssFix, Keyframe, KeyframeAck, PoseCorrection, RobotState
+from protocol import (
+    ClockSync,
+    GnssFix,
+    Keyframe,
+    KeyframeAck,
+    PoseCorrection,
+    RobotState,
+    decode,
+    encode,
+)
 from protocol import Path as PathMsg
 
 log = logging.getLogger(__name__)
@@ -88,9 +99,52 @@ class BaseStationNode:
         self._sync_answered = -1.0
         self.syncs = 0
         self.map_history = MapHistory()
+        self.links: dict[str, dict[str, int]] = {}  # agent -> {"joins": n, "losses": n}
+        self._lost: list[str] = []  # agents whose token went away, for run()'s thread
+        self.db = open_database(cfg.basestation.db_path)
+        self._epoch_reserved = 0
+        self.recovered: dict[str, Any] = {}
+
+    # --- persistence --------------------------------------------------------------------
+    def recover(self) -> None:
+        """Resume from the database (if any): rebuild graph, map and exploration state,
+        and continue epochs and path ids above every one sent before."""
+        t0 = time.monotonic()
+        rec = self.db.load()
+        self.epoch = self._epoch_reserved = max(self.epoch, rec.epoch)
+        self._path_id = max(self._path_id, rec.path_id)
+        if rec.empty:
+            return
+        self.slam.restore(rec)
+        if self.explorer is not None:
+            for rid, payload in rec.paths.items():
+                wp = decode(payload, PathMsg, max_bytes=len(payload) + 1).waypoints
+                if len(wp):
+                    self.explorer.restore_task(rid, np.asarray(wp[:, :2], dtype=np.float64))
+        self._map_dirty = True  # rebuilt by run(), after the acks have gone out
+        self.recovered = {
+            "keyframes": len(rec.keyframes),
+            "matches": len(rec.constraints),
+            "in_graph": {r: self.slam.graph.num_nodes(r) for r in self.slam.graph.robots()},
+            "seconds": time.monotonic() - t0,
+        }
+        log.info(
+            "recovered from %s (start %d): %d keyframes, %d matches in %.1f s; epoch %d",
+            self.db.path,
+            rec.starts,
+            len(rec.keyframes),
+            len(rec.constraints),
+            self.recovered["seconds"],
+            self.epoch,
+        )
+
+    def _persist(self, batch: Batch | None = None) -> None:
+        """Write what changed (one transaction) before anything is acked or published."""
+        self.db.commit(batch if batch is not None else self.slam.take_journal())
 
     # --- wiring -------------------------------------------------------------------------
     def start(self) -> None:
+        self.recover()
         self.bus.subscribe(
             self.keys.all_robots("keyframe"), Keyframe, lambda m, k: self.inbox.put(m)
         )
@@ -103,6 +157,11 @@ class BaseStationNode:
                 self.keys.all_robots("sensor/gnss"), GnssFix, lambda m, k: self.gnss_inbox.put(m)
             )
         self.bus.declare_alive("basestation", "base")
+        if self.recovered:  # tell agents what is safe, and where their maps are now
+            for rid in self.slam.store.robots:
+                acked = self.slam.store.acked_seq(rid)
+                self.bus.publish(self.keys.robot(rid, "ack"), KeyframeAck(rid, acked))
+            self.publish_corrections()
 
     def _on_sim_clock(self, msg: ClockSync, key: str) -> None:
         with self._lock:
@@ -113,7 +172,18 @@ class BaseStationNode:
             self.states[msg.robot_id] = msg
 
     def _on_agent_alive(self, name: str, alive: bool) -> None:
-        log.info("agent %s %s", name, "joined" if alive else "left")
+        """Liveliness (Zenoh thread): a lost agent's state is forgotten and its goal
+        released on run()'s thread; it gets a new one when it is back."""
+        with self._lock:
+            ev = self.links.setdefault(name, {"joins": 0, "losses": 0})
+            ev["joins" if alive else "losses"] += 1
+            if not alive:
+                self.states.pop(name, None)
+                self._lost.append(name)
+        if alive:
+            log.info("agent %s joined", name)
+        else:
+            log.warning("agent %s lost (liveliness token gone): its goal is released", name)
 
     # --- processing ---------------------------------------------------------------------
     def run(self, stop: threading.Event) -> None:
@@ -132,6 +202,11 @@ class BaseStationNode:
             admitted = self._take_batch(timeout)
         if self.slam.integrate_constraints():
             self._optimized()
+        with self._lock:
+            lost, self._lost = self._lost, []
+        for name in lost:
+            if self.explorer is not None:
+                self.explorer.release(name)
         now = time.monotonic()
         if self._map_dirty and now - self._last_map >= self.cfg.basestation.map_update_period_s:
             self.refresh_map()
@@ -182,6 +257,8 @@ class BaseStationNode:
         }
         blocked = {rid for rid, st in states.items() if st.status == "blocked"}
         z = self.cfg.agent.cruise_altitude_m
+        out: list[tuple[str, bytes]] = []
+        batch = Batch()
         for rid, path in self.explorer.step(grid, poses, blocked=blocked).items():
             self._path_id += 1
             over = path is None and self.explorer.done  # path_id 0: the mission is over
@@ -197,10 +274,12 @@ class BaseStationNode:
                 else f"{len(path)} points to ({path[-1, 0]:.1f}, {path[-1, 1]:.1f})",
             )
             wp = np.column_stack([p, np.full(len(p), z), np.zeros(len(p))]).astype(np.float32)
-            self.bus.publish(
-                self.keys.robot(rid, "path"),
-                PathMsg(rid, 0 if over else self._path_id, time.time(), "map", self.epoch, wp),
-            )
+            msg = PathMsg(rid, 0 if over else self._path_id, time.time(), "map", self.epoch, wp)
+            out.append((rid, encode(msg)))
+            batch.paths.append((rid, self._path_id, out[-1][1]))
+        self._persist(batch)
+        for rid, payload in out:
+            self.bus.put_raw(self.keys.robot(rid, "path"), payload)
 
     def _take_fixes(self) -> None:
         """GNSS fixes -> ENU at the map's WGS84 origin (the first fix's, if none) -> graph."""
@@ -247,7 +326,7 @@ class BaseStationNode:
             touched.add(rid)
             admitted += self.slam.admit(kf)
         if admitted:
-            self._optimized()
+            self._optimized()  # persists the batch before any ack below
             self.slam.search_constraints()
         for rid in touched:  # ack admitted and duplicate keyframes alike
             acked = self.slam.store.acked_seq(rid)
@@ -256,12 +335,16 @@ class BaseStationNode:
         return admitted
 
     def _optimized(self) -> None:
+        self._persist()
         self.slam.optimize()
         self._map_dirty = True
         self.publish_corrections()
 
     def publish_corrections(self) -> None:
         self.epoch += 1
+        if self.epoch > self._epoch_reserved:  # never reuse an epoch after a restart
+            self._epoch_reserved = self.epoch + EPOCH_BLOCK
+            self.db.reserve_epochs(self._epoch_reserved)
         stamp = time.time()
         for rid in self.slam.graph.robots():
             T = self.slam.T_map_odom(rid)
@@ -291,6 +374,8 @@ class BaseStationNode:
         if self.slam.graph.flush_gps():  # the last GPS batch, due or not
             self._optimized()
         self.slam.close()
+        self._persist()
+        self.db.close()
 
     # --- outputs ------------------------------------------------------------------------
     def stats(self) -> dict[str, Any]:
@@ -300,6 +385,15 @@ class BaseStationNode:
             "intake_pauses": self.intake_pauses,
             "rejected_messages": dict(self.bus.rejected),
             "correction_epoch": self.epoch,
+            "links": {k: dict(v) for k, v in self.links.items()},
+            "persistence": None
+            if self.db.path is None
+            else {
+                "db": str(self.db.path),
+                "starts": self.db.starts,
+                "commits": self.db.commits,
+                "recovered": self.recovered,
+            },
             "exploration": None
             if self.explorer is None
             else {

@@ -61,6 +61,8 @@ def _load_cfg(args: argparse.Namespace) -> Any:
         overrides["zenoh.connect"] = args.connect
     if getattr(args, "zenoh_config", None):
         overrides["zenoh.config_file"] = args.zenoh_config
+    if getattr(args, "db", None):
+        overrides["basestation.db_path"] = args.db
     return load_config(args.config, overrides)
 
 
@@ -272,6 +274,12 @@ def build_parser() -> argparse.ArgumentParser:
     common(sp)
     sp.add_argument("--scenario", help="scenario JSON (robot roster, known start poses)")
     sp.add_argument("--out", required=True, help="folder for the map and trajectories")
+    sp.add_argument(
+        "--db",
+        metavar="PATH",
+        help="SQLite database: persist everything before acknowledging it, and resume "
+        "from it after a crash (sets basestation.db_path)",
+    )
     sp.set_defaults(func=cmd_basestation)
 
     sp = sub.add_parser("run", help="simulate a whole team on this machine")
@@ -322,9 +330,7 @@ def build_parser() -> argparse.ArgumentParser:
     b.add_argument("--robots", default="1,2,3", help="comma list of team sizes")
     b.add_argument("--seeds", type=int, default=1, help="runs per team size (sim.seed 0..N-1)")
     b.add_argument("--max-sim-time", type=float, default=400.0, help="s of sim time per run")
-    b.add_argument(
-        "--strategies", default="ours,baseline", help="comma list of ours, baseline"
-    )
+    b.add_argument("--strategies", default="ours,baseline", help="comma list of ours, baseline")
     b.set_defaults(
         func=cmd_bench,
         bench_kwargs=lambda a: {
@@ -399,6 +405,34 @@ def build_parser() -> argparse.ArgumentParser:
             "keyframes": a.keyframes,
             "base_mode": a.base_mode,
             "agent_seconds": a.agent_seconds,
+        },
+    )
+
+    b = bn.add_parser(
+        "faults",
+        help="3-robot mission with base-station SIGKILLs, link cuts, duplicated/reordered "
+        "keyframes and malformed messages, vs. the same mission undisturbed",
+    )
+    common(b, zenoh=False)
+    b.add_argument("--json", required=True, help="output JSON file")
+    b.add_argument("--data-dir", default=str(_default_data_dir()))
+    b.add_argument("--world", default="bshape")
+    b.add_argument("--robots", type=int, default=3)
+    b.add_argument("--restarts", type=int, default=3, help="base-station SIGKILL + restart")
+    b.add_argument("--restart-period", type=float, default=15.0, help="s wall between kills")
+    b.add_argument("--cut", type=float, default=30.0, help="s each agent's link is cut")
+    b.add_argument("--dup-fraction", type=float, default=0.1, help="keyframes re-put")
+    b.add_argument("--malformed", type=int, default=10000, help="bad messages injected")
+    b.set_defaults(
+        func=cmd_bench,
+        bench_kwargs=lambda a: {
+            "world": a.world,
+            "robots": a.robots,
+            "restarts": a.restarts,
+            "restart_period_s": a.restart_period,
+            "cut_s": a.cut,
+            "dup_fraction": a.dup_fraction,
+            "malformed": a.malformed,
         },
     )
 

@@ -71,6 +71,11 @@ class Launcher:
         self.out.mkdir(parents=True, exist_ok=True)
         scenario = make_scenario(self.cfg, self.world_yaml, self.n_robots)
         write_scenario(self.out / "scenario.json", scenario)
+        # The base station's crash record (2 ms per batch); a new mission never resumes
+        # an old one, so any database left there is deleted first.
+        db = self.cfg.basestation.db_path or str(self.out / "basestation.db")
+        for suffix in ("", "-wal", "-shm"):
+            Path(db + suffix).unlink(missing_ok=True)
         dump_config(self.cfg, self.out / "config.toml")
         common = [
             "--config",
@@ -83,7 +88,7 @@ class Launcher:
         base_ep, sim_ep = endpoint(free_port()), endpoint(free_port())
         g = self.group
         try:
-            base = g.spawn("basestation", ["basestation", *common, "--listen", base_ep])
+            base = g.spawn("basestation", ["basestation", *common, "--listen", base_ep, "--db", db])
             sim = g.spawn(
                 "sim",
                 [

@@ -44,6 +44,7 @@ def zenoh_config(zc: ZenohConfig) -> zenoh.Config:
     settings = {
         "mode": zc.mode,
         "scouting/multicast/enabled": zc.multicast_scouting,
+        "scouting/gossip/enabled": zc.gossip_scouting,
     }
     if zc.listen:
         settings["listen/endpoints"] = zc.listen

@@ -28,6 +28,9 @@ class ZenohConfig:
     listen: list[str] = field(default_factory=list)  # e.g. ["tcp/127.0.0.1:7447"]
     connect: list[str] = field(default_factory=list)
     multicast_scouting: bool = False  # off by default: explicit endpoints only
+    # Learn other peers' endpoints from the peers one is connected to (and connect to
+    # them). Off: only the configured endpoints (e.g. a drone behind a radio relay).
+    gossip_scouting: bool = True
     config_file: str = ""  # optional Zenoh JSON5 config (deploy/); its settings come first
 
 
@@ -293,6 +296,10 @@ class BaseStationConfig:
     # keeps up with; live robots keep flying and their outboxes hold the keyframes.
     pause_intake_backlog: int = 0
     drain_timeout_s: float = 60.0  # s wall: at shutdown, finish pending verifications this long
+    # SQLite file for crash recovery (basestation/persistence.py): every admitted keyframe,
+    # match, epoch and path is written there before it is acknowledged or published, and
+    # a restart with the same file resumes the mission. Empty: no persistence.
+    db_path: str = ""
     constraints: ConstraintConfig = field(default_factory=ConstraintConfig)
     gps: GpsConfig = field(default_factory=GpsConfig)
 

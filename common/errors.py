@@ -23,3 +23,7 @@ class FileFormatError(CollabSlamError):
 
 class ProcessError(CollabSlamError):
     """A supervised child process failed."""
+
+
+class PersistenceError(CollabSlamError):
+    """The base station's database cannot be opened, read or written."""

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import logging
+
 import numpy as np
 import pytest
 
@@ -51,14 +53,56 @@ def test_outbox_acks_and_resends_in_order() -> None:
         ob.add(9, b"x")
 
 
-def test_outbox_bound() -> None:
-    ob = Outbox(max_len=3, warn_fraction=0.5, resend_timeout_s=1.0, resend_batch=3)
-    for s in range(3):
-        assert ob.has_room()
-        ob.add(s, b"x")
-    assert not ob.has_room() and ob.high_water == 3
+def test_outbox_drains_at_ack_pace_after_an_outage() -> None:
+    clock = FakeClock()
+    ob = Outbox(max_len=100, warn_fraction=0.8, resend_timeout_s=1.0, resend_batch=3, clock=clock)
+    for s in range(8):  # sent while the base station was gone
+        ob.add(s, bytes([s]))
+    clock.t = 5.0
+    assert ob.due_for_resend() == [b"\x00", b"\x01", b"\x02"]
+    ob.ack(1)  # part of the batch: wait for the rest
+    assert ob.due_for_resend() == []
+    ob.ack(2)  # the whole batch: the next one goes at once, in order
+    assert ob.due_for_resend() == [b"\x03", b"\x04", b"\x05"]
+    ob.ack(5)
+    assert ob.due_for_resend() == [b"\x06", b"\x07"]
+    ob.ack(7)
+    assert len(ob) == 0 and ob.due_for_resend() == []
+    ob.add(8, b"\x08")  # live again: normal timeout before any resend
+    assert ob.due_for_resend() == []
+
+
+def test_outbox_kick_resends_at_once() -> None:
+    clock = FakeClock()
+    ob = Outbox(max_len=10, warn_fraction=0.8, resend_timeout_s=1.0, resend_batch=5, clock=clock)
+    ob.add(0, b"a")
+    clock.t = 1.5
+    assert ob.due_for_resend() == [b"a"]  # backoff now 2 s
+    clock.t = 2.0
+    assert ob.due_for_resend() == []
+    ob.kick()  # the base station is back
+    assert ob.due_for_resend() == [b"a"]
+
+
+def test_outbox_bound(caplog: pytest.LogCaptureFixture) -> None:
+    """Stated policy: warn at warn_fraction, refuse new keyframes when full (the
+    agent then cuts none), never drop a queued one."""
+    ob = Outbox(max_len=4, warn_fraction=0.5, resend_timeout_s=1.0, resend_batch=3)
+    with caplog.at_level(logging.WARNING, logger="agent.outbox"):
+        ob.add(0, b"0")
+        assert not caplog.records
+        ob.add(1, b"1")  # half full: one warning
+        assert [r.getMessage() for r in caplog.records] == [
+            "outbox is 2/4 full: the base station is not acknowledging"
+        ]
+        for s in range(2, 4):
+            assert ob.has_room()
+            ob.add(s, bytes([s]))
+        assert not ob.has_room() and not ob.has_room()
+        assert ob.high_water == 4 and ob.deferred == 2 and len(ob) == 4
+        assert "outbox full" in caplog.records[-1].getMessage()
     ob.ack(0)
-    assert ob.has_room()
+    assert ob.has_room() and len(ob) == 3
 
 
 def test_keyframe_selector_thresholds(cfg) -> None:

@@ -1,0 +1,273 @@
+"""The base station's crash-safe record: an embedded SQLite database.
+
+What is written, one transaction per processed batch, *before* the batch is
+acknowledged or published:
+
+- every keyframe admitted to the pose graph, as its encoded protocol bytes
+  (`protocol.codec`), keyed by (robot_id, seq), in admission order;
+- every verified match handed to the loop-closure manager (robot pair, node
+  indices, T_a_b, covariance, kind) and whether it is in the graph now (PCM may
+  take it out again later: that removal is written too);
+- the correction-epoch high-water mark (epochs are reserved in blocks, so an
+  epoch is never reused after a restart without one write per correction);
+- the latest exploration path per robot and the path-id counter.
+
+Durability: WAL journal with ``synchronous=FULL``: a commit returns only after
+the WAL is fsynced, so an acknowledged keyframe survives SIGKILL *and* power
+loss (``NORMAL`` would survive a killed process but could lose the last commits
+on power loss, after the agent had already dropped them from its outbox).
+
+`NullDatabase` is the do-nothing stand-in when no path is configured.
+"""
+
+from __future__ import annotations
+
+import logging
+import sqlite3
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from basestation.pcm import LoopMeasurement
+from common.errors import PersistenceError
+from protocol import Keyframe, decode, encode
+
+log = logging.getLogger(__name__)
+
+SCHEMA_VERSION = 1
+EPOCH_BLOCK = 1000  # correction epochs reserved per write
+
+_SCHEMA = """
+CREATE TABLE IF NOT EXISTS schema (version INTEGER NOT NULL);
+CREATE TABLE IF NOT EXISTS meta (key TEXT PRIMARY KEY, value INTEGER NOT NULL);
+CREATE TABLE IF NOT EXISTS keyframes (
+    robot_id TEXT NOT NULL,
+    seq INTEGER NOT NULL,
+    batch INTEGER NOT NULL,
+    payload BLOB NOT NULL,
+    PRIMARY KEY (robot_id, seq)
+);
+CREATE TABLE IF NOT EXISTS constraints (
+    id INTEGER PRIMARY KEY,
+    batch INTEGER NOT NULL,
+    robot_a TEXT NOT NULL, index_a INTEGER NOT NULL,
+    robot_b TEXT NOT NULL, index_b INTEGER NOT NULL,
+    x REAL NOT NULL, y REAL NOT NULL, yaw REAL NOT NULL,
+    covariance BLOB NOT NULL,
+    kind TEXT NOT NULL,
+    in_graph INTEGER NOT NULL DEFAULT 0
+);
+CREATE TABLE IF NOT EXISTS paths (
+    robot_id TEXT PRIMARY KEY,
+    path_id INTEGER NOT NULL,
+    payload BLOB NOT NULL
+);
+"""
+
+
+@dataclass
+class StoredConstraint:
+    """A verified match as it went into the loop-closure manager."""
+
+    measurement: LoopMeasurement
+    kind: str
+    in_graph: bool
+    batch: int
+
+
+@dataclass
+class Batch:
+    """Everything one processing step wants on disk before it acks or publishes."""
+
+    keyframes: list[Keyframe] = field(default_factory=list)  # admitted, in order
+    constraints: list[tuple[LoopMeasurement, str]] = field(default_factory=list)
+    in_graph: dict[int, bool] = field(default_factory=dict)  # constraint id -> in graph now
+    paths: list[tuple[str, int, bytes]] = field(default_factory=list)  # (robot, path_id, Path)
+
+    def __bool__(self) -> bool:
+        return bool(self.keyframes or self.constraints or self.in_graph or self.paths)
+
+
+@dataclass
+class Recovered:
+    """The stored state, in the order it was written."""
+
+    keyframes: list[tuple[int, Keyframe]]  # (batch, keyframe) in admission order
+    constraints: list[StoredConstraint]  # by id (= the order they were added)
+    epoch: int  # every epoch sent before is below this
+    path_id: int  # highest path id sent
+    paths: dict[str, bytes]  # robot -> its latest encoded Path
+    starts: int  # how many times a base station opened this database (this one included)
+
+    @property
+    def empty(self) -> bool:
+        return not self.keyframes
+
+
+class KeyframeDatabase:
+    """One SQLite file; use from one thread (the base station's processing thread)."""
+
+    def __init__(self, path: str | Path, synchronous: str = "FULL") -> None:
+        self.path = Path(path)
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        try:
+            self._db = sqlite3.connect(self.path, isolation_level=None)
+            mode = self._db.execute("PRAGMA journal_mode=WAL").fetchone()[0]
+            self._db.execute(f"PRAGMA synchronous={synchronous}")
+            self._db.executescript(_SCHEMA)
+            row = self._db.execute("SELECT version FROM schema").fetchone()
+            if row is None:
+                self._db.execute("INSERT INTO schema VALUES (?)", (SCHEMA_VERSION,))
+            elif row[0] != SCHEMA_VERSION:
+                raise PersistenceError(
+                    f"{self.path}: database schema version {row[0]}, this build "
+                    f"reads version {SCHEMA_VERSION}"
+                )
+        except sqlite3.Error as exc:
+            raise PersistenceError(f"cannot open database {self.path}: {exc}") from None
+        if mode != "wal":
+            raise PersistenceError(f"{self.path}: WAL journal mode refused ({mode})")
+        self._batch = self._meta("batch", 0)
+        self.starts = self._meta("starts", 0) + 1
+        self._set_meta("starts", self.starts)
+        self.commits = 0
+
+    # --- writing ------------------------------------------------------------------------
+    def commit(self, batch: Batch) -> None:
+        """Write one batch in one transaction (durable when this returns)."""
+        if not batch:
+            return
+        self._batch += 1
+        b = self._batch
+        try:
+            with self._transaction():
+                self._db.executemany(
+                    "INSERT INTO keyframes VALUES (?, ?, ?, ?)",
+                    [(k.robot_id, k.seq, b, encode(k)) for k in batch.keyframes],
+                )
+                self._db.executemany(
+                    "INSERT INTO constraints VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, 0)",
+                    [
+                        (
+                            m.id, b, m.robot_a, m.index_a, m.robot_b, m.index_b,
+                            *(float(v) for v in m.T_a_b),
+                            np.asarray(m.covariance, "<f8").tobytes(), kind,
+                        )
+                        for m, kind in batch.constraints
+                    ],
+                )  # fmt: skip
+                self._db.executemany(
+                    "UPDATE constraints SET in_graph = ? WHERE id = ?",
+                    [(int(v), i) for i, v in batch.in_graph.items()],
+                )
+                self._db.executemany("INSERT OR REPLACE INTO paths VALUES (?, ?, ?)", batch.paths)
+                if batch.paths:
+                    top = max(p[1] for p in batch.paths)
+                    self._db.execute(
+                        "INSERT INTO meta VALUES ('path_id', ?) ON CONFLICT(key) "
+                        "DO UPDATE SET value = max(value, excluded.value)",
+                        (top,),
+                    )
+                self._db.execute("INSERT OR REPLACE INTO meta VALUES ('batch', ?)", (b,))
+        except sqlite3.IntegrityError as exc:
+            raise PersistenceError(
+                f"{self.path}: batch {b} conflicts with stored data: {exc}"
+            ) from None
+        self.commits += 1
+
+    def reserve_epochs(self, upto: int) -> None:
+        """Record that epochs below `upto` may be sent (a restart starts at `upto`)."""
+        with self._transaction():
+            self._set_meta("epoch", upto)
+
+    # --- reading ------------------------------------------------------------------------
+    def load(self) -> Recovered:
+        """Everything stored, decoded; keyframes in admission order."""
+        rows = self._db.execute("SELECT batch, payload FROM keyframes ORDER BY rowid").fetchall()
+        keyframes = []
+        for b, payload in rows:
+            keyframes.append((int(b), decode(payload, Keyframe, max_bytes=len(payload) + 1)))
+        constraints = []
+        for row in self._db.execute(
+            "SELECT id, batch, robot_a, index_a, robot_b, index_b, x, y, yaw, covariance, "
+            "kind, in_graph FROM constraints ORDER BY id"
+        ):
+            i, b, ra, ia, rb, ib, x, y, yaw, cov, kind, in_graph = row
+            m = LoopMeasurement(
+                i, ra, ia, rb, ib, np.array([x, y, yaw]),
+                np.frombuffer(cov, "<f8").reshape(3, 3).copy(),
+            )  # fmt: skip
+            constraints.append(StoredConstraint(m, kind, bool(in_graph), int(b)))
+        paths = dict(self._db.execute("SELECT robot_id, payload FROM paths").fetchall())
+        return Recovered(
+            keyframes,
+            constraints,
+            self._meta("epoch", 0),
+            self._meta("path_id", 0),
+            paths,
+            self.starts,
+        )
+
+    def counts(self) -> dict[str, int]:
+        """Stored keyframes per robot."""
+        rows = self._db.execute("SELECT robot_id, count(*) FROM keyframes GROUP BY robot_id")
+        return {r: int(n) for r, n in rows}
+
+    def journal_mode(self) -> str:
+        return str(self._db.execute("PRAGMA journal_mode").fetchone()[0])
+
+    def close(self) -> None:
+        self._db.close()
+
+    # --- helpers ------------------------------------------------------------------------
+    def _transaction(self) -> _Transaction:
+        return _Transaction(self._db)
+
+    def _meta(self, key: str, default: int) -> int:
+        row = self._db.execute("SELECT value FROM meta WHERE key = ?", (key,)).fetchone()
+        return default if row is None else int(row[0])
+
+    def _set_meta(self, key: str, value: int) -> None:
+        self._db.execute("INSERT OR REPLACE INTO meta VALUES (?, ?)", (key, value))
+
+
+class _Transaction:
+    """BEGIN IMMEDIATE ... COMMIT, or ROLLBACK if the block raises."""
+
+    def __init__(self, db: sqlite3.Connection) -> None:
+        self._db = db
+
+    def __enter__(self) -> None:
+        self._db.execute("BEGIN IMMEDIATE")
+
+    def __exit__(self, exc_type: object, *rest: object) -> None:
+        self._db.execute("ROLLBACK" if exc_type else "COMMIT")
+
+
+class NullDatabase:
+    """No persistence: the same interface, nothing written, nothing recovered."""
+
+    path = None
+    starts = 1
+    commits = 0
+
+    def commit(self, batch: Batch) -> None:
+        pass
+
+    def reserve_epochs(self, upto: int) -> None:
+        pass
+
+    def load(self) -> Recovered:
+        return Recovered([], [], 0, 0, {}, 1)
+
+    def counts(self) -> dict[str, int]:
+        return {}
+
+    def close(self) -> None:
+        pass
+
+
+def open_database(path: str | Path | None) -> KeyframeDatabase | NullDatabase:
+    """A `KeyframeDatabase` at `path`, or a `NullDatabase` when path is empty/None."""
+    return KeyframeDatabase(path) if path else NullDatabase()

@@ -39,11 +39,7 @@ class GlobalSlam:
     def __init__(self, cfg: Config, known_starts: dict[str, np.ndarray] | None = None) -> None:
         self.cfg = cfg
         b = cfg.basestation
-        self.graph = PoseGraph(
-            relinearize_threshold=b.relinearize_threshold,
-            relinearize_skip=b.relinearize_skip,
-            prior_sigmas=(b.prior_sigma_xy_m, b.prior_sigma_xy_m, b.prior_sigma_yaw_rad),
-        )
+        self.graph = PoseGraph.from_config(b)
         self.store = KeyframeStore(b.reorder_window)
         self.known_starts = dict(known_starts or {})
         self.cc = b.constraints

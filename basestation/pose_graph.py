@@ -34,6 +34,7 @@ import gtsam
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from common.config import BaseStationConfig
 from common.errors import CollabSlamError
 from common.geometry import se2_compose, wrap_angle
 
@@ -58,6 +59,7 @@ class UpdateStats:
     # robots whose already-estimated nodes moved > epsilon; None if track_changes is off
     changed_robots: frozenset[str] | None
     robots_with_new_nodes: frozenset[str]
+    batch_reordered: bool = False  # iSAM2 re-ordered the whole tree (adaptive reorder)
 
 
 class _GtsamProblem(NamedTuple):
@@ -109,7 +111,8 @@ def _gaussian(covariance: ArrayLike) -> gtsam.noiseModel.Gaussian:
 
 
 def _pose2(T: FloatArray) -> gtsam.Pose2:
-    return gtsam.Pose2(float(T[0]), float(T[1]), float(T[2]))
+    x, y, yaw = T.tolist()  # python floats: pybind picks the overload at once
+    return gtsam.Pose2(x, y, yaw)
 
 
 class PoseGraph:
@@ -128,12 +131,25 @@ class PoseGraph:
         change_epsilon: float = 1e-4,  # m or rad: a robot "changed" beyond this
         settle_iterations: int = 10,  # max extra iterations after components merge
         track_changes: bool = True,  # False: no changed_robots, the O(n) estimate is lazy
+        wildfire_threshold: float = 0.001,  # rad or m: back-substitution stops below this
+        factorization: str = "CHOLESKY",  # or "QR"
+        cache_linearized_factors: bool = True,
+        adaptive_reorder_threshold: float = 0.0,  # fill-in growth factor; 0: off
     ) -> None:
+        if factorization not in ("CHOLESKY", "QR"):
+            raise CollabSlamError(f"factorization must be CHOLESKY or QR, got {factorization!r}")
         params = gtsam.ISAM2Params()
-        params.setFactorization("CHOLESKY")
+        params.setFactorization(factorization)
         params.setRelinearizeThreshold(relinearize_threshold)
         params.relinearizeSkip = relinearize_skip
+        gauss_newton = gtsam.ISAM2GaussNewtonParams()
+        gauss_newton.setWildfireThreshold(wildfire_threshold)
+        params.setOptimizationParams(gauss_newton)
+        params.cacheLinearizedFactors = cache_linearized_factors
         params.findUnusedFactorSlots = False  # factor slots stay stable for removal
+        if adaptive_reorder_threshold > 0:
+            params.enableAdaptiveReorder = True
+            params.adaptiveReorderThreshold = adaptive_reorder_threshold
         self._isam = gtsam.ISAM2(params)
         self._prior_noise = gtsam.noiseModel.Diagonal.Sigmas(np.asarray(prior_sigmas, float))
         self._change_epsilon = change_epsilon
@@ -146,10 +162,26 @@ class PoseGraph:
         self._next_id = 0
         self._pair_count: Counter[tuple[str, str]] = Counter()
         self._topology_dirty = False
+        self._topology_version = 0  # bumped on every change of the robots' grouping
+        self._components_cache: tuple[int, list[list[str]]] = (-1, [])
         self._component_of: dict[str, int] = {}  # robot -> component label at last update
         self._guesses = gtsam.Values()  # every initial guess handed to iSAM2 (for batch)
         self._estimate = np.zeros((0, 3))  # committed poses, rows in key order
         self._estimate_valid = True  # False: recompute on the next full-estimate query
+
+    @classmethod
+    def from_config(cls, b: BaseStationConfig, track_changes: bool | None = None) -> PoseGraph:
+        """The base station's pose graph (``track_changes`` None: ``b.track_changes``)."""
+        return cls(
+            relinearize_threshold=b.relinearize_threshold,
+            relinearize_skip=b.relinearize_skip,
+            prior_sigmas=(b.prior_sigma_xy_m, b.prior_sigma_xy_m, b.prior_sigma_yaw_rad),
+            track_changes=b.track_changes if track_changes is None else track_changes,
+            wildfire_threshold=b.wildfire_threshold,
+            factorization=b.isam2_factorization,
+            cache_linearized_factors=b.cache_linearized_factors,
+            adaptive_reorder_threshold=b.adaptive_reorder_threshold,
+        )
 
     # ----- building the graph -------------------------------------------------------
     def add_robot(self, robot_id: str, T_map_first: ArrayLike | None) -> None:
@@ -189,6 +221,7 @@ class PoseGraph:
                 prior = gtsam.PriorFactorPose2(key, _pose2(start), self._prior_noise)
                 self._add_factor(prior, "start")
             self._topology_dirty = True
+            self._topology_version += 1
         else:
             if delta is None or covariance is None:
                 raise CollabSlamError("nodes after the first need delta and covariance")
@@ -229,6 +262,7 @@ class PoseGraph:
             robots = (min(key_a[0], key_b[0]), max(key_a[0], key_b[0]))
             self._pair_count[robots] += 1
             self._topology_dirty = True
+            self._topology_version += 1
         return self._add_factor(factor, "constraint", robots)
 
     def remove_constraint(self, factor_id: int) -> None:
@@ -239,6 +273,7 @@ class PoseGraph:
         if record.robots is not None:
             self._pair_count[record.robots] -= 1
             self._topology_dirty = True
+            self._topology_version += 1
         self._drop_factor(factor_id)
 
     # ----- solving ------------------------------------------------------------------
@@ -260,9 +295,10 @@ class PoseGraph:
         values = gtsam.Values()
         new_nodes: dict[str, int] = {}
         for robot_id, chain in self._chains.items():
-            for i, guess in enumerate(chain.pending, start=chain.num_committed):
-                values.insert(gtsam.symbol(chain.char, i), _pose2(guess))
             if chain.pending:
+                for i, guess in enumerate(chain.pending, start=chain.num_committed):
+                    # the keyword skips pybind's failed array conversions (~3x faster)
+                    values.insert(gtsam.symbol(chain.char, i), pose2=_pose2(guess))
                 new_nodes[robot_id] = len(chain.pending)
 
         t_solve = time.perf_counter()
@@ -270,10 +306,12 @@ class PoseGraph:
             result = self._isam.update(graph, values, removals)
             for fid, slot in zip(new_ids, result.getNewFactorsIndices(), strict=True):
                 self._factors[fid].isam_index = slot
+            reordered = result.getBatchReorderTriggered()
             iterations = 1
             for _ in range(max(extra_iterations, self._settle_iterations if merged else 0)):
                 iterations += 1
                 extra = self._isam.update(force_relinearize=True)  # even between skips
+                reordered = reordered or extra.getBatchReorderTriggered()
                 if extra.getVariablesRelinearized() == 0:
                     break
         except RuntimeError as exc:  # e.g. gtsam's IndeterminantLinearSystemException
@@ -300,6 +338,7 @@ class PoseGraph:
             num_new_nodes=sum(new_nodes.values()),
             changed_robots=changed,
             robots_with_new_nodes=frozenset(new_nodes),
+            batch_reordered=reordered,
         )
         logger.debug(
             "iSAM2 update: %d factors, %d removed, %d nodes, %d iterations, %.2f ms (solve %.2f)",
@@ -343,7 +382,7 @@ class PoseGraph:
     def components(self) -> list[list[str]]:
         """Robots grouped by inter-robot constraints (including pending ones); within a
         group, poses share one frame. Robots with no node yet are not listed."""
-        return self._components()
+        return [list(c) for c in self._components()]
 
     def is_anchored(self, robot_id: str) -> bool:
         """True if the robot's group contains a robot with a known start (the map frame)."""
@@ -442,6 +481,15 @@ class PoseGraph:
             self._pending_removals.append(record.isam_index)
 
     def _components(self) -> list[list[str]]:
+        """Cached until the grouping changes (queried per robot after every update);
+        callers must not modify the lists."""
+        version, cached = self._components_cache
+        if version != self._topology_version:
+            cached = self._compute_components()
+            self._components_cache = (self._topology_version, cached)
+        return cached
+
+    def _compute_components(self) -> list[list[str]]:
         parent = {rid: rid for rid, c in self._chains.items() if c.size > 0}
 
         def find(r: str) -> str:

@@ -228,8 +228,23 @@ class ConstraintConfig:
 
 @dataclass
 class BaseStationConfig:
-    relinearize_threshold: float = 0.1
-    relinearize_skip: int = 1
+    # iSAM2 (gtsam ISAM2Params), chosen with `collabslam bench backend` on M3500, Intel and
+    # city10000 (docs/architecture.md, "Back end"); every choice kept chi2 within 0.1% of LM.
+    relinearize_threshold: float = 0.1  # rad or m: a larger delta step relinearizes a variable
+    relinearize_skip: int = 10  # updates between relinearization checks (gtsam's default;
+    # 1 checked every update: same chi2, p95 +20-25% at 10,000 nodes)
+    wildfire_threshold: float = 0.001  # rad or m: back-substitution stops below (gtsam default;
+    # 0.01 was 1.5x faster to query but +2% chi2 on city10000[:3000])
+    isam2_factorization: str = "CHOLESKY"  # QR: 1.5-2x slower, same chi2
+    cache_linearized_factors: bool = True  # False: 10-20% slower
+    # Re-order the whole Bayes tree (one batch elimination, ~0.4 s at 10,000 nodes) once its
+    # fill-in exceeds this multiple of the last fresh ordering's; 0: never. Incremental
+    # orderings of a loopy graph accumulate fill-in: 1.5 cut p95 by a third at 10,000 nodes.
+    adaptive_reorder_threshold: float = 1.5
+    # Compare every node's estimate before and after each update (UpdateStats.changed_robots,
+    # O(n) per update). Nothing in the base station needs it: off, corrections then read
+    # single poses and the full estimate is extracted only when all poses are asked for.
+    track_changes: bool = False
     prior_sigma_xy_m: float = 0.01  # m, known start pose
     prior_sigma_yaw_rad: float = 0.001  # rad
     map_update_period_s: float = 2.0  # s wall between global map refreshes
@@ -456,6 +471,15 @@ def validate(cfg: Config) -> None:
         raise ConfigError("agent.local_slam.min_range_m: expected 0 <= min_range_m < max_range_m")
     if not 0.0 <= ls.min_match_score < 1.0:
         raise ConfigError("agent.local_slam.min_match_score: expected a value in [0, 1)")
+    b = cfg.basestation
+    if b.isam2_factorization not in ("CHOLESKY", "QR"):
+        raise ConfigError("basestation.isam2_factorization: expected CHOLESKY or QR")
+    _positive("basestation.relinearize_threshold", b.relinearize_threshold)
+    _positive("basestation.relinearize_skip", b.relinearize_skip)
+    if b.wildfire_threshold < 0.0:
+        raise ConfigError("basestation.wildfire_threshold: expected a value >= 0")
+    if b.adaptive_reorder_threshold != 0.0 and not b.adaptive_reorder_threshold > 1.0:
+        raise ConfigError("basestation.adaptive_reorder_threshold: expected 0 (off) or > 1")
     cc = cfg.basestation.constraints
     if not 0.0 <= cc.false_match_fraction < 1.0:
         raise ConfigError("basestation.constraints.false_match_fraction: expected 0 <= f < 1")

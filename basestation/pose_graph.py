@@ -11,6 +11,10 @@ Conventions:
 - Keys: robot k (registration order) is ``ROBOT_KEY_ALPHABET[k]``, node i is
   ``gtsam.symbol(char, i)``; 26 lower-case letters, upper case left for the rest.
 
+Ordering: with ``heads_last`` every chain's newest node is constrained to the end of
+iSAM2's elimination order (the root of the Bayes tree), so when robots take turns the
+next node of any robot re-eliminates the root clique only; the solution is the same.
+
 Gauge (how disjoint chains stay well-posed): the graph is split into connected
 components of robots (linked by inter-robot constraints). A component containing a
 robot with a known start is held by those start priors alone. A floating component
@@ -135,6 +139,7 @@ class PoseGraph:
         factorization: str = "CHOLESKY",  # or "QR"
         cache_linearized_factors: bool = True,
         adaptive_reorder_threshold: float = 0.0,  # fill-in growth factor; 0: off
+        heads_last: bool = False,  # True: each chain's newest node is ordered last (root)
     ) -> None:
         if factorization not in ("CHOLESKY", "QR"):
             raise CollabSlamError(f"factorization must be CHOLESKY or QR, got {factorization!r}")
@@ -155,6 +160,7 @@ class PoseGraph:
         self._change_epsilon = change_epsilon
         self._settle_iterations = settle_iterations
         self._track_changes = track_changes
+        self._heads_last = heads_last
         self._chains: dict[str, _Chain] = {}  # registration order = key-character order
         self._factors: dict[int, _Factor] = {}  # active factors (committed or pending)
         self._pending_ids: list[int] = []
@@ -181,6 +187,7 @@ class PoseGraph:
             factorization=b.isam2_factorization,
             cache_linearized_factors=b.cache_linearized_factors,
             adaptive_reorder_threshold=b.adaptive_reorder_threshold,
+            heads_last=b.heads_last,
         )
 
     # ----- building the graph -------------------------------------------------------
@@ -301,16 +308,25 @@ class PoseGraph:
                     values.insert(gtsam.symbol(chain.char, i), pose2=_pose2(guess))
                 new_nodes[robot_id] = len(chain.pending)
 
+        heads = None  # None: iSAM2's default, the keys of the new factors go last
+        if self._heads_last:
+            heads = gtsam.KeyGroupMap()
+            for chain in self._chains.values():
+                if chain.size:
+                    heads.insert2(gtsam.symbol(chain.char, chain.size - 1), 1)
+
         t_solve = time.perf_counter()
         try:
-            result = self._isam.update(graph, values, removals)
+            result = self._isam.update(graph, values, removals, constrainedKeys=heads)
             for fid, slot in zip(new_ids, result.getNewFactorsIndices(), strict=True):
                 self._factors[fid].isam_index = slot
             reordered = result.getBatchReorderTriggered()
             iterations = 1
             for _ in range(max(extra_iterations, self._settle_iterations if merged else 0)):
                 iterations += 1
-                extra = self._isam.update(force_relinearize=True)  # even between skips
+                extra = self._isam.update(  # force: even between relinearization skips
+                    constrainedKeys=heads, force_relinearize=True
+                )
                 reordered = reordered or extra.getBatchReorderTriggered()
                 if extra.getVariablesRelinearized() == 0:
                     break

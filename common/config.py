@@ -228,21 +228,25 @@ class ConstraintConfig:
 
 @dataclass
 class BaseStationConfig:
-    # iSAM2 (gtsam ISAM2Params), chosen with `collabslam bench backend` on M3500, Intel and
-    # city10000 (docs/architecture.md, "Back end"); every choice kept chi2 within 0.1% of LM.
+    # iSAM2 (gtsam ISAM2Params), chosen with the 3-robot feeds of `collabslam bench backend`
+    # (M3500[:500], city10000[:3000] and [:10000], CPU time per update; docs/architecture.md
+    # "Back end"); every choice below kept chi2 within 0.1% of batch LM.
     relinearize_threshold: float = 0.1  # rad or m: a larger delta step relinearizes a variable
-    relinearize_skip: int = 10  # updates between relinearization checks (gtsam's default;
-    # 1 checked every update: same chi2, p95 +20-25% at 10,000 nodes)
+    # Updates between relinearization checks (gtsam's default). 1 checks every update, which
+    # first back-substitutes all deltas: same chi2, 5-30% more CPU per update at 500 nodes.
+    relinearize_skip: int = 10
     wildfire_threshold: float = 0.001  # rad or m: back-substitution stops below (gtsam default;
-    # 0.01 was 1.5x faster to query but +2% chi2 on city10000[:3000])
+    # 0.01 queried 1.5x faster but cost +2% chi2 on city10000[:3000])
     isam2_factorization: str = "CHOLESKY"  # QR: 1.5-2x slower, same chi2
     cache_linearized_factors: bool = True  # False: 10-20% slower
     # Keep every robot's newest node at the root of the Bayes tree (iSAM2 constrainedKeys)
     # instead of only the keys of the new factors: robots take turns, and the next node of
-    # any robot then re-eliminates the root only. 3 robots, M3500[:500]: -40% CPU per update.
+    # any robot then re-eliminates the root only. M3500[:500]: -40% CPU per update (p50);
+    # city10000 (a loop closure at almost every node): -15% p50, same p95.
     heads_last: bool = True
-    # Re-order the whole Bayes tree (one batch elimination, ~0.4 s at 10,000 nodes) once its
-    # fill-in exceeds this multiple of the last fresh ordering's; 0: never (gtsam default).
+    # Re-order the whole Bayes tree (one batch elimination, 0.3 s of CPU at 10,000 nodes) once
+    # its fill-in exceeds this multiple of the last fresh ordering's; 0: never (gtsam
+    # default). 1.5 on city10000: p95 -10%, p50 +25%, total +8% CPU: off.
     adaptive_reorder_threshold: float = 0.0
     # Compare every node's estimate before and after each update (UpdateStats.changed_robots,
     # O(n) per update). Nothing in the base station needs it: off, corrections then read

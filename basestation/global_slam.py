@@ -47,6 +47,7 @@ class GlobalSlam:
         self.loops = LoopClosureManager(self.graph, self.cc, self._chain_covariance)
         self.update_ms: list[float] = []
         self._new_nodes: list[NodeKey] = []
+        self._constraints_added = False  # verified matches handed over since the last update
         self._false_rng = np.random.default_rng(self.cc.false_match_seed)
         self._global_map: tuple[object, list[np.ndarray], list[np.ndarray]] | None = None
         self._last_candidate: dict[tuple[str, str], int] = {}  # (robot, target robot) -> index
@@ -77,8 +78,12 @@ class GlobalSlam:
         self._new_nodes.append((rid, kf.seq))
 
     def optimize(self) -> None:
+        """One iSAM2 update. After new constraints one forced relinearization step
+        follows at once (loop closures move nodes far; between them iSAM2 checks for
+        relinearization only every `relinearize_skip` updates)."""
         t0 = time.perf_counter()
-        self.graph.update()
+        self.graph.update(extra_iterations=1 if self._constraints_added else 0)
+        self._constraints_added = False
         self.update_ms.append((time.perf_counter() - t0) * 1e3)
 
     # --- constraints --------------------------------------------------------------------
@@ -192,6 +197,7 @@ class GlobalSlam:
         if self.builder is None:
             return 0
         results = self.builder.results()
+        self._constraints_added |= bool(results)
         f = self.cc.false_match_fraction
         for v in results:
             try:

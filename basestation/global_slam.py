@@ -28,7 +28,6 @@ from typing import Any
 import numpy as np
 
 from basestation.constraint_builder import ConstraintBuilder, Job, Verified, find_candidates
-from basestation.gps_factor import GpsWeighting
 from basestation.keyframe_store import KeyframeStore
 from basestation.loop_closure_manager import LoopClosureManager
 from basestation.pcm import LoopMeasurement
@@ -56,15 +55,7 @@ class GlobalSlam:
         b = cfg.basestation
         self.gps_enabled = b.gps.enabled
         self.gps_fixes_ignored = 0  # fixes of robots not (yet) anchored by a known start
-        self.graph = PoseGraph(
-            relinearize_threshold=b.relinearize_threshold,
-            relinearize_skip=b.relinearize_skip,
-            prior_sigmas=(b.prior_sigma_xy_m, b.prior_sigma_xy_m, b.prior_sigma_yaw_rad),
-            gps_weighting=GpsWeighting.from_config(b.gps),
-            max_pending_gps_fixes=b.gps.max_pending_fixes,
-            gps_batch_period_s=b.gps.batch_period_s,
-            factorization="QR" if b.gps.enabled else "CHOLESKY",
-        )
+        self.graph = PoseGraph.from_config(b)
         self.store = KeyframeStore(b.reorder_window)
         self.known_starts = dict(known_starts or {})
         # robots started at a given map pose (not the first robot defining map): GPS-able
@@ -78,6 +69,7 @@ class GlobalSlam:
         self.loops = LoopClosureManager(self.graph, self.cc, self._chain_covariance)
         self.update_ms: list[float] = []
         self._new_nodes: list[NodeKey] = []
+        self._constraints_added = False  # verified matches handed over since the last update
         self._false_rng = np.random.default_rng(self.cc.false_match_seed)
         self._global_map: tuple[object, list[np.ndarray], list[np.ndarray]] | None = None
         self._last_candidate: dict[tuple[str, str], int] = {}  # (robot, target robot) -> index
@@ -201,8 +193,12 @@ class GlobalSlam:
         return stamp
 
     def optimize(self) -> None:
+        """One iSAM2 update. After new constraints one forced relinearization step
+        follows at once (loop closures move nodes far; between them iSAM2 checks for
+        relinearization only every `relinearize_skip` updates)."""
         t0 = time.perf_counter()
-        self.graph.update()
+        self.graph.update(extra_iterations=1 if self._constraints_added else 0)
+        self._constraints_added = False
         self.update_ms.append((time.perf_counter() - t0) * 1e3)
 
     # --- constraints --------------------------------------------------------------------
@@ -316,6 +312,7 @@ class GlobalSlam:
         if self.builder is None:
             return 0
         results = self.builder.results()
+        self._constraints_added |= bool(results)
         f = self.cc.false_match_fraction
         for v in results:
             try:

@@ -16,21 +16,30 @@ guesses sit in unrelated frames until the first inter-robot edge, and the timing
 would include gauge merges that a scenario run never does.)
 
 Timed per update, as ``BaseStationNode.process`` runs it: ``PoseGraph.update()``
-with ``track_changes=True`` (the base station's setting, so the O(n) full-estimate
-extraction is inside) plus the correction query after it (``latest_index`` and
-``pose`` of each robot's newest node).
+with the base station's settings (``cfg.basestation``: iSAM2 parameters and
+``track_changes``, off by default) plus the correction query after it
+(``latest_index`` and ``pose`` of each robot's newest node: iSAM2 back-substitution
+and three single-pose reads).
 
 Result keys:
 - ``sizes``: the first N vertices of M3500 (N <= 3500) or of city10000.
   ``isam2_update_ms_*``: the timed update above; ``isam2_solve_ms_*``: its iSAM2
   ``update()`` calls alone (``UpdateStats.solve_ms``). iSAM2 defers back-substitution
-  to the first estimate query after an update, so the rest is back-substitution
-  plus the O(n) full-estimate extraction. ``lazy_update_ms_*``: the same feed with
-  ``track_changes=False`` (update, back-substitution, three single-pose queries).
+  to the first estimate query after an update, so the rest is back-substitution,
+  the single-pose reads and our Python. ``tracked_update_ms_*``: the same feed with
+  ``track_changes=True`` (every update also extracts all n poses and compares them
+  with the previous estimate: what ``isam2_update_ms_*`` measured before the base
+  station turned tracking off). ``batch_reorders``: updates in which iSAM2
+  re-ordered the whole tree (``basestation.adaptive_reorder_threshold``).
   ``batch_ms``: LM on the final graph from the initial guesses iSAM2 got
   (``batch_optimize(graph, start="guess")``; iSAM2's guess for a new node is its
-  predecessor's current estimate composed with the odometry);
-  ``batch_ms_from_odometry``: LM from dead reckoning instead.
+  predecessor's current estimate composed with the odometry), the median of
+  ``BATCH_RUNS`` identical runs because one run on a loaded machine varies by 2x;
+  ``batch_ms_from_odometry``: one LM run from dead reckoning instead.
+  ``*_cpu_ms``, ``ratio_batch_over_isam2_cpu``: the same timings as CPU time of
+  the benchmark's thread (gtsam runs single-threaded here). On a machine shared
+  with other work a 20 ms LM run is preempted far more often than a 0.2 ms
+  update, so the wall-time ratio grows with the load; the CPU-time ratio does not.
   ``ratio_batch_over_isam2`` = ``batch_ms`` / the MEDIAN (p50) per-update iSAM2 time,
   the comparison behind seed 002's "iSAM2 2 ms vs. batch > 600 ms for 500 nodes".
 - ``chi2``: final chi2 (sum of squared whitened residuals) of the incrementally fed
@@ -63,6 +72,7 @@ log = logging.getLogger(__name__)
 FloatArray = NDArray[np.float64]
 ROBOTS = ("r0", "r1", "r2")
 M3500_NODES = 3500
+BATCH_RUNS = 3  # identical LM runs per graph; batch_ms is their median
 
 
 class Constraint(NamedTuple):
@@ -94,6 +104,8 @@ class FeedResult:
     graph: PoseGraph
     update_ms: FloatArray  # per new node: update() + correction query
     solve_ms: FloatArray  # per new node: iSAM2 update() calls only
+    update_cpu_ms: FloatArray  # per new node: update_ms as CPU time of this thread
+    batch_reorders: int  # updates in which iSAM2 re-ordered the whole tree
 
 
 def reference_poses(data: G2oGraph, n_nodes: int) -> FloatArray:
@@ -160,36 +172,42 @@ def split_g2o(
     return Feed(starts, nodes)
 
 
-def new_pose_graph(cfg: Config, track_changes: bool = True) -> PoseGraph:
-    """A PoseGraph set up as BaseStationNode sets up its own."""
-    b = cfg.basestation
-    return PoseGraph(
-        relinearize_threshold=b.relinearize_threshold,
-        relinearize_skip=b.relinearize_skip,
-        prior_sigmas=(b.prior_sigma_xy_m, b.prior_sigma_xy_m, b.prior_sigma_yaw_rad),
-        track_changes=track_changes,
-    )
+def new_pose_graph(cfg: Config, track_changes: bool | None = None) -> PoseGraph:
+    """A PoseGraph set up as BaseStationNode sets up its own (``track_changes`` None: the
+    base station's setting)."""
+    return PoseGraph.from_config(cfg.basestation, track_changes)
 
 
-def feed_pose_graph(cfg: Config, feed: Feed, track_changes: bool = True) -> FeedResult:
-    """Feed node by node, one update each, timing update() and the correction query."""
+def feed_pose_graph(cfg: Config, feed: Feed, track_changes: bool | None = None) -> FeedResult:
+    """Feed node by node, one update each, timing update() and the correction query
+    (``track_changes`` None: the base station's setting)."""
     graph = new_pose_graph(cfg, track_changes)
     for robot_id, start in feed.starts.items():
         graph.add_robot(robot_id, start)
-    update_ms, solve_ms = [], []
+    update_ms, solve_ms, cpu_ms, reorders = [], [], [], 0
     for node in feed.nodes:
         graph.add_node(node.robot_id, node.index, node.delta, node.covariance)
         for c in node.constraints:
             graph.add_constraint(c.key_a, c.key_b, c.T_a_b, c.covariance, robust=None)
-        t0 = time.perf_counter()
+        c0, t0 = time.thread_time(), time.perf_counter()
         stats = graph.update()
         for robot_id in graph.robots():  # as BaseStationNode.publish_corrections
             latest = graph.latest_index(robot_id)
             if latest is not None:
                 graph.pose(robot_id, latest)
         update_ms.append((time.perf_counter() - t0) * 1e3)
+        cpu_ms.append((time.thread_time() - c0) * 1e3)
         solve_ms.append(stats.solve_ms)
-    return FeedResult(graph, np.array(update_ms), np.array(solve_ms))
+        reorders += stats.batch_reordered
+    return FeedResult(graph, np.array(update_ms), np.array(solve_ms), np.array(cpu_ms), reorders)
+
+
+def batch_median(graph: PoseGraph, runs: int = BATCH_RUNS) -> tuple[BatchResult, float]:
+    """LM ``runs`` times on the same graph from the same guesses: the run with the
+    median wall time, and the median CPU time (ms)."""
+    results = [batch_optimize(graph, start="guess") for _ in range(runs)]
+    cpu_ms = float(np.median([r.cpu_ms for r in results]))
+    return sorted(results, key=lambda r: r.wall_ms)[len(results) // 2], cpu_ms
 
 
 def dead_reckoning(feed: Feed) -> dict[str, FloatArray]:
@@ -235,17 +253,17 @@ def bench_feed(
     cfg: Config,
     feed: Feed,
     out_file: Path | None = None,
-    lazy: bool = True,
+    tracked: bool = True,
     truth: dict[str, FloatArray] | None = None,
 ) -> dict[str, Any]:
     """Timings and chi2 of iSAM2 (fed node by node) and of batch LM on the same graph.
 
-    ``out_file``: where to save the per-update times (ms, one a line); ``lazy``: also
-    time the same feed with ``track_changes=False``; ``truth``: true poses per robot,
+    ``out_file``: where to save the per-update times (ms, one a line); ``tracked``: also
+    time the same feed with ``track_changes=True``; ``truth``: true poses per robot,
     for position errors (m, RMS over all nodes).
     """
     fed = feed_pose_graph(cfg, feed)
-    batch = batch_optimize(fed.graph, start="guess")
+    batch, batch_cpu_ms = batch_median(fed.graph)
     from_odometry = batch_from_odometry(cfg, feed)
     if out_file is not None:
         np.savetxt(
@@ -255,13 +273,18 @@ def bench_feed(
             header="update_ms solve_ms (one line per new node)",
         )
     p50 = float(np.percentile(fed.update_ms, 50))
+    cpu_p50 = float(np.percentile(fed.update_cpu_ms, 50))
     result: dict[str, Any] = {
         "nodes": len(feed.nodes),
         "constraints": sum(len(n.constraints) for n in feed.nodes),
         **_percentiles("isam2_update_ms", fed.update_ms),
         "batch_ms": batch.wall_ms,
         "ratio_batch_over_isam2": batch.wall_ms / p50,
+        **_percentiles("isam2_update_cpu_ms", fed.update_cpu_ms),
+        "batch_cpu_ms": batch_cpu_ms,
+        "ratio_batch_over_isam2_cpu": batch_cpu_ms / cpu_p50,
         **_percentiles("isam2_solve_ms", fed.solve_ms),
+        "batch_reorders": fed.batch_reorders,
         "isam2_total_s": float(fed.update_ms.sum() / 1e3),
         "batch_iterations": batch.iterations,
         "batch_ms_from_odometry": from_odometry.wall_ms,
@@ -270,9 +293,9 @@ def bench_feed(
         "chi2_batch": batch.chi2,
         "chi2_batch_from_odometry": from_odometry.chi2,
     }
-    if lazy:
-        lazy_fed = feed_pose_graph(cfg, feed, track_changes=False)
-        result.update(_percentiles("lazy_update_ms", lazy_fed.update_ms))
+    if tracked:
+        tracked_fed = feed_pose_graph(cfg, feed, track_changes=True)
+        result.update(_percentiles("tracked_update_ms", tracked_fed.update_ms))
     if truth is not None:
         estimate = {r: fed.graph.poses(r) for r in truth}
         result["ate_rms_m"] = {

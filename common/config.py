@@ -283,8 +283,30 @@ class GpsConfig:
 
 @dataclass
 class BaseStationConfig:
-    relinearize_threshold: float = 0.1
-    relinearize_skip: int = 1
+    # iSAM2 (gtsam ISAM2Params), chosen with the 3-robot feeds of `collabslam bench backend`
+    # (M3500[:500], city10000[:3000] and [:10000], CPU time per update; docs/architecture.md
+    # "Back end"); every choice below kept chi2 within 0.1% of batch LM.
+    relinearize_threshold: float = 0.1  # rad or m: a larger delta step relinearizes a variable
+    # Updates between relinearization checks (gtsam's default). 1 checks every update, which
+    # first back-substitutes all deltas: same chi2, 5-30% more CPU per update at 500 nodes.
+    relinearize_skip: int = 10
+    wildfire_threshold: float = 0.001  # rad or m: back-substitution stops below (gtsam default;
+    # 0.01 queried 1.5x faster but cost +2% chi2 on city10000[:3000])
+    isam2_factorization: str = "CHOLESKY"  # QR: 1.5-2x slower, same chi2
+    cache_linearized_factors: bool = True  # False: 10-20% slower
+    # Keep every robot's newest node at the root of the Bayes tree (iSAM2 constrainedKeys)
+    # instead of only the keys of the new factors: robots take turns, and the next node of
+    # any robot then re-eliminates the root only. M3500[:500]: -40% CPU per update (p50);
+    # city10000 (a loop closure at almost every node): -15% p50, same p95.
+    heads_last: bool = True
+    # Re-order the whole Bayes tree (one batch elimination, 0.3 s of CPU at 10,000 nodes) once
+    # its fill-in exceeds this multiple of the last fresh ordering's; 0: never (gtsam
+    # default). 1.5 on city10000: p95 -10%, p50 +25%, total +8% CPU: off.
+    adaptive_reorder_threshold: float = 0.0
+    # Compare every node's estimate before and after each update (UpdateStats.changed_robots,
+    # O(n) per update). Nothing in the base station needs it: off, corrections then read
+    # single poses and the full estimate is extracted only when all poses are asked for.
+    track_changes: bool = False
     prior_sigma_xy_m: float = 0.01  # m, known start pose
     prior_sigma_yaw_rad: float = 0.001  # rad
     map_update_period_s: float = 2.0  # s wall between global map refreshes
@@ -516,6 +538,15 @@ def validate(cfg: Config) -> None:
         raise ConfigError("agent.local_slam.min_range_m: expected 0 <= min_range_m < max_range_m")
     if not 0.0 <= ls.min_match_score < 1.0:
         raise ConfigError("agent.local_slam.min_match_score: expected a value in [0, 1)")
+    b = cfg.basestation
+    if b.isam2_factorization not in ("CHOLESKY", "QR"):
+        raise ConfigError("basestation.isam2_factorization: expected CHOLESKY or QR")
+    _positive("basestation.relinearize_threshold", b.relinearize_threshold)
+    _positive("basestation.relinearize_skip", b.relinearize_skip)
+    if b.wildfire_threshold < 0.0:
+        raise ConfigError("basestation.wildfire_threshold: expected a value >= 0")
+    if b.adaptive_reorder_threshold != 0.0 and not b.adaptive_reorder_threshold > 1.0:
+        raise ConfigError("basestation.adaptive_reorder_threshold: expected 0 (off) or > 1")
     cc = cfg.basestation.constraints
     if not 0.0 <= cc.false_match_fraction < 1.0:
         raise ConfigError("basestation.constraints.false_match_fraction: expected 0 <= f < 1")

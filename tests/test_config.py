@@ -36,6 +36,9 @@ def test_round_trip(tmp_path: Path) -> None:
         ({"fleet": "a/b"}, "fleet"),
         ({"zenoh.listen": "tcp/x"}, "zenoh.listen"),
         ({"agent.outbox_max": 1.5}, "agent.outbox_max"),
+        ({"basestation.isam2_factorization": "LU"}, "basestation.isam2_factorization"),
+        ({"basestation.adaptive_reorder_threshold": 0.5}, "basestation.adaptive_reorder"),
+        ({"basestation.relinearize_skip": 0}, "basestation.relinearize_skip"),
     ],
 )
 def test_bad_values_name_the_key(overrides: dict, key: str) -> None:

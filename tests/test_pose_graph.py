@@ -11,6 +11,7 @@ from numpy.typing import NDArray
 from basestation.batch_solver import batch_optimize
 from basestation.pose_graph import ROBOT_KEY_ALPHABET, PoseGraph
 from benchmarks.backend import split_g2o
+from common.config import Config
 from common.errors import CollabSlamError
 from common.g2o_io import read_g2o
 from common.geometry import se2_between, se2_compose, wrap_angle
@@ -254,6 +255,37 @@ def test_incremental_m3500_prefix_matches_batch(n_robots: int) -> None:
         assert_pose_close(graph.poses(robot), poses, 0.05, 0.01)
     if n_robots == 1:  # from odometry, LM lands in the same minimum
         assert batch_optimize(graph, start="guess").chi2 == pytest.approx(batch.chi2, rel=1e-3)
+
+
+@pytest.mark.skipif(not G2O_DIR.is_dir(), reason=f"shared g2o data folder {G2O_DIR} is absent")
+def test_base_station_settings_match_batch_and_reorder() -> None:
+    """The shipped iSAM2 settings (relinearize_skip, adaptive re-ordering, no change
+    tracking) stay as accurate as batch LM; a low reorder threshold really re-orders."""
+    b = Config().basestation
+    assert not b.track_changes
+    b.adaptive_reorder_threshold = 1.05  # re-order often on a short prefix
+    graph = PoseGraph.from_config(b)
+    feed = split_g2o(read_g2o(G2O_DIR / "M3500.g2o"), 600)
+    for robot, start in feed.starts.items():
+        graph.add_robot(robot, start)
+    reorders = 0
+    for node in feed.nodes:
+        graph.add_node(node.robot_id, node.index, node.delta, node.covariance)
+        for c in node.constraints:
+            graph.add_constraint(c.key_a, c.key_b, c.T_a_b, c.covariance, robust=None)
+        stats = graph.update()
+        assert stats.changed_robots is None
+        reorders += stats.batch_reordered
+    assert reorders > 0
+    batch = batch_optimize(graph, start="guess")
+    assert batch.chi2 <= graph.chi2() * (1 + 1e-9) and graph.chi2() <= 1.01 * batch.chi2
+    for robot, poses in batch.poses.items():
+        assert_pose_close(graph.poses(robot), poses, 0.05, 0.01)
+
+
+def test_factorization_is_checked() -> None:
+    with pytest.raises(CollabSlamError, match="factorization"):
+        PoseGraph(factorization="LU")
 
 
 def test_extra_iterations_relinearize_even_between_skips() -> None:

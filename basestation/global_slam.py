@@ -33,6 +33,7 @@ from basestation.keyframe_store import KeyframeStore
 from basestation.loop_closure_manager import LoopClosureManager
 from basestation.pcm import LoopMeasurement
 from basestation.pose_graph import PoseGraph
+from basestation.update_series import UpdateSeries
 from common.config import Config
 from common.errors import CollabSlamError
 from common.geometry import quat_to_yaw, se2_between, se2_compose, se2_inverse, se2_transform_points
@@ -76,6 +77,7 @@ class GlobalSlam:
         self.builder = ConstraintBuilder(self.cc) if self.cc.enabled else None
         self.loops = LoopClosureManager(self.graph, self.cc, self._chain_covariance)
         self.update_ms: list[float] = []
+        self.update_series = UpdateSeries(b.update_series_period_s)  # latencies over time
         self._new_nodes: list[NodeKey] = []
         self._false_rng = np.random.default_rng(self.cc.false_match_seed)
         self._global_map: tuple[object, list[np.ndarray], list[np.ndarray]] | None = None
@@ -156,7 +158,9 @@ class GlobalSlam:
     def optimize(self) -> None:
         t0 = time.perf_counter()
         self.graph.update()
-        self.update_ms.append((time.perf_counter() - t0) * 1e3)
+        ms = (time.perf_counter() - t0) * 1e3
+        self.update_ms.append(ms)
+        self.update_series.add(ms)
 
     # --- constraints --------------------------------------------------------------------
     def _chain_covariance(self, robot: str, i: np.ndarray, j: np.ndarray) -> np.ndarray:
@@ -386,6 +390,7 @@ class GlobalSlam:
             "isam2_updates": len(self.update_ms),
             "isam2_update_ms_p50": float(np.percentile(upd, 50)),
             "isam2_update_ms_p95": float(np.percentile(upd, 95)),
+            "isam2_update_ms_series": self.update_series.to_json(),
             **self.loops.counts(),
         }
         failed = 0

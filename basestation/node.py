@@ -87,7 +87,7 @@ class BaseStationNode:
         self._sync_requested = -1.0
         self._sync_answered = -1.0
         self.syncs = 0
-        self.map_history = MapHistory()
+        self.map_history = MapHistory(max_snapshots=cfg.basestation.map_history_max_snapshots)
 
     # --- wiring -------------------------------------------------------------------------
     def start(self) -> None:

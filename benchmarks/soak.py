@@ -9,8 +9,10 @@ each long enough for the whole sim time at cruise speed. While it runs, every
 - the base station's resident memory (VmRSS of its process, MB) and the agents'
   (the largest of them);
 - each robot's outbox length (from the RobotState every agent publishes each
-  `agent.state_period_s` of sim time; the bench joins the fleet's Zenoh network at
-  the base station's endpoint): the largest value seen since the previous sample;
+  `agent.state_period_s` of sim time; the bench joins the fleet's Zenoh network as
+  a client of the base station once it listens, which takes a few seconds, so the
+  first seconds of sim time may be missing): the largest value seen since the
+  previous sample. `outbox_high_water` also takes each agent's own count;
 - the sim time and the keyframes acknowledged so far (sum over robots).
 
 After the run it adds the base station's iSAM2 update latencies per
@@ -32,6 +34,7 @@ import copy
 import dataclasses
 import json
 import logging
+import socket
 import threading
 import time
 from pathlib import Path
@@ -90,7 +93,9 @@ class StateWatcher:
     length (largest since the last `take`), its keyframes acknowledged and sim time."""
 
     def __init__(self, cfg: Config, endpoint: str) -> None:
-        zc = dataclasses.replace(cfg.zenoh, listen=[], connect=[endpoint], config_file="")
+        zc = dataclasses.replace(
+            cfg.zenoh, mode="client", listen=[], connect=[endpoint], config_file=""
+        )
         self.bus = Bus(zc, cfg.fleet, cfg.protocol.max_message_bytes)
         self._lock = threading.Lock()
         self.window_max: dict[str, int] = {}
@@ -128,6 +133,16 @@ def _listen_endpoint(child: Child) -> str:
     return args[args.index("--listen") + 1]
 
 
+def _listening(ep: str) -> bool:
+    """Whether something accepts TCP connections at a `tcp/host:port` endpoint."""
+    host, _, port = ep.removeprefix("tcp/").rpartition(":")
+    try:
+        with socket.create_connection((host, int(port)), timeout=0.5):
+            return True
+    except OSError:
+        return False
+
+
 class _Sampler:
     def __init__(self, launcher: Launcher, cfg: Config, robot_ids: list[str]) -> None:
         self.launcher, self.cfg, self.robot_ids = launcher, cfg, robot_ids
@@ -150,9 +165,12 @@ class _Sampler:
         if base is not None and (m := rss_mb(base.proc.pid)) is not None:
             self.rss.append([round(t, 2), round(m[0], 2)])
             self.rss_peak = max(self.rss_peak, m[1])
-            if self.watcher is None:
+            ep = _listen_endpoint(base)
+            # join once the base station listens (a session that connects too early
+            # was seen to miss the robots' states)
+            if self.watcher is None and _listening(ep):
                 try:
-                    self.watcher = StateWatcher(self.cfg, _listen_endpoint(base))
+                    self.watcher = StateWatcher(self.cfg, ep)
                 except CollabSlamError as exc:  # keep sampling memory without states
                     log.warning("soak: cannot watch robot states: %s", exc)
         agents_mb = []
@@ -265,6 +283,7 @@ def _result(
         "outbox_high_water": high_water,
         "outbox_series": {"t_s": s.outbox_t, **s.outbox},
         "outbox_max": max(high_water.values(), default=0),
+        "state_messages": s.watcher.messages if s.watcher is not None else 0,
         "sim_s": s.sim,
         "keyframes_acked_series": s.acked,
         "update_ms": update_ms,

@@ -72,6 +72,9 @@ def test_agents_drop_finished_submaps(cfg: Config) -> None:
 
 @pytest.mark.e2e
 def test_bench_runs_a_tiny_soak(cfg: Config, tmp_path: Path) -> None:
+    # Real-time clock: a lock-step mission this short can be over (18 s of sim time in
+    # about a second) before the bench's Zenoh session sees the first robot state.
+    cfg.sim.clock, cfg.sim.rate = "realtime", 1.5
     res = run(cfg, tmp_path / "bench", tmp_path, robots=2, sim_minutes=0.3, sample_s=0.5)
     assert KEYS <= set(res)
     assert res["robots"] == 2 and res["sim_time_s"] == pytest.approx(18.0, abs=0.5)
@@ -80,7 +83,7 @@ def test_bench_runs_a_tiny_soak(cfg: Config, tmp_path: Path) -> None:
     box = res["outbox_series"]
     assert set(box) == {"t_s", "r0", "r1"} and len(box["r0"]) == len(box["t_s"]) > 5
     assert set(res["outbox_high_water"]) == {"r0", "r1"}
-    assert max(sim for _, sim in res["sim_s"]) > 10.0  # robot states were received
+    assert res["state_messages"] > 20 and max(sim for _, sim in res["sim_s"]) > 15.0
     assert res["update_ms"] and all(p50 <= p95 <= mx for _, p50, p95, mx in res["update_ms"])
     assert res["keyframes_in_graph"] == res["keyframes_sent"] > 20
     assert res["map_accuracy"] > 0.9

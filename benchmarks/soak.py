@@ -34,6 +34,7 @@ import copy
 import dataclasses
 import json
 import logging
+import os
 import socket
 import threading
 import time
@@ -69,6 +70,15 @@ def rss_mb(pid: int) -> tuple[float, float] | None:
     if "VmRSS" not in kb:
         return None  # a zombie
     return kb["VmRSS"] / 1024.0, kb.get("VmHWM", kb["VmRSS"]) / 1024.0
+
+
+def cpu_seconds(pid: int) -> float | None:
+    """User + system CPU time of a process so far (s); None if it is gone."""
+    try:
+        fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    except (OSError, IndexError):
+        return None
+    return (float(fields[11]) + float(fields[12])) / os.sysconf("SC_CLK_TCK")
 
 
 def slope_per_min(series: list[list[float]], t0: float, t1: float) -> float | None:
@@ -153,11 +163,24 @@ class _Sampler:
         self.rss_peak = 0.0
         self.agent_peak: dict[str, float] = {}
         self.outbox_t: list[float] = []
-        self.outbox: dict[str, list[int]] = {rid: [] for rid in robot_ids}
+        self.outbox: dict[str, list[int | None]] = {rid: [] for rid in robot_ids}
+        self.cpu: list[list[float]] = []  # [t, base-station CPU in cores, load average]
+        self._cpu_last: tuple[float, float] | None = None  # (t, CPU seconds)
         self.sim: list[list[float]] = []
         self.acked: list[list[float]] = []
         self.mission_end_s: float | None = None
         self.watcher: StateWatcher | None = None
+
+    def _sample_cpu(self, t: float, pid: int) -> None:
+        """Cores the base station used since the last sample (1.0 = one core busy) and
+        the machine's 1-min load average: a base station short of CPU falls behind."""
+        cpu_s = cpu_seconds(pid)
+        if cpu_s is None:
+            return
+        if self._cpu_last is not None and t > self._cpu_last[0]:
+            cores = (cpu_s - self._cpu_last[1]) / (t - self._cpu_last[0])
+            self.cpu.append([round(t, 2), round(cores, 3), round(os.getloadavg()[0], 2)])
+        self._cpu_last = (t, cpu_s)
 
     def sample(self) -> None:
         t = time.monotonic() - self.t0
@@ -165,6 +188,7 @@ class _Sampler:
         if base is not None and (m := rss_mb(base.proc.pid)) is not None:
             self.rss.append([round(t, 2), round(m[0], 2)])
             self.rss_peak = max(self.rss_peak, m[1])
+            self._sample_cpu(t, base.proc.pid)
             ep = _listen_endpoint(base)
             # join once the base station listens (a session that connects too early
             # was seen to miss the robots' states)
@@ -189,7 +213,7 @@ class _Sampler:
             window, acked, sim_s = self.watcher.take()
             self.outbox_t.append(round(t, 2))
             for rid in self.robot_ids:
-                self.outbox[rid].append(window.get(rid, 0))
+                self.outbox[rid].append(window.get(rid))  # None: no state this period
             self.acked.append([round(t, 2), float(acked)])
             self.sim.append([round(t, 2), round(sim_s, 2)])
 
@@ -259,7 +283,8 @@ def _result(
     flying = [t for t, sim_s in s.sim if sim_s > 0.0]
     start = flying[0] if flying else (s.rss[0][0] if s.rss else 0.0)
     half = start + 0.5 * (end - start)
-    high_water = {rid: max(s.outbox[rid], default=0) for rid in s.robot_ids}
+    high_water = {rid: max((n for n in s.outbox[rid] if n is not None), default=0)
+                  for rid in s.robot_ids}  # fmt: skip
     for rid in s.robot_ids:  # the agent's own count sees every keyframe, not samples
         p = run_dir / "agents" / f"{rid}.json"
         if p.is_file():
@@ -277,6 +302,9 @@ def _result(
         "rss_peak_mb": round(max([s.rss_peak, *(r[1] for r in s.rss)]), 2),
         "rss_growth_mb_per_min_second_half": slope_per_min(s.rss, half, end),
         "rss_mb_per_1000_keyframes_second_half": kf_vs_rss,
+        "basestation_cpu": s.cpu,
+        "basestation_cpu_cores_mean": _mean_between(s.cpu, start, end),
+        "load_average_mean": _mean_between(s.cpu, start, end, col=2),
         "agent_rss_max_mb": s.agent_rss,
         "agent_rss_peak_mb": {rid: round(v, 2) for rid, v in s.agent_peak.items()},
         "agent_rss_growth_mb_per_min_second_half": slope_per_min(s.agent_rss, half, end),
@@ -301,6 +329,11 @@ def _result(
     plot_soak(result, png)
     result["plot"] = str(png)
     return result
+
+
+def _mean_between(series: list[list[float]], t0: float, t1: float, col: int = 1) -> float | None:
+    vals = [row[col] for row in series if t0 <= row[0] <= t1]
+    return round(float(np.mean(vals)), 3) if vals else None
 
 
 def _median_step(t: list[float]) -> float | None:

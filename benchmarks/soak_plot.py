@@ -1,9 +1,10 @@
 """The picture of `bench soak`: memory, outboxes and iSAM2 latencies over wall time.
 
 Panels: (a) base-station RSS and the largest agent RSS (MB); dotted lines mark the
-mission's start (first sim tick) and end (simulator exit); (b) every robot's
-outbox length (largest per sample); (c) iSAM2 update latency per period
-(p50, p95, max; ms, log scale). Agg canvas, no pyplot.
+mission's start (first sim tick) and end (simulator exit); (b) the base station's
+CPU use (cores) and the machine's load average; (c) every robot's outbox length
+(largest per sample; gaps: no state received); (d) iSAM2 update latency per
+period (p50, p95, max; ms, log scale). Agg canvas, no pyplot.
 """
 
 from __future__ import annotations
@@ -25,9 +26,11 @@ def _xy(series: list[list[float]], col: int = 1) -> tuple[np.ndarray, np.ndarray
 
 def plot_soak(result: dict[str, Any], path: Path) -> None:
     """Write the three-panel PNG for a `bench soak` result dict."""
-    fig = Figure(figsize=(9.0, 9.0))
+    fig = Figure(figsize=(9.0, 11.0))
     FigureCanvasAgg(fig)
-    ax_mem, ax_box, ax_upd = fig.subplots(3, 1, sharex=True)
+    ax_mem, ax_cpu, ax_box, ax_upd = fig.subplots(
+        4, 1, sharex=True, gridspec_kw={"height_ratios": [3, 1.5, 3, 3]}
+    )
 
     t, mb = _xy(result["rss_mb"])
     ax_mem.plot(t, mb, color="tab:blue", lw=1.2, label="base station")
@@ -42,10 +45,18 @@ def plot_soak(result: dict[str, Any], path: Path) -> None:
     )
     ax_mem.set_ylabel("resident memory (MB)")
 
+    t, cores = _xy(result["basestation_cpu"])
+    ax_cpu.plot(t, cores, color="tab:blue", lw=1.0, label="base station (cores)")
+    t, load = _xy(result["basestation_cpu"], col=2)
+    ax_cpu.plot(t, load, color="0.5", lw=1.0, label="machine load average")
+    ax_cpu.set_ylabel("CPU")
+    ax_cpu.legend(loc="upper left", fontsize=7)
+
     box = result["outbox_series"]
     for rid, n in box.items():
         if rid != "t_s":
-            ax_box.step(box["t_s"], n, where="post", lw=0.8, label=rid)
+            y = np.array([np.nan if v is None else v for v in n], dtype=np.float64)
+            ax_box.step(box["t_s"], y, where="post", lw=0.8, label=rid)
     ax_box.set_ylabel("outbox length\n(keyframes)")
     if len(box) <= 11:
         ax_box.legend(loc="upper left", fontsize=7, ncol=5)
@@ -57,7 +68,7 @@ def plot_soak(result: dict[str, Any], path: Path) -> None:
     ax_upd.set_ylabel(f"iSAM2 update (ms)\nper {result.get('update_period_s') or '?'} s")
     ax_upd.set_xlabel("wall time since start (s)")
 
-    for ax in (ax_mem, ax_box, ax_upd):
+    for ax in (ax_mem, ax_cpu, ax_box, ax_upd):
         for t_mark in result.get("mission_wall_s") or []:  # mission start and end
             ax.axvline(t_mark, color="k", ls=":", lw=0.8)
         ax.grid(True, alpha=0.3)

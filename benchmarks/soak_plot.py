@@ -46,11 +46,14 @@ def plot_soak(result: dict[str, Any], path: Path) -> None:
     ax_mem.set_ylabel("resident memory (MB)")
 
     t, cores = _xy(result["basestation_cpu"])
-    ax_cpu.plot(t, cores, color="tab:blue", lw=1.0, label="base station (cores)")
+    ax_cpu.plot(t, cores, color="tab:blue", lw=1.0)
+    ax_cpu.set_ylabel("base station\nCPU (cores)", color="tab:blue")
+    ax_cpu.set_ylim(bottom=0.0)
+    ax_load = ax_cpu.twinx()
     t, load = _xy(result["basestation_cpu"], col=2)
-    ax_cpu.plot(t, load, color="0.5", lw=1.0, label="machine load average")
-    ax_cpu.set_ylabel("CPU")
-    ax_cpu.legend(loc="upper left", fontsize=7)
+    ax_load.plot(t, load, color="0.5", lw=1.0)
+    ax_load.set_ylabel("load average", color="0.5")
+    ax_load.set_ylim(bottom=0.0)
 
     box = result["outbox_series"]
     for rid, n in box.items():

@@ -80,6 +80,7 @@ def test_bench_runs_a_tiny_soak(cfg: Config, tmp_path: Path) -> None:
     assert res["robots"] == 2 and res["sim_time_s"] == pytest.approx(18.0, abs=0.5)
     assert len(res["rss_mb"]) >= 10 and all(mb > 10.0 for _, mb in res["rss_mb"][-5:])
     assert res["rss_peak_mb"] >= max(mb for _, mb in res["rss_mb"])
+    assert res["basestation_cpu"] and all(cores >= 0.0 for _, cores, _ in res["basestation_cpu"])
     box = res["outbox_series"]
     assert set(box) == {"t_s", "r0", "r1"} and len(box["r0"]) == len(box["t_s"]) > 5
     assert set(res["outbox_high_water"]) == {"r0", "r1"}

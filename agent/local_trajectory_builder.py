@@ -54,7 +54,11 @@ class LocalTrajectoryBuilder:
             cfg.motion_filter_max_time_s,
         )
         self.submaps = ActiveSubmaps(
-            cfg.resolution_m, cfg.scans_per_submap, p_hit=cfg.p_hit, p_miss=cfg.p_miss
+            cfg.resolution_m,
+            cfg.scans_per_submap,
+            p_hit=cfg.p_hit,
+            p_miss=cfg.p_miss,
+            max_finished_submaps=cfg.max_finished_submaps,
         )
         self.matcher = ScanMatcher(
             RealTimeCorrelativeMatcher(

@@ -33,6 +33,7 @@ from basestation.loop_closure_manager import LoopClosureManager
 from basestation.pcm import LoopMeasurement
 from basestation.persistence import Batch, Recovered, StoredConstraint
 from basestation.pose_graph import PoseGraph
+from basestation.update_series import UpdateSeries
 from common.config import Config
 from common.errors import CollabSlamError
 from common.geometry import quat_to_yaw, se2_between, se2_compose, se2_inverse, se2_transform_points
@@ -68,6 +69,7 @@ class GlobalSlam:
         self.builder = ConstraintBuilder(self.cc) if self.cc.enabled else None
         self.loops = LoopClosureManager(self.graph, self.cc, self._chain_covariance)
         self.update_ms: list[float] = []
+        self.update_series = UpdateSeries(b.update_series_period_s)  # latencies over time
         self._new_nodes: list[NodeKey] = []
         self._constraints_added = False  # verified matches handed over since the last update
         self._false_rng = np.random.default_rng(self.cc.false_match_seed)
@@ -199,7 +201,9 @@ class GlobalSlam:
         t0 = time.perf_counter()
         self.graph.update(extra_iterations=1 if self._constraints_added else 0)
         self._constraints_added = False
-        self.update_ms.append((time.perf_counter() - t0) * 1e3)
+        ms = (time.perf_counter() - t0) * 1e3
+        self.update_ms.append(ms)
+        self.update_series.add(ms)
 
     # --- constraints --------------------------------------------------------------------
     def _chain_covariance(self, robot: str, i: np.ndarray, j: np.ndarray) -> np.ndarray:
@@ -430,6 +434,7 @@ class GlobalSlam:
             "isam2_updates": len(self.update_ms),
             "isam2_update_ms_p50": float(np.percentile(upd, 50)),
             "isam2_update_ms_p95": float(np.percentile(upd, 95)),
+            "isam2_update_ms_series": self.update_series.to_json(),
             **self.loops.counts(),
         }
         failed = 0

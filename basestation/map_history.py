@@ -2,7 +2,10 @@
 
 The base station adds one snapshot per lock-step clock sync; each keeps the free
 cells of the grid as a bit mask with its origin, so the file stays small (tens of
-kB per snapshot for a 30 x 25 m floor at 5 cm). `read_map_history` gives back
+kB per snapshot for a 30 x 25 m floor at 5 cm). With `max_snapshots` set, memory is
+bounded for long missions: when one more would exceed it, every other snapshot is
+dropped and from then on only every other sync is kept (the time resolution halves,
+the span stays the whole mission). `read_map_history` gives back
 `GridMap`s in which free cells are 0 and everything else unknown (-1).
 """
 
@@ -24,6 +27,9 @@ class MapHistory:
     _shapes: list[tuple[int, int]] = field(default_factory=list)
     _origins: list[tuple[float, float]] = field(default_factory=list)
     resolution: float = 0.0
+    max_snapshots: int = 0  # 0: keep every snapshot
+    stride: int = 1  # keep every stride-th add()
+    _adds: int = 0
 
     def __len__(self) -> int:
         return len(self.stamps)
@@ -31,12 +37,20 @@ class MapHistory:
     def add(self, stamp: float, grid: GridMap) -> None:
         if self.resolution and grid.resolution != self.resolution:
             raise CollabSlamError("MapHistory: the grid resolution changed")
+        self._adds += 1
+        if (self._adds - 1) % self.stride:
+            return
         self.resolution = grid.resolution
         free = grid.free_mask()
         self.stamps.append(float(stamp))
         self._masks.append(np.packbits(free.ravel()))
         self._shapes.append(free.shape)
         self._origins.append((grid.origin[0], grid.origin[1]))
+        if self.max_snapshots and len(self.stamps) > self.max_snapshots:
+            # kept adds are multiples of stride; keep multiples of 2 * stride
+            for series in (self.stamps, self._masks, self._shapes, self._origins):
+                del series[1::2]
+            self.stride *= 2
 
     def write(self, path: str | Path) -> None:
         lengths = np.array([len(m) for m in self._masks], dtype=np.int64)

@@ -98,7 +98,7 @@ class BaseStationNode:
         self._sync_requested = -1.0
         self._sync_answered = -1.0
         self.syncs = 0
-        self.map_history = MapHistory()
+        self.map_history = MapHistory(max_snapshots=cfg.basestation.map_history_max_snapshots)
         self.links: dict[str, dict[str, int]] = {}  # agent -> {"joins": n, "losses": n}
         self._lost: list[str] = []  # agents whose token went away, for run()'s thread
         self.db = open_database(cfg.basestation.db_path)

@@ -383,6 +383,27 @@ def build_parser() -> argparse.ArgumentParser:
         func=cmd_bench,
         bench_kwargs=lambda a: {"world": a.world, "length_m": a.length, "gnss_seeds": a.seeds},
     )
+    b = bn.add_parser(
+        "soak",
+        help="long mission on scripted tours: base-station RSS, outboxes and iSAM2 update "
+        "latencies over time (memory flat?)",
+    )
+    common(b, zenoh=False)
+    b.add_argument("--json", required=True, help="output JSON file (run/ and PNG next to it)")
+    b.add_argument("--data-dir", default=str(_default_data_dir()))
+    b.add_argument("--world", default="floor30x25")
+    b.add_argument("--robots", type=int, default=10)
+    b.add_argument("--sim-minutes", type=float, default=30.0, help="mission length (sim min)")
+    b.add_argument("--sample-s", type=float, default=5.0, help="wall s between samples")
+    b.set_defaults(
+        func=cmd_bench,
+        bench_kwargs=lambda a: {
+            "robots": a.robots,
+            "sim_minutes": a.sim_minutes,
+            "world": a.world,
+            "sample_s": a.sample_s,
+        },
+    )
 
     b = bn.add_parser(
         "security",

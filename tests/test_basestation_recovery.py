@@ -14,32 +14,17 @@ import time
 from pathlib import Path
 
 import pytest
+from process_helpers import stored_keyframes, wait_for
 
 from collabslam.launcher import make_scenario
 from collabslam.summary import build_summary
-from collabslam.supervisor import Child, ProcessGroup, free_port
+from collabslam.supervisor import ProcessGroup, free_port
 from common.bus import endpoint
 from common.config import dump_config, load_config
 from common.scenario import write_scenario
 from simulation.world import resolve_world
 
 pytestmark = pytest.mark.e2e
-
-
-def _stored(db: Path) -> int:
-    try:
-        with sqlite3.connect(f"file:{db}?mode=ro", uri=True, timeout=5) as con:
-            return int(con.execute("SELECT count(*) FROM keyframes").fetchone()[0])
-    except sqlite3.Error:
-        return 0
-
-
-def _wait(pred, timeout: float, what: str, group: ProcessGroup, running: list[Child]) -> None:
-    deadline = time.monotonic() + timeout
-    while not pred():
-        group.check(running)
-        assert time.monotonic() < deadline, f"timed out waiting for {what}"
-        time.sleep(0.1)
 
 
 def test_basestation_killed_and_restarted_loses_nothing(tmp_path: Path) -> None:
@@ -84,8 +69,10 @@ def test_basestation_killed_and_restarted_loses_nothing(tmp_path: Path) -> None:
             for r in scenario.robots
         ]
         for kill in range(2):  # killed and restarted once, then run on a little
-            before = _stored(db)
-            _wait(lambda b=before: _stored(db) >= b + 20, 60, "keyframes", g, [sim, *agents])
+            before = stored_keyframes(db)
+            wait_for(
+                lambda b=before: stored_keyframes(db) >= b + 20, 60, "keyframes", g, [sim, *agents]
+            )
             if kill == 1:
                 break
             os.kill(base.proc.pid, signal.SIGKILL)

@@ -8,14 +8,14 @@ from __future__ import annotations
 import json
 import re
 import signal
-import sqlite3
 import time
 from pathlib import Path
 
 import pytest
+from process_helpers import stored_keyframes, wait_for
 
 from collabslam.launcher import make_scenario
-from collabslam.supervisor import Child, ProcessGroup, free_port
+from collabslam.supervisor import ProcessGroup, free_port
 from common.bus import endpoint
 from common.config import dump_config, load_config
 from common.scenario import write_scenario
@@ -23,22 +23,6 @@ from simulation.link_relay import LinkRelay
 from simulation.world import resolve_world
 
 pytestmark = pytest.mark.e2e
-
-
-def _stored(db: Path) -> int:
-    try:
-        with sqlite3.connect(f"file:{db}?mode=ro", uri=True, timeout=5) as con:
-            return int(con.execute("SELECT count(*) FROM keyframes").fetchone()[0])
-    except sqlite3.Error:
-        return 0
-
-
-def _wait(pred, timeout: float, what: str, group: ProcessGroup, running: list[Child]) -> None:
-    deadline = time.monotonic() + timeout
-    while not pred():
-        group.check(running)
-        assert time.monotonic() < deadline, f"timed out waiting for {what}"
-        time.sleep(0.1)
 
 
 def test_agent_link_cut_and_restored(tmp_path: Path) -> None:
@@ -65,22 +49,22 @@ def test_agent_link_cut_and_restored(tmp_path: Path) -> None:
              relay.endpoint, "--set", "zenoh.gossip_scouting=false"],
         )  # fmt: skip
         everyone = [base, sim, agent]
-        _wait(lambda: _stored(db) >= 20, 60, "keyframes", g, everyone)
+        wait_for(lambda: stored_keyframes(db) >= 20, 60, "keyframes", g, everyone)
         relay.cut()
         agent_log = out / "logs" / "r0.log"
-        _wait(lambda: "base station base lost" in agent_log.read_text(), 20, "loss", g, everyone)
+        wait_for(lambda: "base station base lost" in agent_log.read_text(), 20, "loss", g, everyone)
         # keyframes that crossed before the cut may still be queued in the base station:
         # let its record settle, then nothing more may arrive while the link is down
-        during, settled = _stored(db), time.monotonic()
+        during, settled = stored_keyframes(db), time.monotonic()
         while time.monotonic() - settled < 2.0:
             time.sleep(0.2)
-            if _stored(db) != during:
-                during, settled = _stored(db), time.monotonic()
+            if stored_keyframes(db) != during:
+                during, settled = stored_keyframes(db), time.monotonic()
         time.sleep(4.0)  # flying without the base station
-        assert _stored(db) == during, "keyframes got through a cut link"
+        assert stored_keyframes(db) == during, "keyframes got through a cut link"
         relay.restore()
-        _wait(lambda: "is back" in agent_log.read_text(), 30, "the link back", g, everyone)
-        _wait(lambda: _stored(db) >= during + 60, 60, "the outbox drained", g, everyone)
+        wait_for(lambda: "is back" in agent_log.read_text(), 30, "the link back", g, everyone)
+        wait_for(lambda: stored_keyframes(db) >= during + 60, 60, "the outbox drained", g, everyone)
         sim.proc.send_signal(signal.SIGINT)
         g.wait([sim], 30)
         agent.proc.send_signal(signal.SIGINT)

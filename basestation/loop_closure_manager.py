@@ -104,7 +104,14 @@ class LoopClosureManager:
             T, C = batch(robot, np.array([i]), np.array([j]))
             return T[0], C[0]
 
-        self._reconcile(group, group.pcm.add(m, odometry, batch))
+        consistent = group.pcm.add(m, odometry, batch)
+        log.debug(
+            "match %d (%s) %s:%d -> %s:%d at %s: %d of %d consistent, in: %s",
+            m.id, kind, m.robot_a, m.index_a, m.robot_b, m.index_b,
+            np.round(m.T_a_b, 2), len(consistent), len(group.measurements),
+            m.id in consistent,
+        )  # fmt: skip
+        self._reconcile(group, consistent)
 
     def _reconcile(self, group: _Group, consistent: set[int]) -> None:
         m0 = next(iter(group.measurements.values()))
@@ -113,6 +120,11 @@ class LoopClosureManager:
         )
         if separate and not self._enough_to_merge(group, consistent):
             return  # wait for more agreeing matches before joining two maps
+        if separate:
+            log.info(
+                "maps of %s and %s joined by %d agreeing matches (%d offered)",
+                m0.robot_a, m0.robot_b, len(consistent), len(group.measurements),
+            )  # fmt: skip
         robust = None if self.cfg.robust_kernel == "none" else self.cfg.robust_kernel
         changed = (consistent - group.in_graph.keys()) | (group.in_graph.keys() - consistent)
         for mid in sorted(changed):

@@ -1,0 +1,137 @@
+"""The pose graph's bookkeeping: chain and factor records, the state its parts share.
+
+Package-internal: ``PoseGraph`` (``basestation.pose_graph``) is assembled from
+``PoseGraphState`` and the mixins that work on it (``pose_graph_gauge``,
+``pose_graph_gps``); nothing else should touch these records. Conversions from
+numpy to gtsam live here too, so each part validates its inputs the same way.
+
+Conventions as in ``basestation.pose_graph``: poses ``[x, y, yaw]`` (m, m, rad),
+covariances 3x3 in the node's body frame (m^2 / rad^2).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Literal, NamedTuple
+
+import gtsam
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from common.errors import CollabSlamError
+
+FloatArray = NDArray[np.float64]
+FactorKind = Literal["odometry", "start", "gauge", "constraint", "gps"]  # start: known-start prior
+
+
+@dataclass(frozen=True)
+class UpdateStats:
+    """What one ``PoseGraph.update`` did."""
+
+    wall_ms: float  # whole call: iSAM2 iterations plus estimate extraction
+    solve_ms: float  # iSAM2 update() calls only
+    iterations: int  # iSAM2 update() calls (1 + extra relinearization iterations)
+    num_new_factors: int
+    num_removed_factors: int
+    num_new_nodes: int
+    # robots whose already-estimated nodes moved > epsilon; None if track_changes is off
+    changed_robots: frozenset[str] | None
+    robots_with_new_nodes: frozenset[str]
+    batch_reordered: bool = False  # iSAM2 re-ordered the whole tree (adaptive reorder)
+
+
+class GtsamProblem(NamedTuple):
+    """Package-internal snapshot for batch_solver: active committed factors and values."""
+
+    graph: gtsam.NonlinearFactorGraph
+    values: gtsam.Values
+
+
+@dataclass
+class Chain:
+    """One robot's pose chain; node i has key ``gtsam.symbol(char, i)``."""
+
+    char: str
+    T_map_first: FloatArray | None  # known start, or None if the chain floats
+    num_committed: int = 0  # nodes already inside iSAM2
+    pending: list[FloatArray] = field(default_factory=list)  # initial guesses not yet inside
+    gauge_factor: int | None = None  # factor id of this chain's gauge prior, if any
+    start_sigmas: FloatArray | None = None  # loose start prior (GPS: virtual ENU origin)
+    stamps: list[float] | None = field(default_factory=list)  # node stamps; None: unstamped
+
+    @property
+    def size(self) -> int:
+        return self.num_committed + len(self.pending)
+
+
+@dataclass
+class FactorRecord:
+    """An active factor (committed to iSAM2 or pending)."""
+
+    factor: gtsam.NonlinearFactor
+    kind: FactorKind
+    robots: tuple[str, str] | None = None  # the two robots of an inter-robot constraint
+    isam_index: int | None = None  # slot inside iSAM2 once committed
+
+
+def vec3(value: ArrayLike, name: str) -> FloatArray:
+    """``value`` as a finite ``[x, y, yaw]`` array; CollabSlamError naming ``name`` if not."""
+    arr = np.asarray(value, dtype=np.float64)
+    if arr.shape != (3,) or not np.all(np.isfinite(arr)):
+        raise CollabSlamError(f"{name} must be a finite [x, y, yaw] array, got {value!r}")
+    return arr
+
+
+def gaussian_noise(covariance: ArrayLike) -> gtsam.noiseModel.Gaussian:
+    """A gtsam noise model from a finite, symmetric, positive definite 3x3 covariance."""
+    cov = np.asarray(covariance, dtype=np.float64)
+    if cov.shape != (3, 3) or not np.all(np.isfinite(cov)):
+        raise CollabSlamError(f"covariance must be a finite 3x3 matrix, got shape {cov.shape}")
+    if np.abs(cov - cov.T).max() > 1e-9 * np.abs(cov).max():
+        raise CollabSlamError("covariance must be symmetric")
+    try:
+        np.linalg.cholesky(cov)
+    except np.linalg.LinAlgError as exc:
+        raise CollabSlamError("covariance must be positive definite") from exc
+    return gtsam.noiseModel.Gaussian.Covariance(0.5 * (cov + cov.T))
+
+
+def pose2(T: FloatArray) -> gtsam.Pose2:
+    """``[x, y, yaw]`` as a gtsam Pose2."""
+    x, y, yaw = T.tolist()  # python floats: pybind picks the overload at once
+    return gtsam.Pose2(x, y, yaw)
+
+
+class PoseGraphState:
+    """Chains and active factors, shared by ``PoseGraph`` and its mixins.
+
+    ``PoseGraph.__init__`` sets every attribute; factors added here wait in
+    ``_pending_ids`` (removals in ``_pending_removals``) until ``PoseGraph.update``.
+    """
+
+    _chains: dict[str, Chain]  # registration order = key-character order
+    _factors: dict[int, FactorRecord]  # active factors (committed or pending)
+    _pending_ids: list[int]
+    _pending_removals: list[int]  # iSAM2 slots
+    _next_id: int
+    _prior_noise: gtsam.noiseModel.Base  # firm prior: known starts and gauge priors
+
+    def _chain(self, robot_id: str) -> Chain:
+        try:
+            return self._chains[robot_id]
+        except KeyError:
+            raise CollabSlamError(f"unknown robot {robot_id!r}") from None
+
+    def _add_factor(
+        self, factor: gtsam.NonlinearFactor, kind: FactorKind, robots: tuple[str, str] | None = None
+    ) -> int:
+        fid = self._next_id
+        self._next_id += 1
+        self._factors[fid] = FactorRecord(factor, kind, robots)
+        self._pending_ids.append(fid)
+        return fid
+
+    def _drop_factor(self, factor_id: int) -> None:
+        record = self._factors.pop(factor_id)
+        if record.isam_index is not None:
+            self._pending_removals.append(record.isam_index)

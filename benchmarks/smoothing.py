@@ -40,7 +40,8 @@ from agent.control_log import (
 )
 from benchmarks.smoothing_plot import plot_smoothing
 from collabslam.launcher import Launcher
-from common.config import Config, validate
+from common.config import Config
+from common.config_validation import validate
 from common.errors import ConfigError
 
 log = logging.getLogger(__name__)

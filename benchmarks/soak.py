@@ -47,7 +47,8 @@ from benchmarks.soak_plot import plot_soak
 from collabslam.launcher import Launcher
 from collabslam.supervisor import Child
 from common.bus import Bus
-from common.config import Config, validate
+from common.config import Config
+from common.config_validation import validate
 from common.errors import CollabSlamError, ConfigError
 from protocol import RobotState
 

@@ -3,7 +3,7 @@
 Every parameter has a name, a unit in its comment and a default (from the papers
 where they give one). `load_config()` reads a TOML file and/or dotted overrides,
 rejects unknown keys and wrong types with a `ConfigError` that names the key,
-checks ranges, and fills derived defaults. `dump_config()` writes the config
+and checks ranges (`common.config_validation.validate`). `dump_config()` writes the config
 actually used (so every run's output folder holds it).
 """
 
@@ -19,6 +19,7 @@ from typing import Any
 
 import tomli_w
 
+from common.config_validation import validate
 from common.errors import ConfigError
 
 
@@ -446,177 +447,6 @@ def _coerce(hint: Any, value: Any, key: str) -> Any:
             raise ConfigError(f"{key}: expected a list, got {value!r}")
         return [_coerce(item, v, f"{key}[{i}]") for i, v in enumerate(value)]
     raise ConfigError(f"{key}: unsupported type {hint}")  # pragma: no cover
-
-
-def _positive(key: str, value: float) -> None:
-    if not value > 0:
-        raise ConfigError(f"{key}: expected a value > 0, got {value}")
-
-
-def _prob(key: str, value: float) -> None:
-    if not 0.0 < value < 1.0:
-        raise ConfigError(f"{key}: expected a probability in (0, 1), got {value}")
-
-
-def validate(cfg: Config) -> None:
-    """Range checks across the tree; raises ConfigError naming the key."""
-    from protocol.keys import Keys  # local: protocol depends on common, not the reverse
-
-    try:
-        Keys(cfg.fleet)
-    except ConfigError as exc:
-        raise ConfigError(f"fleet: {exc}") from None
-    if cfg.zenoh.mode not in ("peer", "client", "router"):
-        raise ConfigError(f"zenoh.mode: expected peer, client or router, got {cfg.zenoh.mode!r}")
-    if cfg.sim.clock not in ("lockstep", "realtime"):
-        raise ConfigError(f"sim.clock: expected lockstep or realtime, got {cfg.sim.clock!r}")
-    las = cfg.sim.laser
-    for key, v in [
-        ("sim.rate", cfg.sim.rate),
-        ("sim.laser.beams", las.beams),
-        ("sim.laser.fov_deg", las.fov_deg),
-        ("sim.laser.range_max_m", las.range_max_m),
-        ("sim.laser.rate_hz", las.rate_hz),
-        ("sim.lockstep_timeout_s", cfg.sim.lockstep_timeout_s),
-        ("sim.basestation_timeout_s", cfg.sim.basestation_timeout_s),
-        ("agent.vehicle_radius_m", cfg.agent.vehicle_radius_m),
-        ("agent.blocked_after_s", cfg.agent.blocked_after_s),
-        ("sim.quadrotor.max_speed_mps", cfg.sim.quadrotor.max_speed_mps),
-        ("sim.quadrotor.max_accel_mps2", cfg.sim.quadrotor.max_accel_mps2),
-        ("sim.quadrotor.radius_m", cfg.sim.quadrotor.radius_m),
-        ("sim.ground_truth_rate_hz", cfg.sim.ground_truth_rate_hz),
-        ("agent.keyframe_distance_m", cfg.agent.keyframe_distance_m),
-        ("agent.keyframe_angle_rad", cfg.agent.keyframe_angle_rad),
-        ("agent.outbox_max", cfg.agent.outbox_max),
-        ("agent.resend_timeout_s", cfg.agent.resend_timeout_s),
-        ("agent.replay_max_unacked", cfg.agent.replay_max_unacked),
-        ("exploration.period_s", cfg.exploration.period_s),
-        ("exploration.frontier_radius_m", cfg.exploration.frontier_radius_m),
-        ("exploration.planning_time_s", cfg.exploration.planning_time_s),
-        (
-            "basestation.constraints.max_candidates_per_s",
-            cfg.basestation.constraints.max_candidates_per_s,
-        ),
-        (
-            "basestation.constraints.global_map_rebuild_nodes",
-            cfg.basestation.constraints.global_map_rebuild_nodes,
-        ),
-        (
-            "basestation.constraints.global_query_keyframes",
-            cfg.basestation.constraints.global_query_keyframes,
-        ),
-        ("basestation.constraints.candidate_stride", cfg.basestation.constraints.candidate_stride),
-        ("basestation.constraints.search_radius_m", cfg.basestation.constraints.search_radius_m),
-        (
-            "basestation.constraints.global_search_every",
-            cfg.basestation.constraints.global_search_every,
-        ),
-        (
-            "basestation.constraints.min_consistent_to_merge",
-            cfg.basestation.constraints.min_consistent_to_merge,
-        ),
-        ("agent.cruise_speed_mps", cfg.agent.cruise_speed_mps),
-        ("agent.odom_sigma_min", cfg.agent.odom_sigma_min),
-        ("map.resolution_m", cfg.map.resolution_m),
-        ("agent.local_slam.resolution_m", cfg.agent.local_slam.resolution_m),
-        ("agent.smoothing.s", cfg.agent.smoothing.s),
-        ("agent.smoothing.duration_s", cfg.agent.smoothing.duration_s),
-        ("agent.local_slam.max_range_m", cfg.agent.local_slam.max_range_m),
-        ("agent.local_slam.scans_per_submap", cfg.agent.local_slam.scans_per_submap),
-        ("agent.local_slam.voxel_filter_size_m", cfg.agent.local_slam.voxel_filter_size_m),
-        ("agent.local_slam.adaptive_max_length_m", cfg.agent.local_slam.adaptive_max_length_m),
-        ("agent.local_slam.min_num_points", cfg.agent.local_slam.min_num_points),
-        ("basestation.prior_sigma_xy_m", cfg.basestation.prior_sigma_xy_m),
-        ("basestation.prior_sigma_yaw_rad", cfg.basestation.prior_sigma_yaw_rad),
-        ("basestation.update_series_period_s", cfg.basestation.update_series_period_s),
-        ("protocol.max_message_bytes", cfg.protocol.max_message_bytes),
-    ]:
-        _positive(key, v)
-    if las.fov_deg > 360.0:
-        raise ConfigError(f"sim.laser.fov_deg: expected <= 360, got {las.fov_deg}")
-    if not 0 <= las.range_min_m < las.range_max_m:
-        raise ConfigError("sim.laser.range_min_m: expected 0 <= range_min_m < range_max_m")
-    for key in ("p_hit", "p_miss", "p_min", "p_max", "occupied_thresh", "free_thresh"):
-        _prob(f"map.{key}", getattr(cfg.map, key))
-    if not cfg.map.p_miss < 0.5 < cfg.map.p_hit:
-        raise ConfigError("map.p_hit / map.p_miss: expected p_miss < 0.5 < p_hit")
-    ls = cfg.agent.local_slam
-    if not 0.5 < ls.p_hit < 1.0 or not 0.0 < ls.p_miss < 0.5:
-        raise ConfigError("agent.local_slam.p_hit / p_miss: expected 0 < p_miss < 0.5 < p_hit < 1")
-    if not 0 <= ls.min_range_m < ls.max_range_m:
-        raise ConfigError("agent.local_slam.min_range_m: expected 0 <= min_range_m < max_range_m")
-    if cfg.basestation.map_history_max_snapshots < 0:
-        raise ConfigError("basestation.map_history_max_snapshots: expected >= 0 (0: all)")
-    if ls.max_finished_submaps < 0:
-        raise ConfigError("agent.local_slam.max_finished_submaps: expected >= 0")
-    if not 0.0 <= ls.min_match_score < 1.0:
-        raise ConfigError("agent.local_slam.min_match_score: expected a value in [0, 1)")
-    b = cfg.basestation
-    if b.isam2_factorization not in ("CHOLESKY", "QR"):
-        raise ConfigError("basestation.isam2_factorization: expected CHOLESKY or QR")
-    _positive("basestation.relinearize_threshold", b.relinearize_threshold)
-    _positive("basestation.relinearize_skip", b.relinearize_skip)
-    if b.wildfire_threshold < 0.0:
-        raise ConfigError("basestation.wildfire_threshold: expected a value >= 0")
-    if b.adaptive_reorder_threshold != 0.0 and not b.adaptive_reorder_threshold > 1.0:
-        raise ConfigError("basestation.adaptive_reorder_threshold: expected 0 (off) or > 1")
-    cc = cfg.basestation.constraints
-    if not 0.0 <= cc.false_match_fraction < 1.0:
-        raise ConfigError("basestation.constraints.false_match_fraction: expected 0 <= f < 1")
-    if cc.robust_kernel not in ("huber", "cauchy", "none"):
-        raise ConfigError("basestation.constraints.robust_kernel: expected huber, cauchy or none")
-    for key in (
-        "search_radius_m",
-        "linear_window_m",
-        "angular_window_deg",
-        "max_corr_dist_m",
-        "max_candidates_per_s",
-        "pcm_chi2",
-        "robust_k",
-    ):
-        _positive(f"basestation.constraints.{key}", getattr(cc, key))
-    for key in ("safety_margin_m", "safety_reaction_s"):
-        if getattr(cfg.agent, key) < 0.0:
-            raise ConfigError(f"agent.{key}: expected a value >= 0, got {getattr(cfg.agent, key)}")
-    if cfg.exploration.strategy not in ("coordinated", "greedy"):
-        raise ConfigError(
-            "exploration.strategy: expected coordinated or greedy, "
-            f"got {cfg.exploration.strategy!r}"
-        )
-    if cfg.agent.smoothing.t_x_s < 0.0:
-        raise ConfigError(
-            f"agent.smoothing.t_x_s: expected a value >= 0, got {cfg.agent.smoothing.t_x_s}"
-        )
-    if not 0.0 < cfg.agent.outbox_warn_fraction <= 1.0:
-        raise ConfigError("agent.outbox_warn_fraction: expected a value in (0, 1]")
-    _validate_gps(cfg)
-
-
-def _validate_gps(cfg: Config) -> None:
-    g = cfg.sim.gnss
-    for key in ("rate_hz", "sigma_east_m", "sigma_north_m", "sigma_up_m", "sigma_correlation_s"):
-        _positive(f"sim.gnss.{key}", getattr(g, key))
-    for key in ("sigma_variation", "outage_rate_per_min", "outage_duration_s", "outlier_min_m"):
-        if getattr(g, key) < 0.0:
-            raise ConfigError(f"sim.gnss.{key}: expected a value >= 0, got {getattr(g, key)}")
-    if not 0.0 <= g.outlier_fraction < 1.0:
-        raise ConfigError("sim.gnss.outlier_fraction: expected 0 <= f < 1")
-    if g.outlier_max_m < g.outlier_min_m:
-        raise ConfigError("sim.gnss.outlier_max_m: expected >= outlier_min_m")
-    if not -90.0 <= g.origin_lat_deg <= 90.0 or not -180.0 <= g.origin_lon_deg <= 180.0:
-        raise ConfigError("sim.gnss.origin_lat_deg / origin_lon_deg: out of WGS84 range")
-    p = cfg.basestation.gps
-    if p.weighting not in ("inverse", "isotropic", "affine"):
-        raise ConfigError(
-            f"basestation.gps.weighting: expected inverse, isotropic or affine, got {p.weighting!r}"
-        )
-    if p.a < 0.0 or p.b < 0.0 or not (p.a > 0.0 or p.b > 0.0):
-        raise ConfigError("basestation.gps.a / b: expected a, b >= 0, not both 0")
-    for key in ("huber_k", "sigma_min_m", "start_sigma_xy_m", "start_sigma_yaw_rad"):
-        _positive(f"basestation.gps.{key}", getattr(p, key))
-    _positive("basestation.gps.max_pending_fixes", p.max_pending_fixes)
-    if p.batch_period_s < 0.0:
-        raise ConfigError("basestation.gps.batch_period_s: expected a value >= 0")
 
 
 def config_to_dict(cfg: Config) -> dict[str, Any]:

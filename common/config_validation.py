@@ -1,0 +1,214 @@
+"""Range checks on the config tree: ``validate(cfg)`` raises a ConfigError naming the key.
+
+``common.config.load_config`` calls it on every config it builds; code that edits a
+loaded config (benchmarks deriving variants) calls it again. Types were checked while
+loading; here only values and their relations.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable
+from typing import TYPE_CHECKING, Any
+
+from common.errors import ConfigError
+
+if TYPE_CHECKING:  # common.config imports this module
+    from common.config import BaseStationConfig, Config
+
+
+def _positive(key: str, value: float) -> None:
+    if not value > 0:
+        raise ConfigError(f"{key}: expected a value > 0, got {value}")
+
+
+def _prob(key: str, value: float) -> None:
+    if not 0.0 < value < 1.0:
+        raise ConfigError(f"{key}: expected a probability in (0, 1), got {value}")
+
+
+def _positive_fields(section: str, obj: Any, names: Iterable[str]) -> None:
+    """Each ``obj.<name>`` > 0 (keys reported as ``section.name``)."""
+    for name in names:
+        _positive(f"{section}.{name}", getattr(obj, name))
+
+
+def _non_negative_fields(section: str, obj: Any, names: Iterable[str]) -> None:
+    """Each ``obj.<name>`` >= 0 (keys reported as ``section.name``)."""
+    for name in names:
+        value = getattr(obj, name)
+        if value < 0.0:
+            raise ConfigError(f"{section}.{name}: expected a value >= 0, got {value}")
+
+
+def validate(cfg: Config) -> None:
+    """Range checks across the tree; raises ConfigError naming the key."""
+    from protocol.keys import Keys  # local: protocol depends on common, not the reverse
+
+    try:
+        Keys(cfg.fleet)
+    except ConfigError as exc:
+        raise ConfigError(f"fleet: {exc}") from None
+    if cfg.zenoh.mode not in ("peer", "client", "router"):
+        raise ConfigError(f"zenoh.mode: expected peer, client or router, got {cfg.zenoh.mode!r}")
+    if cfg.sim.clock not in ("lockstep", "realtime"):
+        raise ConfigError(f"sim.clock: expected lockstep or realtime, got {cfg.sim.clock!r}")
+    _validate_sim(cfg)
+    _validate_map(cfg)
+    _validate_agent(cfg)
+    _validate_backend(cfg.basestation)
+    _positive_fields("protocol", cfg.protocol, ("max_message_bytes",))
+    _positive_fields(
+        "exploration", cfg.exploration, ("period_s", "frontier_radius_m", "planning_time_s")
+    )
+    if cfg.exploration.strategy not in ("coordinated", "greedy"):
+        raise ConfigError(
+            "exploration.strategy: expected coordinated or greedy, "
+            f"got {cfg.exploration.strategy!r}"
+        )
+    _validate_gps(cfg)
+
+
+def _validate_sim(cfg: Config) -> None:
+    sim, las = cfg.sim, cfg.sim.laser
+    _positive_fields(
+        "sim", sim, ("rate", "lockstep_timeout_s", "basestation_timeout_s", "ground_truth_rate_hz")
+    )
+    _positive_fields("sim.laser", las, ("beams", "fov_deg", "range_max_m", "rate_hz"))
+    quad = sim.quadrotor
+    _positive_fields("sim.quadrotor", quad, ("max_speed_mps", "max_accel_mps2", "radius_m"))
+    if las.fov_deg > 360.0:
+        raise ConfigError(f"sim.laser.fov_deg: expected <= 360, got {las.fov_deg}")
+    if not 0 <= las.range_min_m < las.range_max_m:
+        raise ConfigError("sim.laser.range_min_m: expected 0 <= range_min_m < range_max_m")
+
+
+def _validate_map(cfg: Config) -> None:
+    _positive("map.resolution_m", cfg.map.resolution_m)
+    for key in ("p_hit", "p_miss", "p_min", "p_max", "occupied_thresh", "free_thresh"):
+        _prob(f"map.{key}", getattr(cfg.map, key))
+    if not cfg.map.p_miss < 0.5 < cfg.map.p_hit:
+        raise ConfigError("map.p_hit / map.p_miss: expected p_miss < 0.5 < p_hit")
+
+
+def _validate_agent(cfg: Config) -> None:
+    a, ls = cfg.agent, cfg.agent.local_slam
+    _positive_fields(
+        "agent",
+        a,
+        (
+            "vehicle_radius_m",
+            "blocked_after_s",
+            "keyframe_distance_m",
+            "keyframe_angle_rad",
+            "outbox_max",
+            "resend_timeout_s",
+            "replay_max_unacked",
+            "cruise_speed_mps",
+            "odom_sigma_min",
+        ),
+    )
+    _non_negative_fields("agent", a, ("safety_margin_m", "safety_reaction_s"))
+    if not 0.0 < a.outbox_warn_fraction <= 1.0:
+        raise ConfigError("agent.outbox_warn_fraction: expected a value in (0, 1]")
+    _positive_fields("agent.smoothing", a.smoothing, ("s", "duration_s"))
+    _non_negative_fields("agent.smoothing", a.smoothing, ("t_x_s",))
+    _positive_fields(
+        "agent.local_slam",
+        ls,
+        (
+            "resolution_m",
+            "max_range_m",
+            "scans_per_submap",
+            "voxel_filter_size_m",
+            "adaptive_max_length_m",
+            "min_num_points",
+        ),
+    )
+    if not 0.5 < ls.p_hit < 1.0 or not 0.0 < ls.p_miss < 0.5:
+        raise ConfigError("agent.local_slam.p_hit / p_miss: expected 0 < p_miss < 0.5 < p_hit < 1")
+    if not 0 <= ls.min_range_m < ls.max_range_m:
+        raise ConfigError("agent.local_slam.min_range_m: expected 0 <= min_range_m < max_range_m")
+    if ls.max_finished_submaps < 0:
+        raise ConfigError("agent.local_slam.max_finished_submaps: expected >= 0")
+    if not 0.0 <= ls.min_match_score < 1.0:
+        raise ConfigError("agent.local_slam.min_match_score: expected a value in [0, 1)")
+
+
+def _validate_backend(b: BaseStationConfig) -> None:
+    """iSAM2 settings, priors and the constraint builder."""
+    _positive_fields(
+        "basestation",
+        b,
+        (
+            "prior_sigma_xy_m",
+            "prior_sigma_yaw_rad",
+            "update_series_period_s",
+            "relinearize_threshold",
+            "relinearize_skip",
+        ),
+    )
+    if b.map_history_max_snapshots < 0:
+        raise ConfigError("basestation.map_history_max_snapshots: expected >= 0 (0: all)")
+    if b.isam2_factorization not in ("CHOLESKY", "QR"):
+        raise ConfigError("basestation.isam2_factorization: expected CHOLESKY or QR")
+    if b.wildfire_threshold < 0.0:
+        raise ConfigError("basestation.wildfire_threshold: expected a value >= 0")
+    if b.adaptive_reorder_threshold != 0.0 and not b.adaptive_reorder_threshold > 1.0:
+        raise ConfigError("basestation.adaptive_reorder_threshold: expected 0 (off) or > 1")
+    cc = b.constraints
+    _positive_fields(
+        "basestation.constraints",
+        cc,
+        (
+            "max_candidates_per_s",
+            "global_map_rebuild_nodes",
+            "global_query_keyframes",
+            "candidate_stride",
+            "search_radius_m",
+            "global_search_every",
+            "min_consistent_to_merge",
+            "linear_window_m",
+            "angular_window_deg",
+            "max_corr_dist_m",
+            "pcm_chi2",
+            "robust_k",
+        ),
+    )
+    if not 0.0 <= cc.false_match_fraction < 1.0:
+        raise ConfigError("basestation.constraints.false_match_fraction: expected 0 <= f < 1")
+    if cc.robust_kernel not in ("huber", "cauchy", "none"):
+        raise ConfigError("basestation.constraints.robust_kernel: expected huber, cauchy or none")
+
+
+def _validate_gps(cfg: Config) -> None:
+    g = cfg.sim.gnss
+    _positive_fields(
+        "sim.gnss",
+        g,
+        ("rate_hz", "sigma_east_m", "sigma_north_m", "sigma_up_m", "sigma_correlation_s"),
+    )
+    _non_negative_fields(
+        "sim.gnss",
+        g,
+        ("sigma_variation", "outage_rate_per_min", "outage_duration_s", "outlier_min_m"),
+    )
+    if not 0.0 <= g.outlier_fraction < 1.0:
+        raise ConfigError("sim.gnss.outlier_fraction: expected 0 <= f < 1")
+    if g.outlier_max_m < g.outlier_min_m:
+        raise ConfigError("sim.gnss.outlier_max_m: expected >= outlier_min_m")
+    if not -90.0 <= g.origin_lat_deg <= 90.0 or not -180.0 <= g.origin_lon_deg <= 180.0:
+        raise ConfigError("sim.gnss.origin_lat_deg / origin_lon_deg: out of WGS84 range")
+    p = cfg.basestation.gps
+    if p.weighting not in ("inverse", "isotropic", "affine"):
+        raise ConfigError(
+            f"basestation.gps.weighting: expected inverse, isotropic or affine, got {p.weighting!r}"
+        )
+    if p.a < 0.0 or p.b < 0.0 or not (p.a > 0.0 or p.b > 0.0):
+        raise ConfigError("basestation.gps.a / b: expected a, b >= 0, not both 0")
+    _positive_fields(
+        "basestation.gps",
+        p,
+        ("huber_k", "sigma_min_m", "start_sigma_xy_m", "start_sigma_yaw_rad", "max_pending_fixes"),
+    )
+    if p.batch_period_s < 0.0:
+        raise ConfigError("basestation.gps.batch_period_s: expected a value >= 0")

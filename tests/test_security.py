@@ -20,7 +20,8 @@ import pytest
 import zenoh
 
 from benchmarks.security_clients import make_certs, make_keyframe, try_open, wait_for
-from collabslam.cli import _load_cfg, build_parser
+from collabslam.cli import build_parser
+from collabslam.cli_options import load_cfg
 from collabslam.supervisor import free_port
 from common.bus import Bus, zenoh_config
 from common.config import ZenohConfig
@@ -216,7 +217,7 @@ def test_zenoh_config_cli_option_and_merge(tmp_path: Path, certs: tuple[Path, Pa
     """--zenoh-config sets zenoh.config_file; its endpoints stay unless --listen is given."""
     path = write_json5(robot_config(certs[0], "r0", ["tls/127.0.0.1:7447"]), tmp_path / "r.json5")
     args = build_parser().parse_args(["agent", "--robot-id", "r0", "--zenoh-config", str(path)])
-    zc = _load_cfg(args).zenoh
+    zc = load_cfg(args).zenoh
     assert zc.config_file == str(path)
     conf = zenoh_config(zc)
     assert json.loads(conf.get_json("connect/endpoints")) == ["tls/127.0.0.1:7447"]

@@ -322,9 +322,7 @@ class PoseGraph(GaugeMixin, GpsMixin):
     # ----- queries ------------------------------------------------------------------
     def pose(self, robot_id: str, index: int) -> FloatArray:
         """T_map_node of one node (its initial guess while it waits for ``update``)."""
-        chain = self._chain(robot_id)
-        if not 0 <= index < chain.size:
-            raise CollabSlamError(f"robot {robot_id!r} has no node {index}")
+        chain = self._node_chain(robot_id, index)
         if index >= chain.num_committed:
             return chain.pending[index - chain.num_committed].copy()
         if self._estimate_valid:
@@ -387,11 +385,15 @@ class PoseGraph(GaugeMixin, GpsMixin):
         return out
 
     # ----- internals ----------------------------------------------------------------
-    def _key(self, robot_id: str, index: int) -> int:
+    def _node_chain(self, robot_id: str, index: int) -> Chain:
+        """The chain of node ``index`` of ``robot_id`` (CollabSlamError if no such node)."""
         chain = self._chain(robot_id)
         if not 0 <= index < chain.size:
             raise CollabSlamError(f"robot {robot_id!r} has no node {index}")
-        return gtsam.symbol(chain.char, index)
+        return chain
+
+    def _key(self, robot_id: str, index: int) -> int:
+        return gtsam.symbol(self._node_chain(robot_id, index).char, index)
 
     def _offset(self, robot_id: str) -> int:
         offset = 0

@@ -401,6 +401,7 @@ class BaseStationNode:
                 "frontiers": len(self.explorer.frontiers),
                 "paths_sent": self._path_id,
                 "unreachable": self.explorer.unreachable,
+                "planner_grid_fallbacks": self.explorer.planner.fallbacks,
             },
             "clock_syncs": self.syncs,
             "map_rerenders": self.map.rerenders,

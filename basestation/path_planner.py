@@ -7,7 +7,11 @@ disc of `robot_clearance_m` around every other robot and along its current path 
 blocked too. RRT* (`og.SimpleSetup`, path-length objective) runs for
 `time_budget_s`, up to `attempts` times while it has no exact solution; the
 solution is simplified (shortcutting) and then checked densely against the
-planning map, so a returned path never crosses a blocked cell. A start
+planning map, so a returned path never crosses a blocked cell. When RRT* finds no
+path within its budget (long detours through doors on a big map, a loaded CPU),
+the shortest 8-connected cell path on the same planning map (Dijkstra, cropped to
+the known part of the map plus `fallback_margin_m`), shortcut greedily, is used
+instead; so a goal is called unreachable only when no path exists. A start
 inside the inflated zone (a robot close to a wall) is allowed: the inflation (not
 the wall) is cleared in a disc of `start_escape_m` around it.
 
@@ -27,6 +31,7 @@ import ompl.util as ou
 from numpy.typing import ArrayLike, NDArray
 from scipy import ndimage
 
+from basestation.travel_distance import grid_path
 from common.errors import ConfigError
 from common.map_io import GridMap
 
@@ -123,6 +128,7 @@ class PathPlanner:
         seed: int = 0,
         attempts: int = 3,
         robot_radius_m: float = 0.2,
+        fallback_margin_m: float = 2.0,
     ) -> None:
         if not time_budget_s > 0:
             raise ConfigError(f"planning time budget must be > 0 s, got {time_budget_s}")
@@ -132,6 +138,8 @@ class PathPlanner:
         self.start_escape_m = float(start_escape_m)
         self.attempts = max(1, int(attempts))
         self.robot_radius_m = float(robot_radius_m)
+        self.fallback_margin_m = float(fallback_margin_m)
+        self.fallbacks = 0  # plans that came from the grid path, not RRT*
         _seed_ompl_once(seed)
 
     def plan(
@@ -159,7 +167,46 @@ class PathPlanner:
             return None
         if pm.segment_free(np.array([s, g])):
             return np.array([s, g])
-        return self._rrt_star(pm, check, s, g)
+        path = self._rrt_star(pm, check, s, g)
+        if path is None:
+            path = self._grid_fallback(grid, pm, check, s, g)
+        return path
+
+    def _grid_fallback(
+        self,
+        grid: GridMap,
+        pm: PlanningMap,
+        check: PlanningMap,
+        s: NDArray[np.float64],
+        g: NDArray[np.float64],
+    ) -> NDArray[np.float64] | None:
+        """The shortest cell path on `pm` (module doc), shortcut, checked on `check`."""
+        known_y, known_x = np.nonzero(grid.data >= 0)
+        iy, ix = pm.cells(np.array([s, g]))
+        m = int(math.ceil(self.fallback_margin_m / pm.resolution))
+        h, w = pm.blocked.shape
+        x0 = max(int(min(known_x.min(initial=ix.min()), ix.min())) - m, 0)
+        y0 = max(int(min(known_y.min(initial=iy.min()), iy.min())) - m, 0)
+        x1 = min(int(max(known_x.max(initial=ix.max()), ix.max())) + m + 1, w)
+        y1 = min(int(max(known_y.max(initial=iy.max()), iy.max())) + m + 1, h)
+        origin = pm.origin + np.array([x0, y0]) * pm.resolution
+        cells = grid_path(~pm.blocked[y0:y1, x0:x1], origin, pm.resolution, s, g)
+        if cells is None:
+            return None
+        path = [cells[0]]
+        i = 0
+        while i < len(cells) - 1:  # greedy shortcut: farthest cell still in sight
+            j = i + 1
+            while j + 1 < len(cells) and pm.segment_free(np.array([cells[i], cells[j + 1]])):
+                j += 1
+            path.append(cells[j])
+            i = j
+        out = np.array(path)
+        if not check.segment_free(out):
+            return None
+        self.fallbacks += 1
+        log.debug("RRT* found no path in its budget: grid path of %d points used", len(out))
+        return out
 
     def _map(
         self, grid: GridMap, s: NDArray[np.float64], others: list[ArrayLike] | None, margin: float

@@ -6,6 +6,9 @@ scipy's csgraph) on a coarse copy of the grid in which a cell is passable when
 its centre is more than `clearance_m` from every occupied cell (unknown counts as
 passable, as for the planner). Robots and frontiers off the passable cells are
 snapped to the nearest passable cell. Unreachable pairs get `inf`.
+
+`grid_path` is the same Dijkstra on a given passable mask, returning the cell path:
+the planner's fallback when RRT* finds nothing within its time budget.
 """
 
 from __future__ import annotations
@@ -65,3 +68,35 @@ def travel_distances(
 
     d = dijkstra(_graph(passable, cell).tocsr(), directed=False, indices=node(src))
     return np.asarray(d, dtype=np.float64).reshape(len(src), -1)[:, node(dst)]
+
+
+def grid_path(
+    passable: NDArray[np.bool_], origin: ArrayLike, resolution: float, start: ArrayLike,
+    goal: ArrayLike,
+) -> NDArray[np.float64] | None:  # fmt: skip
+    """Shortest 8-connected path (N, 2) of cell centres (m, map frame) from the cell of
+    `start` to the cell of `goal` over `passable` (data[iy, ix], cell (0, 0) with its
+    corner at `origin`); its ends are `start` and `goal` themselves. None when either
+    cell is outside or not passable, or they are not connected."""
+    h, w = passable.shape
+    o = np.asarray(origin, dtype=np.float64)[:2]
+    ends = np.array([np.asarray(start, float)[:2], np.asarray(goal, float)[:2]])
+    ij = np.floor((ends - o) / resolution).astype(np.int64)
+    if np.any(ij < 0) or np.any(ij[:, 0] >= w) or np.any(ij[:, 1] >= h):
+        return None
+    if not passable[ij[:, 1], ij[:, 0]].all():
+        return None
+    src, dst = (int(i[1] * w + i[0]) for i in ij)
+    d, pred = dijkstra(
+        _graph(passable, resolution).tocsr(), directed=False, indices=src,
+        return_predecessors=True,
+    )  # fmt: skip
+    if not np.isfinite(d[dst]):
+        return None
+    nodes = [dst]
+    while nodes[-1] != src:
+        nodes.append(int(pred[nodes[-1]]))
+    iy, ix = np.divmod(np.array(nodes[::-1]), w)
+    path = o + (np.column_stack([ix, iy]) + 0.5) * resolution
+    path[0], path[-1] = ends
+    return path

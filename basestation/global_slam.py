@@ -57,7 +57,7 @@ class GlobalSlam:
         self.gps_enabled = b.gps.enabled
         self.gps_fixes_ignored = 0  # fixes of robots not (yet) anchored by a known start
         self.graph = PoseGraph.from_config(b)
-        self.store = KeyframeStore(b.reorder_window)
+        self.store = KeyframeStore(b.reorder_window, b.scan_points_cache)
         self.known_starts = dict(known_starts or {})
         # robots started at a given map pose (not the first robot defining map): GPS-able
         self._georeferenced = set(self.known_starts)
@@ -212,12 +212,13 @@ class GlobalSlam:
     def _points_in(
         self, frame: NodeKey, nodes: list[NodeKey], poses: dict[str, np.ndarray]
     ) -> tuple[list[np.ndarray], list[np.ndarray]]:
-        """The nodes' scan points and sensor poses in the frame of node `frame`."""
+        """The nodes' scan points (float32: jobs wait in queues) and sensor poses in the
+        frame of node `frame`."""
         T_w_f = poses[frame[0]][frame[1]]
         points, origins = [], []
         for rid, i in nodes:
             T_f_n = se2_between(T_w_f, poses[rid][i])
-            points.append(se2_transform_points(T_f_n, self.store.robot(rid).points[i]))
+            points.append(se2_transform_points(T_f_n, self.store.points(rid, i)).astype(np.float32))
             origins.append(T_f_n)
         return points, origins
 
@@ -225,14 +226,14 @@ class GlobalSlam:
         self, key: NodeKey, nodes: list[NodeKey], poses: dict[str, np.ndarray]
     ) -> tuple[np.ndarray, int]:
         """The nodes' points in key's frame, key's own scan first; and its length."""
-        own = self.store.robot(key[0]).points[key[1]]
+        own = self.store.points(*key)
         others = [n for n in nodes if n != key]
         pts = self._points_in(key, others, poses)[0] if others else []
         return np.vstack([own, *pts]), len(own)
 
     def _neighbours(self, key: NodeKey, k: int) -> list[NodeKey]:
         rid, i = key
-        n = len(self.store.robot(rid).points)
+        n = self.store.robot(rid).next_seq
         return [(rid, j) for j in range(max(0, i - k), min(n, i + k + 1))]
 
     def search_constraints(self) -> None:
@@ -300,7 +301,8 @@ class GlobalSlam:
         if self._global_map is None or self._global_map[0] != map_key:
             nodes = [(r, i) for r in anchored for i in range(len(poses[r]))]
             scans = [
-                se2_transform_points(poses[r][i], self.store.robot(r).points[i]) for r, i in nodes
+                se2_transform_points(poses[r][i], self.store.points(r, i)).astype(np.float32)
+                for r, i in nodes
             ]
             self._global_map = (map_key, scans, [poses[r][i] for r, i in nodes])
         _, scans, origins = self._global_map
@@ -400,9 +402,9 @@ class GlobalSlam:
                 continue
             est = self.graph.poses(rid)
             for i in range(n):
-                if r.keyframes[i].scan2d is not None:
+                if r.scans[i] is not None:
                     keys.append((rid, i))
-                    scans.append(r.keyframes[i].scan2d)
+                    scans.append(r.scans[i])
                     poses.append(est[i])
         return keys, scans, np.array(poses).reshape(-1, 3)
 
@@ -412,9 +414,9 @@ class GlobalSlam:
             if rid not in self.graph.robots() or self.graph.num_nodes(rid) == 0:
                 continue
             est = self.graph.poses(rid)
-            z = np.array([p[2] for p in r.poses_odom[: len(est)]])
+            z = r.poses_odom.view()[: len(est), 2]
             poses4 = np.column_stack([est[:, 0], est[:, 1], z, est[:, 2]])
-            out[rid] = Trajectory.from_pose4(np.array(r.stamps[: len(est)]), poses4)
+            out[rid] = Trajectory.from_pose4(r.stamps.view()[: len(est), 0].copy(), poses4)
         return out
 
     def stats(self) -> dict[str, Any]:

@@ -224,6 +224,13 @@ class MapConfig:
     max_free_range_m: float = 10.0  # m, no-return beams clear free space up to here
     pose_moved_m: float = 0.02  # m: a keyframe that moved more than this forces a re-render
     pose_moved_rad: float = 0.005  # rad: likewise for heading
+    # Re-rendering after a correction (basestation/map_builder.py) redraws the moved region
+    # tile by tile (square tiles of this side, m; a multiple of resolution_m), most-moved
+    # tile first, spending at most rerender_budget_s of the base station's main thread per
+    # map refresh; the rest continues at the next refreshes. The map written at shutdown
+    # finishes every pending tile.
+    rerender_tile_m: float = 8.0  # m
+    rerender_budget_s: float = 0.1  # s wall per map refresh
 
 
 @dataclass
@@ -316,6 +323,9 @@ class BaseStationConfig:
     map_update_period_s: float = 2.0  # s wall between global map refreshes
     batch_max: int = 200  # keyframes per processing batch
     reorder_window: int = 1000  # out-of-order keyframes held per robot waiting for a gap
+    # Keyframes whose scan points (for matching, ~5 kB each) stay in memory, most recently
+    # used first; older ones are made again from their scans (~0.1 ms) when asked for.
+    scan_points_cache: int = 3000
     known_start_poses: bool = True  # use the scenario's start poses (false: find by matching)
     # Keyframe intake pauses while more candidates than this wait for verification
     # (0: never). Acks then wait too, which paces a log replay to what the verifier
@@ -518,6 +528,8 @@ def validate(cfg: Config) -> None:
         ("agent.cruise_speed_mps", cfg.agent.cruise_speed_mps),
         ("agent.odom_sigma_min", cfg.agent.odom_sigma_min),
         ("map.resolution_m", cfg.map.resolution_m),
+        ("map.rerender_tile_m", cfg.map.rerender_tile_m),
+        ("basestation.scan_points_cache", cfg.basestation.scan_points_cache),
         ("agent.local_slam.resolution_m", cfg.agent.local_slam.resolution_m),
         ("agent.smoothing.s", cfg.agent.smoothing.s),
         ("agent.smoothing.duration_s", cfg.agent.smoothing.duration_s),
@@ -538,6 +550,10 @@ def validate(cfg: Config) -> None:
         raise ConfigError("sim.laser.range_min_m: expected 0 <= range_min_m < range_max_m")
     for key in ("p_hit", "p_miss", "p_min", "p_max", "occupied_thresh", "free_thresh"):
         _prob(f"map.{key}", getattr(cfg.map, key))
+    if cfg.map.rerender_budget_s < 0.0:
+        raise ConfigError("map.rerender_budget_s: expected a value >= 0")
+    if cfg.map.rerender_tile_m < 10 * cfg.map.resolution_m:
+        raise ConfigError("map.rerender_tile_m: expected at least 10 cells (10 x resolution_m)")
     if not cfg.map.p_miss < 0.5 < cfg.map.p_hit:
         raise ConfigError("map.p_hit / map.p_miss: expected p_miss < 0.5 < p_hit")
     ls = cfg.agent.local_slam

@@ -212,24 +212,21 @@ class GlobalSlam:
     def _points_in(
         self, frame: NodeKey, nodes: list[NodeKey], poses: dict[str, np.ndarray]
     ) -> tuple[list[np.ndarray], list[np.ndarray]]:
-        """The nodes' scan points (float32: jobs wait in queues) and sensor poses in the
-        frame of node `frame`."""
+        """The nodes' scan points, each in its own node's frame (the store's read-only
+        arrays, shared, not copied: jobs wait in queues), and their poses in the frame
+        of node `frame` (T_frame_node)."""
         T_w_f = poses[frame[0]][frame[1]]
-        points, origins = [], []
-        for rid, i in nodes:
-            T_f_n = se2_between(T_w_f, poses[rid][i])
-            points.append(se2_transform_points(T_f_n, self.store.points(rid, i)).astype(np.float32))
-            origins.append(T_f_n)
-        return points, origins
+        points = [self.store.points(rid, i) for rid, i in nodes]
+        return points, [se2_between(T_w_f, poses[rid][i]) for rid, i in nodes]
 
     def _query(
         self, key: NodeKey, nodes: list[NodeKey], poses: dict[str, np.ndarray]
-    ) -> tuple[np.ndarray, int]:
-        """The nodes' points in key's frame, key's own scan first; and its length."""
-        own = self.store.points(*key)
-        others = [n for n in nodes if n != key]
-        pts = self._points_in(key, others, poses)[0] if others else []
-        return np.vstack([own, *pts]), len(own)
+    ) -> tuple[list[np.ndarray], list[np.ndarray], int]:
+        """The nodes' points and poses in key's frame (as `_points_in`), key's own scan
+        first; and its length."""
+        ordered = [key, *(n for n in nodes if n != key)]
+        points, origins = self._points_in(key, ordered, poses)
+        return points, origins, len(points[0])
 
     def _neighbours(self, key: NodeKey, k: int) -> list[NodeKey]:
         rid, i = key
@@ -264,7 +261,7 @@ class GlobalSlam:
         key: NodeKey,
         poses: dict[str, np.ndarray],
         robots: list[str],
-        query: tuple[np.ndarray, int],
+        query: tuple[list[np.ndarray], list[np.ndarray], int],
         only: str | None = None,
     ) -> None:
         for kind, target in find_candidates(self.cc, key, poses, robots):
@@ -275,7 +272,11 @@ class GlobalSlam:
             k = self.cc.target_neighbours
             scans, origins = self._points_in(target, self._neighbours(target, k), poses)
             guess = se2_between(poses[target[0]][target[1]], poses[key[0]][key[1]])
-            self.builder.submit(Job(kind, target, key, guess, scans, query[0], origins, query[1]))
+            q_points, q_origins, n_own = query
+            self.builder.submit(
+                Job(kind, target, key, guess, scans, q_points, origins, n_own,
+                    in_node_frames=True, query_origins=q_origins)
+            )  # fmt: skip
 
     @staticmethod
     def _hypothesis(
@@ -308,10 +309,11 @@ class GlobalSlam:
         _, scans, origins = self._global_map
         first = max(0, key[1] - self.cc.global_query_keyframes + 1)
         recent = [(key[0], j) for j in range(first, key[1] + 1)]
-        query, n_own = self._query(key, recent, poses)
+        q_points, q_origins, n_own = self._query(key, recent, poses)
         self.builder.submit(
-            Job("global", key, key, np.zeros(3), scans, query, origins, n_own, target_key=map_key)
-        )
+            Job("global", key, key, np.zeros(3), scans, q_points, origins, n_own,
+                target_key=map_key, in_node_frames=True, query_origins=q_origins)
+        )  # fmt: skip
 
     def integrate_constraints(self) -> int:
         """Hand verified matches to the loop-closure manager; returns how many arrived."""

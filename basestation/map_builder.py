@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import logging
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -35,6 +36,11 @@ NodeKey = tuple[str, int]
 Tile = tuple[int, int]  # (column, row) of the tile lattice
 PAD = 3  # cells drawn around a tile but not pasted (see OccupancyGrid.paste)
 CHUNK = 512  # keyframes box-tested at once while redrawing a tile
+BATCH = 16  # keyframes drawn per kernel call while redrawing (the budget is checked between)
+
+
+def _geometry(scan: Scan2D) -> tuple[float, float, int, float]:
+    return (scan.angle_min, scan.angle_increment, scan.ranges_mm.size, scan.range_max)
 
 
 @dataclass
@@ -85,12 +91,26 @@ class MapBuilder:
         r = np.where(r >= scan.range_max, np.minimum(r, self.cfg.max_free_range_m), r)
         return float(r.max(initial=0.0))
 
-    def _draw(self, grid: OccupancyGrid, i: int) -> None:
-        scan = self._scans[i]
-        r, a = self._beams(scan)
-        grid.insert_scan(
-            self._pose[i], r, a, 0.0, scan.range_max, max_free_range=self.cfg.max_free_range_m
-        )
+    def _draw(self, grid: OccupancyGrid, idx: Sequence[int]) -> None:
+        """Draw keyframes `idx` into `grid` in order at their current poses; each run of
+        scans of one geometry in one kernel call."""
+        start = 0
+        while start < len(idx):
+            first = self._scans[idx[start]]
+            geom = _geometry(first)
+            end = start + 1
+            while end < len(idx) and _geometry(self._scans[idx[end]]) == geom:
+                end += 1
+            run = list(idx[start:end])
+            mm = np.stack([self._scans[i].ranges_mm for i in run])
+            r = mm.astype(np.float32) * np.float32(1e-3)
+            r[mm == 0] = np.float32(first.range_max)  # as in _beams
+            _, a = self._beams(first)
+            grid.insert_scans(
+                self._pose[run], r, a, 0.0, first.range_max,
+                max_free_range=self.cfg.max_free_range_m,
+            )  # fmt: skip
+            start = end
 
     def _append(self, keys: list[NodeKey], scans: list[Scan2D], poses: np.ndarray) -> None:
         n, k = self._n, len(keys)
@@ -143,8 +163,7 @@ class MapBuilder:
         elif len(lo):
             self.grid.grow_to_include(lo.min(axis=0), hi.max(axis=0), 1.0)
         moved = self._mark_moved(idx[idx < n_old])
-        for i in range(n_old, self._n):
-            self._draw(self.grid, i)
+        self._draw(self.grid, range(n_old, self._n))
         self.work(None if budget_s is None else c.rerender_budget_s if budget_s < 0 else budget_s)
         self.last_render_ms = (time.perf_counter() - t0) * 1e3
         log.debug(
@@ -248,12 +267,13 @@ class MapBuilder:
             rows = slice(job.next, min(self._n, job.next + CHUNK))
             lo, hi = self._boxes(rows)
             hits = np.all(hi >= t_lo - m, axis=1) & np.all(lo <= t_hi + m, axis=1)
-            for i in rows.start + np.flatnonzero(hits):
+            todo = rows.start + np.flatnonzero(hits)
+            for b in range(0, len(todo), BATCH):
                 if drew and deadline is not None and time.perf_counter() >= deadline:
-                    job.next = int(i)
+                    job.next = int(todo[b])
                     return False
-                self._draw(job.sub, int(i))
-                self.rerender_draws += 1
+                self._draw(job.sub, todo[b : b + BATCH].tolist())
+                self.rerender_draws += len(todo[b : b + BATCH])
                 drew = True
             job.next = rows.stop
         return True

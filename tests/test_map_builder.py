@@ -6,7 +6,7 @@ import tracemalloc
 
 import numpy as np
 
-from basestation.map_builder import MapBuilder
+from basestation.map_builder import BATCH, MapBuilder
 from common.config import MapConfig
 from protocol.messages import Scan2D
 
@@ -85,13 +85,13 @@ def test_budgeted_rerender_finishes_to_the_same_grid_as_an_unbudgeted_one() -> N
     spread = 0
     for k, poses in steps:
         assert full.update(keys[:k], scans[:k], poses[:k], budget_s=None) == (k > 30)
-        slow.update(keys[:k], scans[:k], poses[:k], budget_s=0.0)  # one keyframe per call
+        slow.update(keys[:k], scans[:k], poses[:k], budget_s=0.0)  # one batch per call
         assert full.pending == 0
         spread = max(spread, slow.pending)
     assert spread >= 2  # redraws were left for later calls
     draws = slow.rerender_draws
     slow.update(keys, scans, steps[-1][1], budget_s=0.0)  # nothing moved: work goes on
-    assert slow.rerender_draws == draws + 1
+    assert draws < slow.rerender_draws <= draws + BATCH
     slow.finish()
     assert slow.pending == 0 and slow.rerenders >= 1  # tiles dirtied twice drawn once
     np.testing.assert_array_equal(slow.grid.log_odds, full.grid.log_odds)

@@ -245,7 +245,7 @@ class MapBuilder:
         assert self.grid is not None
         res = self.cfg.resolution_m
         off = np.rint((self._anchor - np.array(self.grid.origin_xy)) / res).astype(int)
-        return off[1] + tile[1] * self._tile_cells, off[0] + tile[0] * self._tile_cells
+        return int(off[1]) + tile[1] * self._tile_cells, int(off[0]) + tile[0] * self._tile_cells
 
     def _start(self, tile: Tile) -> _TileJob:
         assert self.grid is not None

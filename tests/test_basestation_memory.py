@@ -5,6 +5,7 @@ new keyframe arrives (robots hovering: states and resent duplicates only)."""
 from __future__ import annotations
 
 import gc
+import json
 import time
 import tracemalloc
 
@@ -116,4 +117,5 @@ def test_node_does_not_grow_while_no_keyframe_arrives(cfg: Config, endpoint: str
         assert node.slam.store.robot("r0").duplicates == 550
         assert node.slam.graph.num_nodes("r0") == 120
         node.drain(1.0)
+        json.dumps(node.stats())  # plain numbers
     assert abs(grown) < 8_000, grown  # nothing per step (a leak: >= 500 x 32 B)

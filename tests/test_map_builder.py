@@ -93,6 +93,7 @@ def test_budgeted_rerender_finishes_to_the_same_grid_as_an_unbudgeted_one() -> N
     slow.update(keys, scans, steps[-1][1], budget_s=0.0)  # nothing moved: work goes on
     assert draws < slow.rerender_draws <= draws + BATCH
     slow.finish()
+    assert type(slow.rerendered_cells) is int and type(slow.rerender_draws) is int
     assert slow.pending == 0 and slow.rerenders >= 1  # tiles dirtied twice drawn once
     np.testing.assert_array_equal(slow.grid.log_odds, full.grid.log_odds)
     np.testing.assert_array_equal(slow.grid.observed, full.grid.observed)

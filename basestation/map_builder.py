@@ -163,7 +163,8 @@ class MapBuilder:
         elif len(lo):
             self.grid.grow_to_include(lo.min(axis=0), hi.max(axis=0), 1.0)
         moved = self._mark_moved(idx[idx < n_old])
-        self._draw(self.grid, range(n_old, self._n))
+        for i in range(n_old, self._n, CHUNK):  # bounded temporaries after a recovery
+            self._draw(self.grid, range(i, min(i + CHUNK, self._n)))
         self.work(None if budget_s is None else c.rerender_budget_s if budget_s < 0 else budget_s)
         self.last_render_ms = (time.perf_counter() - t0) * 1e3
         log.debug(
@@ -172,7 +173,9 @@ class MapBuilder:
         )  # fmt: skip
         return moved > 0
 
-    def _boxes(self, rows: slice | np.ndarray, poses: np.ndarray | None = None):
+    def _boxes(
+        self, rows: slice | np.ndarray, poses: np.ndarray | None = None
+    ) -> tuple[np.ndarray, np.ndarray]:
         """Lower and upper corners (m) of the boxes the keyframes' rays can reach."""
         p = self._pose[rows] if poses is None else poses
         r = self._reach[rows][:, None]

@@ -2,12 +2,17 @@
 
 from __future__ import annotations
 
+import json
 import tracemalloc
+from pathlib import Path
 
 import numpy as np
+from test_basestation_memory import _tour  # 1081-beam scans along a line
 
 from basestation.map_builder import BATCH, MapBuilder
-from common.config import MapConfig
+from basestation.node import BaseStationNode
+from common.bus import Bus
+from common.config import Config, MapConfig
 from protocol.messages import Scan2D
 
 
@@ -138,3 +143,26 @@ def test_map_memory_per_keyframe_is_small() -> None:
     tracemalloc.stop()
     per_kf = grown / (n - 100)
     assert 0 < per_kf < 200, per_kf
+
+
+def test_written_map_finishes_pending_tiles_at_the_final_poses(
+    tmp_path: Path, cfg: Config, endpoint: str
+) -> None:
+    cfg.zenoh.listen = [endpoint]
+    cfg.exploration.enabled = False
+    cfg.map.rerender_budget_s = 0.0
+    kfs = _tour("r0", 60)
+    with Bus(cfg.zenoh, cfg.fleet) as bus:
+        node = BaseStationNode(cfg, bus, None)
+        node.process(kfs)
+        node.refresh_map()
+        keys, scans, poses = node.slam.map_keyframes()
+        shifted = poses + np.array([0.0, 0.3, 0.0])  # a stale correction: tiles pending
+        node.map.update(keys, scans, shifted, budget_s=0.0)
+        assert node.map.pending > 1
+        node.write_outputs(tmp_path)
+        assert node.map.pending == 0 and (tmp_path / "map.pgm").is_file()
+        assert json.loads((tmp_path / "basestation.json").read_text())["map_rerender_pending"] == 0
+        diff = np.abs(node.map.grid.log_odds - _full_render(node.map, scans, poses)) > 1e-5
+        assert diff.sum() <= 30, diff.sum()
+        node.drain(1.0)

@@ -9,8 +9,10 @@ gets a global search of its latest scan against the whole map every
 `global_search_every` keyframes (its start pose is unknown).
 
 Verification runs on one worker thread: the main thread packs each job with
-everything it needs (target scans already in the target node's frame, the
-query points, the guess), so the worker never touches the graph. The worker
+everything it needs (the scans, where each was taken, the guess), so the worker
+never touches the graph. A job may carry each node's points in that node's own
+frame (`in_node_frames`: read-only arrays shared with the keyframe store and other
+jobs, so a full queue costs little memory); the worker places them. The worker
 keeps to `max_candidates_per_s` and takes jobs by priority: global searches
 first (only the newest per robot is kept), then inter-robot candidates, then
 loop closures; each of the last two queues keeps its newest `max_queue` jobs.
@@ -29,7 +31,7 @@ import numpy as np
 
 from basestation.scan_verifier import ScanVerifier, VerifiedMatch
 from common.config import ConstraintConfig
-from common.geometry import se2_between, wrap_angle
+from common.geometry import se2_between, se2_transform_points, wrap_angle
 
 log = logging.getLogger(__name__)
 
@@ -44,10 +46,37 @@ class Job:
     b: NodeKey  # query node
     T_a_b_guess: np.ndarray  # for "global": unused
     target_scans: list[np.ndarray]  # points in frame a (for "global": in the map frame)
-    query_points: np.ndarray  # points in frame b
+    query_points: np.ndarray | list[np.ndarray]  # points in frame b (see in_node_frames)
     target_origins: list[np.ndarray] | None = None  # sensor pose of each target scan
     n_sensor: int | None = None  # the first n query points are node b's own scan
     target_key: object = None  # cache key of the target (global map version)
+    # With in_node_frames: query_points is a list of per-node points placed in frame b by
+    # query_origins (node b's own scan first, n_sensor points) and, but for "global" jobs
+    # (their target is the map, already in the map frame), target_scans[i] is in its own
+    # node's frame, placed in frame a by target_origins[i] (T_a_i).
+    in_node_frames: bool = False
+    query_origins: list[np.ndarray] | None = None
+
+    def placed_targets(self) -> list[np.ndarray]:
+        """The target scans in frame a."""
+        if not self.in_node_frames or self.kind == "global":
+            return self.target_scans
+        assert self.target_origins is not None
+        return [
+            se2_transform_points(T, p)
+            for T, p in zip(self.target_origins, self.target_scans, strict=True)
+        ]
+
+    def placed_query(self) -> np.ndarray:
+        """The query points in frame b (node b's own first)."""
+        if not self.in_node_frames:
+            return np.asarray(self.query_points)
+        assert self.query_origins is not None
+        parts = [
+            se2_transform_points(T, p)
+            for T, p in zip(self.query_origins, self.query_points, strict=True)
+        ]
+        return np.vstack(parts) if parts else np.zeros((0, 2))
 
 
 @dataclass(frozen=True)
@@ -188,18 +217,20 @@ class ConstraintBuilder:
                     job.target_key,
                     v.build_target(job.target_scans, job.target_origins),
                 )
+            query = job.placed_query()
             return v.global_search(
                 self._global_target[1],
-                job.query_points,
+                query,
                 self.cfg.global_min_score,
-                job.query_points[: job.n_sensor],
+                query[: job.n_sensor],
             )
-        target = v.build_target(job.target_scans, job.target_origins)
+        query = job.placed_query()
+        target = v.build_target(job.placed_targets(), job.target_origins)
         return v.verify(
             target,
-            job.query_points,
+            query,
             job.T_a_b_guess,
-            sensor_points=job.query_points[: job.n_sensor],
+            sensor_points=query[: job.n_sensor],
         )
 
 

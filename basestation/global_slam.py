@@ -57,7 +57,7 @@ class GlobalSlam:
         self.gps_enabled = b.gps.enabled
         self.gps_fixes_ignored = 0  # fixes of robots not (yet) anchored by a known start
         self.graph = PoseGraph.from_config(b)
-        self.store = KeyframeStore(b.reorder_window)
+        self.store = KeyframeStore(b.reorder_window, b.scan_points_cache)
         self.known_starts = dict(known_starts or {})
         # robots started at a given map pose (not the first robot defining map): GPS-able
         self._georeferenced = set(self.known_starts)
@@ -212,27 +212,25 @@ class GlobalSlam:
     def _points_in(
         self, frame: NodeKey, nodes: list[NodeKey], poses: dict[str, np.ndarray]
     ) -> tuple[list[np.ndarray], list[np.ndarray]]:
-        """The nodes' scan points and sensor poses in the frame of node `frame`."""
+        """The nodes' scan points, each in its own node's frame (the store's read-only
+        arrays, shared, not copied: jobs wait in queues), and their poses in the frame
+        of node `frame` (T_frame_node)."""
         T_w_f = poses[frame[0]][frame[1]]
-        points, origins = [], []
-        for rid, i in nodes:
-            T_f_n = se2_between(T_w_f, poses[rid][i])
-            points.append(se2_transform_points(T_f_n, self.store.robot(rid).points[i]))
-            origins.append(T_f_n)
-        return points, origins
+        points = [self.store.points(rid, i) for rid, i in nodes]
+        return points, [se2_between(T_w_f, poses[rid][i]) for rid, i in nodes]
 
     def _query(
         self, key: NodeKey, nodes: list[NodeKey], poses: dict[str, np.ndarray]
-    ) -> tuple[np.ndarray, int]:
-        """The nodes' points in key's frame, key's own scan first; and its length."""
-        own = self.store.robot(key[0]).points[key[1]]
-        others = [n for n in nodes if n != key]
-        pts = self._points_in(key, others, poses)[0] if others else []
-        return np.vstack([own, *pts]), len(own)
+    ) -> tuple[list[np.ndarray], list[np.ndarray], int]:
+        """The nodes' points and poses in key's frame (as `_points_in`), key's own scan
+        first; and its length."""
+        ordered = [key, *(n for n in nodes if n != key)]
+        points, origins = self._points_in(key, ordered, poses)
+        return points, origins, len(points[0])
 
     def _neighbours(self, key: NodeKey, k: int) -> list[NodeKey]:
         rid, i = key
-        n = len(self.store.robot(rid).points)
+        n = self.store.robot(rid).next_seq
         return [(rid, j) for j in range(max(0, i - k), min(n, i + k + 1))]
 
     def search_constraints(self) -> None:
@@ -263,7 +261,7 @@ class GlobalSlam:
         key: NodeKey,
         poses: dict[str, np.ndarray],
         robots: list[str],
-        query: tuple[np.ndarray, int],
+        query: tuple[list[np.ndarray], list[np.ndarray], int],
         only: str | None = None,
     ) -> None:
         for kind, target in find_candidates(self.cc, key, poses, robots):
@@ -274,7 +272,11 @@ class GlobalSlam:
             k = self.cc.target_neighbours
             scans, origins = self._points_in(target, self._neighbours(target, k), poses)
             guess = se2_between(poses[target[0]][target[1]], poses[key[0]][key[1]])
-            self.builder.submit(Job(kind, target, key, guess, scans, query[0], origins, query[1]))
+            q_points, q_origins, n_own = query
+            self.builder.submit(
+                Job(kind, target, key, guess, scans, q_points, origins, n_own,
+                    in_node_frames=True, query_origins=q_origins)
+            )  # fmt: skip
 
     @staticmethod
     def _hypothesis(
@@ -300,16 +302,18 @@ class GlobalSlam:
         if self._global_map is None or self._global_map[0] != map_key:
             nodes = [(r, i) for r in anchored for i in range(len(poses[r]))]
             scans = [
-                se2_transform_points(poses[r][i], self.store.robot(r).points[i]) for r, i in nodes
+                se2_transform_points(poses[r][i], self.store.points(r, i)).astype(np.float32)
+                for r, i in nodes
             ]
             self._global_map = (map_key, scans, [poses[r][i] for r, i in nodes])
         _, scans, origins = self._global_map
         first = max(0, key[1] - self.cc.global_query_keyframes + 1)
         recent = [(key[0], j) for j in range(first, key[1] + 1)]
-        query, n_own = self._query(key, recent, poses)
+        q_points, q_origins, n_own = self._query(key, recent, poses)
         self.builder.submit(
-            Job("global", key, key, np.zeros(3), scans, query, origins, n_own, target_key=map_key)
-        )
+            Job("global", key, key, np.zeros(3), scans, q_points, origins, n_own,
+                target_key=map_key, in_node_frames=True, query_origins=q_origins)
+        )  # fmt: skip
 
     def integrate_constraints(self) -> int:
         """Hand verified matches to the loop-closure manager; returns how many arrived."""
@@ -400,9 +404,9 @@ class GlobalSlam:
                 continue
             est = self.graph.poses(rid)
             for i in range(n):
-                if r.keyframes[i].scan2d is not None:
+                if r.scans[i] is not None:
                     keys.append((rid, i))
-                    scans.append(r.keyframes[i].scan2d)
+                    scans.append(r.scans[i])
                     poses.append(est[i])
         return keys, scans, np.array(poses).reshape(-1, 3)
 
@@ -412,9 +416,9 @@ class GlobalSlam:
             if rid not in self.graph.robots() or self.graph.num_nodes(rid) == 0:
                 continue
             est = self.graph.poses(rid)
-            z = np.array([p[2] for p in r.poses_odom[: len(est)]])
+            z = r.poses_odom.view()[: len(est), 2]
             poses4 = np.column_stack([est[:, 0], est[:, 1], z, est[:, 2]])
-            out[rid] = Trajectory.from_pose4(np.array(r.stamps[: len(est)]), poses4)
+            out[rid] = Trajectory.from_pose4(r.stamps.view()[: len(est), 0].copy(), poses4)
         return out
 
     def stats(self) -> dict[str, Any]:

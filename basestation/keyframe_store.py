@@ -9,25 +9,56 @@ held (up to `reorder_window` per robot) until the gap fills.
 from __future__ import annotations
 
 import logging
+from collections import OrderedDict
 from dataclasses import dataclass, field
 
 import numpy as np
 from numpy.typing import ArrayLike
 
 from common.geometry import pose7_to_pose4
-from protocol.messages import Keyframe
+from protocol.messages import Keyframe, Scan2D
 
 log = logging.getLogger(__name__)
 
 
+class Rows:
+    """A growable (n, k) float64 array (amortized doubling): per-keyframe numbers
+    without a Python object per keyframe."""
+
+    def __init__(self, k: int) -> None:
+        self._a = np.zeros((16, k))
+        self._n = 0
+
+    def append(self, row: ArrayLike) -> None:
+        if self._n == len(self._a):
+            self._a = np.concatenate([self._a, np.zeros_like(self._a)])
+        self._a[self._n] = row
+        self._n += 1
+
+    def __len__(self) -> int:
+        return self._n
+
+    def __getitem__(self, i):  # noqa: ANN001, ANN204 (numpy indexing)
+        return self.view()[i]
+
+    def view(self) -> np.ndarray:
+        """The rows so far (a view: valid until the next append)."""
+        return self._a[: self._n]
+
+
 @dataclass
 class RobotKeyframes:
+    """One robot's admitted keyframes. Per keyframe only what the base station uses
+    later is kept (~2.3 kB for a 1081-beam scan): its scan (the protocol's uint16
+    millimetres: the map and the scan points for matching are made from it), stamp,
+    odometry pose and running variances in growable arrays. The whole keyframe is in
+    the database (basestation/persistence.py)."""
+
     robot_id: str
-    stamps: list[float] = field(default_factory=list)
-    poses_odom: list[np.ndarray] = field(default_factory=list)  # T_odom_base [x, y, z, yaw]
-    keyframes: list[Keyframe] = field(default_factory=list)
-    points: list[np.ndarray] = field(default_factory=list)  # (N, 2) body-frame scan points
-    var_cumsum: list[np.ndarray] = field(default_factory=list)  # running [var_xy, var_yaw]
+    stamps: Rows = field(default_factory=lambda: Rows(1))
+    poses_odom: Rows = field(default_factory=lambda: Rows(4))  # T_odom_base [x, y, z, yaw]
+    scans: list[Scan2D | None] = field(default_factory=list)
+    var_cumsum: Rows = field(default_factory=lambda: Rows(2))  # running [var_xy, var_yaw]
     held: dict[int, Keyframe] = field(default_factory=dict)
     duplicates: int = 0
 
@@ -37,9 +68,9 @@ class RobotKeyframes:
         swept over the (odometry) distance between them. Zero where i == j."""
         i, j = np.atleast_1d(i), np.atleast_1d(j)
         lo, hi = np.minimum(i, j), np.maximum(i, j)
-        cum = np.asarray(self.var_cumsum)
+        cum = self.var_cumsum.view()
         v = cum[hi] - cum[lo]
-        P = np.asarray(self.poses_odom)
+        P = self.poses_odom.view()
         d2 = np.sum((P[hi, :2] - P[lo, :2]) ** 2, axis=1)
         same = lo == hi
         var_xy = np.where(same, 0.0, v[:, 0] + 0.5 * v[:, 1] * d2 + 1e-6)
@@ -51,28 +82,48 @@ class RobotKeyframes:
 
     @property
     def next_seq(self) -> int:
-        return len(self.keyframes)
+        return len(self.scans)
 
 
-def scan_points(kf: Keyframe, voxel_m: float = 0.05) -> np.ndarray:
-    """A keyframe's returns as (N, 2) points in its body frame, one per voxel."""
-    if kf.scan2d is None:
-        return np.zeros((0, 2))
-    r = kf.scan2d.ranges()
-    a = kf.scan2d.angles()
+def scan_points(scan: Scan2D | None, voxel_m: float = 0.05) -> np.ndarray:
+    """A scan's returns as (N, 2) float32 points in its body frame (m), one per voxel."""
+    if scan is None:
+        return np.zeros((0, 2), dtype=np.float32)
+    r = scan.ranges()
+    a = scan.angles()
     ok = np.isfinite(r)
     pts = np.column_stack([r[ok] * np.cos(a[ok]), r[ok] * np.sin(a[ok])]).astype(np.float64)
     if len(pts) == 0:
         return pts
     keys = np.floor(pts / voxel_m).astype(np.int64)
     _, first = np.unique(keys[:, 0] * 1_000_003 + keys[:, 1], return_index=True)
-    return pts[np.sort(first)]
+    return pts[np.sort(first)].astype(np.float32)
 
 
 class KeyframeStore:
-    def __init__(self, reorder_window: int = 1000) -> None:
+    def __init__(self, reorder_window: int = 1000, points_cache: int = 3000) -> None:
+        """`points_cache`: keyframes whose scan points are kept (least recently used
+        dropped first); the others are made again from their scans when asked for."""
         self.reorder_window = reorder_window
+        self.points_cache = points_cache
         self.robots: dict[str, RobotKeyframes] = {}
+        self._points: OrderedDict[tuple[str, int], np.ndarray] = OrderedDict()
+        self.points_made = 0  # scan_points() calls (cache misses)
+
+    def points(self, robot_id: str, i: int) -> np.ndarray:
+        """Keyframe i's scan points, (N, 2) float32 in its body frame (m); read only."""
+        key = (robot_id, i)
+        pts = self._points.get(key)
+        if pts is not None:
+            self._points.move_to_end(key)
+            return pts
+        pts = scan_points(self.robots[robot_id].scans[i])
+        pts.flags.writeable = False  # shared with verification jobs
+        self.points_made += 1
+        self._points[key] = pts
+        while len(self._points) > self.points_cache:
+            self._points.popitem(last=False)
+        return pts
 
     def robot(self, robot_id: str) -> RobotKeyframes:
         if robot_id not in self.robots:
@@ -102,23 +153,22 @@ class KeyframeStore:
         while r.next_seq + len(ready) in r.held:
             ready.append(r.held.pop(r.next_seq + len(ready)))
         for k in ready:
-            if r.stamps and k.stamp < r.stamps[-1]:
+            if len(r.stamps) and k.stamp < r.stamps[-1, 0]:
                 log.warning(
                     "robot %s: keyframe %d stamp %.3f is before the previous one",
                     k.robot_id,
                     k.seq,
                     k.stamp,
                 )
-            r.stamps.append(k.stamp)
+            r.stamps.append([k.stamp])
             r.poses_odom.append(pose7_to_pose4(k.pose_odom))
-            r.points.append(scan_points(k))
             c = k.delta_cov
-            prev = r.var_cumsum[-1] if r.var_cumsum else np.zeros(2)
+            prev = r.var_cumsum[-1] if len(r.var_cumsum) else np.zeros(2)
             r.var_cumsum.append(
                 prev
                 + (np.zeros(2) if k.seq == 0 else np.array([0.5 * (c[0, 0] + c[1, 1]), c[5, 5]]))
             )
-            r.keyframes.append(k)
+            r.scans.append(k.scan2d)
         return ready
 
     def acked_seq(self, robot_id: str) -> int:

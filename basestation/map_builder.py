@@ -1,15 +1,26 @@
 """The global 2-D occupancy grid, rebuilt from keyframes at their optimized poses.
 
-New keyframes are inserted incrementally; when the optimizer moves keyframes
-already in the map by more than `pose_moved_m` / `pose_moved_rad`, only the region
-those keyframes cover (at their old and new poses) is re-rendered, from every
-keyframe that reaches into it, at the new poses.
+New keyframes are inserted incrementally. When the optimizer moves a keyframe already
+in the map by more than `pose_moved_m` / `pose_moved_rad`, the square tiles
+(`rerender_tile_m`) its rays can reach, at its old and at its new pose, are marked
+dirty. Dirty tiles are redrawn one at a time, each from scratch from every keyframe
+that reaches into it (in insertion order, at the current poses), most-moved tile
+first, within `rerender_budget_s` per `update`: a tile's redraw is resumable (it
+stops between two keyframes and goes on at the next update), so the caller's thread
+never spends O(all keyframes) at once however large the correction. A redrawn tile
+replaces the grid's cells only when complete. `finish()` completes every pending
+tile (the map written at shutdown is consistent with the final poses).
+
+Memory per keyframe: a reference to its scan (owned by the keyframe store), its
+current and last drawn pose and its reach (~70 bytes in numpy arrays).
 """
 
 from __future__ import annotations
 
 import logging
 import time
+from collections.abc import Sequence
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -21,103 +32,266 @@ from protocol.messages import Scan2D
 
 log = logging.getLogger(__name__)
 
+NodeKey = tuple[str, int]
+Tile = tuple[int, int]  # (column, row) of the tile lattice
+PAD = 3  # cells drawn around a tile but not pasted (see OccupancyGrid.paste)
+CHUNK = 512  # keyframes box-tested at once while redrawing a tile
+BATCH = 16  # keyframes drawn per kernel call while redrawing (the budget is checked between)
+
+
+def _geometry(scan: Scan2D) -> tuple[float, float, int, float]:
+    return (scan.angle_min, scan.angle_increment, scan.ranges_mm.size, scan.range_max)
+
+
+@dataclass
+class _TileJob:
+    """A tile being redrawn: `sub` holds the keyframes drawn so far (indices < next)."""
+
+    tile: Tile
+    sub: OccupancyGrid
+    next: int = 0
+    stale: float = 0.0  # > 0: keyframes drawn into it moved again (redraw it again)
+
 
 class MapBuilder:
     def __init__(self, cfg: MapConfig) -> None:
         self.cfg = cfg
         self.grid: OccupancyGrid | None = None
-        self._inserted: dict[tuple[str, int], np.ndarray] = {}  # key -> pose used
-        self._reach: dict[tuple[str, int], float] = {}  # key -> farthest ray end (m)
-        self.rerenders = 0
+        self._index: dict[NodeKey, int] = {}  # key -> row in the arrays below
+        self._scans: list[Scan2D] = []
+        self._pose = np.zeros((0, 3))  # latest pose given, [x, y, yaw] in map
+        self._drawn = np.zeros((0, 3))  # pose it was last drawn (or marked) at
+        self._reach = np.zeros(0, dtype=np.float32)  # farthest ray end (m)
+        self._n = 0
+        self._angles: dict[tuple[float, float, int], np.ndarray] = {}
+        self._anchor = np.zeros(2)  # world xy of the tile lattice's corner (0, 0)
+        self._tile_cells = max(int(round(cfg.rerender_tile_m / cfg.resolution_m)), 10)
+        self._dirty: dict[Tile, float] = {}  # tile -> largest move (m) since drawn
+        self._job: _TileJob | None = None
+        self.rerenders = 0  # tiles redrawn
         self.rerendered_cells = 0
+        self.rerender_draws = 0  # keyframe insertions spent redrawing tiles
         self.last_render_ms = 0.0
 
+    # --- keyframes ----------------------------------------------------------------------
     def _beams(self, scan: Scan2D) -> tuple[np.ndarray, np.ndarray]:
-        ranges = scan.ranges()
-        # Quantized 0 ("no return"): treat as a max-range beam that clears free space.
-        ranges[np.isnan(ranges)] = np.float32(scan.range_max)
-        return ranges, scan.angles()
+        """Ranges (m, float32; a no-return is a max-range beam that clears free space)
+        and angles (rad, sensor frame; shared by scans of one geometry)."""
+        mm = scan.ranges_mm
+        r = mm.astype(np.float32) * np.float32(1e-3)
+        r[mm == 0] = np.float32(scan.range_max)
+        geom = (scan.angle_min, scan.angle_increment, mm.size)
+        a = self._angles.get(geom)
+        if a is None:
+            a = self._angles.setdefault(geom, scan.angles())
+        return r, a
 
-    def _reach_of(self, key: tuple[str, int], scan: Scan2D) -> float:
-        if key not in self._reach:
-            r, _ = self._beams(scan)  # no-return beams clear up to max_free_range_m
-            r = np.where(r >= scan.range_max, np.minimum(r, self.cfg.max_free_range_m), r)
-            self._reach[key] = float(r.max(initial=0.0))
-        return self._reach[key]
+    def _reach_of(self, scan: Scan2D) -> float:
+        r, _ = self._beams(scan)  # no-return beams clear up to max_free_range_m
+        r = np.where(r >= scan.range_max, np.minimum(r, self.cfg.max_free_range_m), r)
+        return float(r.max(initial=0.0))
 
-    def _boxes(self, keys, scans, poses: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Per keyframe, the lower and upper corner of the box its rays can reach."""
-        reach = np.array([self._reach_of(k, s) for k, s in zip(keys, scans, strict=True)])
-        return poses[:, :2] - reach[:, None], poses[:, :2] + reach[:, None]
+    def _draw(self, grid: OccupancyGrid, idx: Sequence[int]) -> None:
+        """Draw keyframes `idx` into `grid` in order at their current poses; each run of
+        scans of one geometry in one kernel call."""
+        start = 0
+        while start < len(idx):
+            first = self._scans[idx[start]]
+            geom = _geometry(first)
+            end = start + 1
+            while end < len(idx) and _geometry(self._scans[idx[end]]) == geom:
+                end += 1
+            run = list(idx[start:end])
+            mm = np.stack([self._scans[i].ranges_mm for i in run])
+            r = mm.astype(np.float32) * np.float32(1e-3)
+            r[mm == 0] = np.float32(first.range_max)  # as in _beams
+            _, a = self._beams(first)
+            grid.insert_scans(
+                self._pose[run], r, a, 0.0, first.range_max,
+                max_free_range=self.cfg.max_free_range_m,
+            )  # fmt: skip
+            start = end
 
-    def _insert(self, grid: OccupancyGrid, scan: Scan2D, pose: np.ndarray) -> None:
-        r, a = self._beams(scan)
-        grid.insert_scan(pose, r, a, 0.0, scan.range_max, max_free_range=self.cfg.max_free_range_m)
+    def _append(self, keys: list[NodeKey], scans: list[Scan2D], poses: np.ndarray) -> None:
+        n, k = self._n, len(keys)
+        if n + k > len(self._pose):  # amortized growth
+            cap = max(2 * len(self._pose), n + k, 64)
+            for name in ("_pose", "_drawn", "_reach"):
+                old = getattr(self, name)
+                new = np.zeros((cap, *old.shape[1:]), dtype=old.dtype)
+                new[:n] = old[:n]
+                setattr(self, name, new)
+        for j, (key, scan) in enumerate(zip(keys, scans, strict=True)):
+            self._index[key] = n + j
+            self._scans.append(scan)
+            self._reach[n + j] = self._reach_of(scan)
+        self._pose[n : n + k] = self._drawn[n : n + k] = poses
+        self._n = n + k
 
-    def update(self, keys: list[tuple[str, int]], scans: list[Scan2D], poses: np.ndarray) -> bool:
-        """Bring the grid up to date with keyframes `keys` at `poses` ([x, y, yaw] in map).
+    # --- update -------------------------------------------------------------------------
+    def update(
+        self,
+        keys: list[NodeKey],
+        scans: list[Scan2D],
+        poses: np.ndarray,
+        budget_s: float | None = -1.0,
+    ) -> bool:
+        """Bring the grid up to date with keyframes `keys` at `poses` ([x, y, yaw] in map):
+        insert the new ones, mark the tiles of moved ones dirty, and redraw dirty tiles
+        for up to `budget_s` (s; -1: the config's `rerender_budget_s`; None: all).
 
-        Returns True if part of the grid was re-rendered because keyframes moved.
+        Returns True if keyframes already in the map moved (tiles were marked dirty).
         """
         if not keys:
             return False
         t0 = time.perf_counter()
-        poses = np.asarray(poses, dtype=np.float64)
-        lo, hi = self._boxes(keys, scans, poses)
+        poses = np.asarray(poses, dtype=np.float64).reshape(-1, 3)
+        new = [j for j, k in enumerate(keys) if k not in self._index]
+        n_old = self._n
+        if new:
+            self._append([keys[j] for j in new], [scans[j] for j in new], poses[new])
+        idx = np.fromiter((self._index[k] for k in keys), dtype=np.int64, count=len(keys))
+        self._pose[idx] = poses
+        lo, hi = self._boxes(slice(n_old, self._n))
         c = self.cfg
         if self.grid is None:
             self.grid = OccupancyGrid.from_bounds(
                 lo.min(axis=0) - 1.0, hi.max(axis=0) + 1.0, c.resolution_m,
                 p_hit=c.p_hit, p_miss=c.p_miss, p_min=c.p_min, p_max=c.p_max,
             )  # fmt: skip
-        else:
+            self._anchor = np.array(self.grid.origin_xy)
+        elif len(lo):
             self.grid.grow_to_include(lo.min(axis=0), hi.max(axis=0), 1.0)
-        old = np.array([k in self._inserted for k in keys])
-        moved = np.zeros(len(keys), dtype=bool)
-        if old.any():
-            before = np.array([self._inserted[k] for k, o in zip(keys, old, strict=True) if o])
-            i_old = np.flatnonzero(old)
-            d_xy = np.hypot(*(poses[i_old, :2] - before[:, :2]).T)
-            d_th = np.abs(wrap_angle(poses[i_old, 2] - before[:, 2]))
-            moved[i_old] = (d_xy > c.pose_moved_m) | (d_th > c.pose_moved_rad)
-        if moved.any():
-            self._rerender(keys, scans, poses, old, moved, lo, hi)
-        for i in np.flatnonzero(~old):
-            self._insert(self.grid, scans[i], poses[i])
-            self._inserted[keys[i]] = poses[i].copy()
+        moved = self._mark_moved(idx[idx < n_old])
+        for i in range(n_old, self._n, CHUNK):  # bounded temporaries after a recovery
+            self._draw(self.grid, range(i, min(i + CHUNK, self._n)))
+        self.work(None if budget_s is None else c.rerender_budget_s if budget_s < 0 else budget_s)
         self.last_render_ms = (time.perf_counter() - t0) * 1e3
         log.debug(
-            "map: %d new keyframes, %d moved, %.1f ms",
-            int((~old).sum()),
-            int(moved.sum()),
-            self.last_render_ms,
-        )
-        return bool(moved.any())
+            "map: %d new keyframes, %d moved, %d tiles pending, %.1f ms",
+            self._n - n_old, moved, self.pending, self.last_render_ms,
+        )  # fmt: skip
+        return moved > 0
 
-    def _rerender(self, keys, scans, poses, old, moved, lo, hi) -> None:
-        """Re-render the box covering the moved keyframes at their old and new poses."""
+    def _boxes(
+        self, rows: slice | np.ndarray, poses: np.ndarray | None = None
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Lower and upper corners (m) of the boxes the keyframes' rays can reach."""
+        p = self._pose[rows] if poses is None else poses
+        r = self._reach[rows][:, None]
+        return p[:, :2] - r, p[:, :2] + r
+
+    def _mark_moved(self, idx: np.ndarray) -> int:
+        """Mark dirty the tiles of keyframes `idx` that moved since drawn; returns #moved."""
+        c = self.cfg
+        d_xy = np.hypot(*(self._pose[idx, :2] - self._drawn[idx, :2]).T)
+        d_th = np.abs(wrap_angle(self._pose[idx, 2] - self._drawn[idx, 2]))
+        is_moved = (d_xy > c.pose_moved_m) | (d_th > c.pose_moved_rad)
+        moved = idx[is_moved]
+        if len(moved) == 0:
+            return 0
+        # how far its farthest ray end moved (m): the tile's priority
+        size = d_xy[is_moved] + d_th[is_moved] * self._reach[moved]
+        m = (PAD + 2) * c.resolution_m  # rays may reach a cell beyond their box
+        span = self._tile_cells * c.resolution_m
+        for poses in (self._drawn[moved], self._pose[moved]):
+            lo, hi = self._boxes(moved, poses)
+            t_lo = np.floor((lo - m - self._anchor) / span).astype(np.int64)
+            t_hi = np.floor((hi + m - self._anchor) / span).astype(np.int64)
+            for tx in range(int(t_lo[:, 0].min()), int(t_hi[:, 0].max()) + 1):
+                in_x = (t_lo[:, 0] <= tx) & (t_hi[:, 0] >= tx)
+                for ty in range(int(t_lo[:, 1].min()), int(t_hi[:, 1].max()) + 1):
+                    hit = in_x & (t_lo[:, 1] <= ty) & (t_hi[:, 1] >= ty)
+                    if hit.any():
+                        self._mark((tx, ty), float(size[hit].max()))
+        self._drawn[moved] = self._pose[moved]
+        return len(moved)
+
+    def _mark(self, tile: Tile, moved_m: float) -> None:
+        if self._job is not None and self._job.tile == tile:
+            self._job.stale = max(self._job.stale, moved_m)
+        else:
+            self._dirty[tile] = max(self._dirty.get(tile, 0.0), moved_m)
+
+    # --- tile redraws -------------------------------------------------------------------
+    @property
+    def pending(self) -> int:
+        """Tiles waiting to be redrawn (including the one in progress)."""
+        return len(self._dirty) + (self._job is not None)
+
+    def finish(self) -> None:
+        """Redraw every pending tile now (before writing the map)."""
+        self.work(None)
+
+    def work(self, budget_s: float | None) -> None:
+        """Redraw dirty tiles, most-moved first, for about `budget_s` (None: all). At
+        least one keyframe is drawn per call if any tile is pending."""
+        if self.grid is None:
+            return
+        deadline = None if budget_s is None else time.perf_counter() + budget_s
+        while self._job is not None or self._dirty:
+            if self._job is None:
+                tile = max(self._dirty, key=self._dirty.__getitem__)
+                del self._dirty[tile]
+                self._job = self._start(tile)
+            if not self._advance(self._job, deadline):
+                return
+            self._paste(self._job)
+            if self._job.stale > 0.0:
+                self._dirty[self._job.tile] = self._job.stale
+            self._job = None
+            if deadline is not None and time.perf_counter() >= deadline:
+                return
+
+    def _tile_cells_of(self, tile: Tile) -> tuple[int, int]:
+        """(row, col) of the tile's first cell in the grid's current lattice."""
         assert self.grid is not None
-        i_mov = np.flatnonzero(moved)
-        was = np.array([self._inserted[keys[i]][:2] for i in i_mov])
-        reach = (hi[i_mov] - lo[i_mov]) / 2.0
-        box_lo = np.minimum(lo[i_mov], was - reach).min(axis=0)
-        box_hi = np.maximum(hi[i_mov], was + reach).max(axis=0)
-        rows, cols = self.grid.region(box_lo, box_hi)
-        pad = 3  # cells drawn around the box but not pasted (see OccupancyGrid.paste)
-        h, w = self.grid.shape
+        res = self.cfg.resolution_m
+        off = np.rint((self._anchor - np.array(self.grid.origin_xy)) / res).astype(int)
+        return int(off[1]) + tile[1] * self._tile_cells, int(off[0]) + tile[0] * self._tile_cells
+
+    def _start(self, tile: Tile) -> _TileJob:
+        assert self.grid is not None
+        r0, c0 = self._tile_cells_of(tile)
+        t = self._tile_cells
         sub = self.grid.empty_like_region(
-            slice(max(rows.start - pad, 0), min(rows.stop + pad, h)),
-            slice(max(cols.start - pad, 0), min(cols.stop + pad, w)),
+            slice(r0 - PAD, r0 + t + PAD), slice(c0 - PAD, c0 + t + PAD)
         )
-        # every keyframe already drawn whose rays reach into the box is drawn again
-        m = (pad + 2) * self.cfg.resolution_m  # and rays may reach a cell beyond the box
-        touches = old & np.all(hi >= box_lo - m, axis=1) & np.all(lo <= box_hi + m, axis=1)
-        for i in np.flatnonzero(touches):
-            self._insert(sub, scans[i], poses[i])
-            self._inserted[keys[i]] = poses[i].copy()
-        self.grid.paste(rows, cols, sub)
+        return _TileJob(tile, sub)
+
+    def _advance(self, job: _TileJob, deadline: float | None) -> bool:
+        """Draw the keyframes reaching into the tile from `job.next` on; True when done."""
+        res = self.cfg.resolution_m
+        t_lo = self._anchor + np.array(job.tile) * self._tile_cells * res
+        t_hi = t_lo + self._tile_cells * res
+        m = (PAD + 2) * res
+        drew = False
+        while job.next < self._n:
+            rows = slice(job.next, min(self._n, job.next + CHUNK))
+            lo, hi = self._boxes(rows)
+            hits = np.all(hi >= t_lo - m, axis=1) & np.all(lo <= t_hi + m, axis=1)
+            todo = rows.start + np.flatnonzero(hits)
+            for b in range(0, len(todo), BATCH):
+                if drew and deadline is not None and time.perf_counter() >= deadline:
+                    job.next = int(todo[b])
+                    return False
+                self._draw(job.sub, todo[b : b + BATCH].tolist())
+                self.rerender_draws += len(todo[b : b + BATCH])
+                drew = True
+            job.next = rows.stop
+        return True
+
+    def _paste(self, job: _TileJob) -> None:
+        assert self.grid is not None
+        r0, c0 = self._tile_cells_of(job.tile)
+        h, w = self.grid.shape
+        t = self._tile_cells
+        rows = slice(min(max(r0, 0), h), min(max(r0 + t, 0), h))
+        cols = slice(min(max(c0, 0), w), min(max(c0 + t, 0), w))
+        if rows.stop > rows.start and cols.stop > cols.start:
+            self.grid.paste(rows, cols, job.sub)
+            self.rerendered_cells += (rows.stop - rows.start) * (cols.stop - cols.start)
         self.rerenders += 1
-        self.rerendered_cells += sub.shape[0] * sub.shape[1]
 
     def gridmap(self, free_thresh: float | None = None) -> GridMap | None:
         """The map_server view; `free_thresh` overrides the config's (exploration reads

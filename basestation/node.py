@@ -208,7 +208,8 @@ class BaseStationNode:
             if self.explorer is not None:
                 self.explorer.release(name)
         now = time.monotonic()
-        if self._map_dirty and now - self._last_map >= self.cfg.basestation.map_update_period_s:
+        redraw = self._map_dirty or self.map.pending  # tiles left from a correction
+        if redraw and now - self._last_map >= self.cfg.basestation.map_update_period_s:
             self.refresh_map()
             self._last_map = now
         with self._lock:
@@ -231,7 +232,7 @@ class BaseStationNode:
             self._take_batch(0.0)
         if self.slam.integrate_constraints():
             self._optimized()
-        if self._map_dirty:
+        if self._map_dirty or self.map.pending:
             self.refresh_map()
             self._last_map = time.monotonic()
         grid = self.map.gridmap()
@@ -356,7 +357,12 @@ class BaseStationNode:
             )
 
     def refresh_map(self) -> None:
-        self.map.update(*self.slam.map_keyframes())
+        """New keyframes into the grid, and up to `map.rerender_budget_s` of redrawing
+        the tiles a correction moved (the rest at the next refreshes)."""
+        if self._map_dirty:
+            self.map.update(*self.slam.map_keyframes())
+        else:
+            self.map.work(self.cfg.map.rerender_budget_s)
         self._map_dirty = False
 
     def drain(self, timeout_s: float | None = None) -> None:
@@ -404,14 +410,18 @@ class BaseStationNode:
                 "planner_grid_fallbacks": self.explorer.planner.fallbacks,
             },
             "clock_syncs": self.syncs,
-            "map_rerenders": self.map.rerenders,
+            "map_rerenders": self.map.rerenders,  # tiles redrawn
             "map_rerendered_cells": self.map.rerendered_cells,
+            "map_rerender_draws": self.map.rerender_draws,  # keyframes drawn into them
+            "map_rerender_pending": self.map.pending,
         }
 
     def write_outputs(self, out_dir: str | Path) -> None:
         out = Path(out_dir)
         out.mkdir(parents=True, exist_ok=True)
+        self._map_dirty = True
         self.refresh_map()
+        self.map.finish()  # the written map is drawn at the final poses everywhere
         trajs = self.slam.trajectories()
         for rid, traj in trajs.items():
             write_tum(out / "trajectories" / f"{rid}.tum", traj, wgs84_origin=self.wgs84_origin)

@@ -22,10 +22,10 @@ keyframe counts and the map accuracy (summary.json).
 "Memory flat": `rss_growth_mb_per_min_second_half` is the slope of a straight
 line fitted to the base station's RSS over the second half of the mission
 (`mission_wall_s`: from the first sim tick the bench sees to the simulator's exit;
-process start-up, imports and tour planning come before it). The pose graph keeps every
-keyframe (its scan and the points used for matching), so the base station must
-grow with the keyframes; `rss_mb_per_1000_keyframes_second_half` gives that
-slope per keyframe for comparison.
+process start-up, imports and tour planning come before it). The base station keeps every
+keyframe's scan (2.2 kB) and its node in iSAM2, so it must grow with the keyframes;
+`rss_mb_per_1000_keyframes_second_half` gives that slope per keyframe for comparison
+(docs/architecture.md "Soak benchmark" has the measured numbers).
 """
 
 from __future__ import annotations

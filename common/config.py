@@ -225,6 +225,13 @@ class MapConfig:
     max_free_range_m: float = 10.0  # m, no-return beams clear free space up to here
     pose_moved_m: float = 0.02  # m: a keyframe that moved more than this forces a re-render
     pose_moved_rad: float = 0.005  # rad: likewise for heading
+    # Re-rendering after a correction (basestation/map_builder.py) redraws the moved region
+    # tile by tile (square tiles of this side, m; a multiple of resolution_m), most-moved
+    # tile first, spending at most rerender_budget_s of the base station's main thread per
+    # map refresh; the rest continues at the next refreshes. The map written at shutdown
+    # finishes every pending tile.
+    rerender_tile_m: float = 12.0  # m (8: 1.7x the CPU of 12 for a full redraw; 16: 0.9x)
+    rerender_budget_s: float = 0.1  # s wall per map refresh
 
 
 @dataclass
@@ -316,6 +323,9 @@ class BaseStationConfig:
     map_update_period_s: float = 2.0  # s wall between global map refreshes
     batch_max: int = 200  # keyframes per processing batch
     reorder_window: int = 1000  # out-of-order keyframes held per robot waiting for a gap
+    # Keyframes whose scan points (for matching, ~5 kB each) stay in memory, most recently
+    # used first; older ones are made again from their scans (~0.1 ms) when asked for.
+    scan_points_cache: int = 3000
     known_start_poses: bool = True  # use the scenario's start poses (false: find by matching)
     # Keyframe intake pauses while more candidates than this wait for verification
     # (0: never). Acks then wait too, which paces a log replay to what the verifier

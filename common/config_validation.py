@@ -88,6 +88,12 @@ def _validate_map(cfg: Config) -> None:
         _prob(f"map.{key}", getattr(cfg.map, key))
     if not cfg.map.p_miss < 0.5 < cfg.map.p_hit:
         raise ConfigError("map.p_hit / map.p_miss: expected p_miss < 0.5 < p_hit")
+    _positive("map.rerender_tile_m", cfg.map.rerender_tile_m)
+    if cfg.map.rerender_budget_s < 0.0:
+        raise ConfigError("map.rerender_budget_s: expected a value >= 0")
+    if cfg.map.rerender_tile_m < 10 * cfg.map.resolution_m:
+        raise ConfigError("map.rerender_tile_m: expected at least 10 cells (10 x resolution_m)")
+    _positive("basestation.scan_points_cache", cfg.basestation.scan_points_cache)
 
 
 def _validate_agent(cfg: Config) -> None:

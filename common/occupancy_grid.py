@@ -183,6 +183,31 @@ def _cast_scan(
             fl[k] = _OBSERVED if f != 0 else 0
 
 
+@njit(cache=True)
+def _cast_scans(
+    log_odds: np.ndarray,
+    flags: np.ndarray,
+    poses_cells: np.ndarray,
+    inv_res: float,
+    ranges: np.ndarray,
+    angles: np.ndarray,
+    range_min: float,
+    range_max: float,
+    free_range: float,
+    l_hit: float,
+    l_miss: float,
+    l_min: float,
+    l_max: float,
+) -> None:
+    """`_cast_scan` for each row of `ranges` (k, N), in order; poses_cells (k, 3):
+    sensor [u0, v0] in cell units and yaw."""
+    for k in range(ranges.shape[0]):
+        _cast_scan(
+            log_odds, flags, poses_cells[k, 0], poses_cells[k, 1], poses_cells[k, 2], inv_res,
+            ranges[k], angles, range_min, range_max, free_range, l_hit, l_miss, l_min, l_max,
+        )  # fmt: skip
+
+
 class OccupancyGrid:
     """A growable log-odds occupancy grid (probabilities clamped to [p_min, p_max])."""
 
@@ -309,6 +334,43 @@ class OccupancyGrid:
             np.float32(self._l_min),
             np.float32(self._l_max),
         )
+
+    def insert_scans(
+        self,
+        T_map_sensor: ArrayLike,
+        ranges: ArrayLike,
+        angles: ArrayLike,
+        range_min: float,
+        range_max: float,
+        max_free_range: float | None = None,
+    ) -> None:
+        """`insert_scan` for k scans of one geometry at once, in order (one call into
+        the kernel): poses (k, 3) [x, y, yaw], ranges (k, N) in m, angles (N,)."""
+        poses = np.asarray(T_map_sensor, dtype=np.float64).reshape(-1, 3)
+        r = np.ascontiguousarray(ranges, dtype=np.float32)
+        a = np.ascontiguousarray(angles, dtype=np.float32)
+        if not np.all(np.isfinite(poses)):
+            raise CollabSlamError("T_map_sensor must be finite [x, y, yaw] rows")
+        if r.ndim != 2 or r.shape != (len(poses), a.size) or a.ndim != 1:
+            raise CollabSlamError(
+                f"expected ranges ({len(poses)}, N) and angles (N,), got {r.shape}, {a.shape}"
+            )
+        if not 0.0 <= range_min < range_max:
+            raise CollabSlamError(
+                f"expected 0 <= range_min < range_max, got {range_min}, {range_max}"
+            )
+        free_range = range_max if max_free_range is None else min(range_max, max_free_range)
+        inv_res = 1.0 / self._resolution
+        cells = np.column_stack(
+            [(poses[:, 0] - self._origin[0]) * inv_res, (poses[:, 1] - self._origin[1]) * inv_res,
+             poses[:, 2]]
+        )  # fmt: skip
+        _cast_scans(
+            self._log_odds, self._flags, cells, inv_res, r, a,
+            float(range_min), float(range_max), float(free_range),
+            np.float32(self._l_hit), np.float32(self._l_miss),
+            np.float32(self._l_min), np.float32(self._l_max),
+        )  # fmt: skip
 
     def grow_to_include(self, min_xy: ArrayLike, max_xy: ArrayLike, margin: float) -> None:
         """Make the grid cover the box [min_xy, max_xy] (m), keeping its content.

@@ -218,3 +218,21 @@ def test_validation() -> None:
     with pytest.raises(CollabSlamError, match="range_min"):
         grid.insert_scan([0, 0, 0], np.ones(3), np.ones(3), 5.0, 1.0)
     assert OccupancyGrid.from_bounds((0.0, 0.0), (1.0, 0.55), 0.1).shape == (6, 10)
+
+
+def test_insert_scans_equals_scans_inserted_one_by_one() -> None:
+    rng = np.random.default_rng(5)
+    k, n = 6, 181
+    poses = np.column_stack([rng.uniform(1, 4, k), rng.uniform(1, 4, k), rng.uniform(-3, 3, k)])
+    ranges = rng.uniform(0.5, 6.0, (k, n)).astype(np.float32)
+    ranges[rng.random((k, n)) < 0.1] = 8.0  # no return: clears up to max_free_range
+    angles = np.linspace(-np.pi, np.pi, n, endpoint=False, dtype=np.float32)
+    one, many = _grid(), _grid()
+    for p, r in zip(poses, ranges, strict=True):
+        one.insert_scan(p, r, angles, 0.1, 8.0, max_free_range=5.0)
+    many.insert_scans(poses, ranges, angles, 0.1, 8.0, max_free_range=5.0)
+    assert one.observed.sum() > 1000
+    np.testing.assert_array_equal(many.log_odds, one.log_odds)
+    np.testing.assert_array_equal(many.observed, one.observed)
+    with pytest.raises(CollabSlamError):
+        many.insert_scans(poses[:2], ranges, angles, 0.1, 8.0)

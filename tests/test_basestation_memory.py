@@ -1,0 +1,121 @@
+"""Base-station memory by size (tracemalloc, no timing): what a keyframe costs in the
+keyframe store, that scan points are a bounded cache, and that nothing grows while no
+new keyframe arrives (robots hovering: states and resent duplicates only)."""
+
+from __future__ import annotations
+
+import gc
+import json
+import time
+import tracemalloc
+
+import numpy as np
+
+from basestation.keyframe_store import KeyframeStore, scan_points
+from basestation.node import BaseStationNode
+from common.bus import Bus
+from common.config import Config
+from common.geometry import pose4_to_pose7, se2_compose
+from protocol import Keyframe, RobotState, Scan2D
+
+BEAMS = 1081  # the simulated lidar's
+
+
+def _keyframe(robot: str, seq: int, pose: np.ndarray, delta: np.ndarray) -> Keyframe:
+    angles = np.linspace(-0.75 * np.pi, 0.75 * np.pi, BEAMS)
+    ranges = 3.0 + 0.5 * np.sin(3 * angles + 0.1 * seq)
+    return Keyframe(
+        robot,
+        seq,
+        0.5 * seq,
+        pose4_to_pose7([pose[0], pose[1], 1.0, pose[2]]),
+        pose4_to_pose7([delta[0], delta[1], 0.0, delta[2]]),
+        np.diag([4e-4, 4e-4, 1e-4, 1e-4, 1e-4, 1e-4]),
+        Scan2D.from_ranges(angles[0], angles[1] - angles[0], 30.0, ranges),
+        None,
+    )
+
+
+def _tour(robot: str, n: int, step: float = 0.2) -> list[Keyframe]:
+    """Back and forth along a 4 m line, 0.2 m apart (keyframe_distance_m)."""
+    out, T = [], np.zeros(3)
+    for k in range(n):
+        d = np.zeros(3) if k == 0 else np.array([step, 0.0, np.pi if k % 20 == 0 else 0.0])
+        T = se2_compose(T, d)
+        out.append(_keyframe(robot, k, T, d))
+    return out
+
+
+def test_store_keeps_scans_and_a_bounded_points_cache() -> None:
+    store = KeyframeStore(points_cache=100)
+    tracemalloc.start()
+    before = tracemalloc.get_traced_memory()[0]
+    kfs = _tour("r0", 600)
+    for kf in kfs:
+        assert len(store.admit(kf)) == 1
+    scan0 = kfs[0].scan2d
+    del kf, kfs  # what the store keeps of them stays
+    per_kf = (tracemalloc.get_traced_memory()[0] - before) / 600
+    tracemalloc.stop()
+    # the uint16 scan (2 x 1081 bytes) and a few hundred bytes; no Keyframe object, no
+    # float64 scan points (before: ~14 kB per keyframe)
+    assert 2 * BEAMS < per_kf < 2 * BEAMS + 500, per_kf
+    r = store.robot("r0")
+    assert r.next_seq == 600 and r.scans[0] is scan0
+    first = store.points("r0", 0)
+    assert first.dtype == np.float32 and first.shape[1] == 2 and not first.flags.writeable
+    for i in range(600):
+        store.points("r0", i)
+    assert len(store._points) == 100 and store.points_made == 600
+    again = store.points("r0", 0)  # evicted: made again from the scan, same points
+    assert store.points_made == 601
+    np.testing.assert_array_equal(again, first)
+    np.testing.assert_array_equal(again, scan_points(scan0))
+    assert store.points("r0", 0) is again and store.points_made == 601  # cached now
+
+
+def _settle(node: BaseStationNode) -> None:
+    """Let the verification worker finish its jobs (their memory is in flight) and
+    take its results in."""
+    for _ in range(600):
+        if node.slam.idle():
+            break
+        time.sleep(0.05)
+    assert node.slam.idle()
+    node.step(timeout=0.0)
+
+
+def test_node_does_not_grow_while_no_keyframe_arrives(cfg: Config, endpoint: str) -> None:
+    cfg.zenoh.listen = [endpoint]
+    cfg.basestation.map_update_period_s = 0.0
+    kfs = _tour("r0", 120)
+    with Bus(cfg.zenoh, cfg.fleet) as bus:
+        node = BaseStationNode(cfg, bus, None)
+        for k in range(0, len(kfs), 20):
+            node.process(kfs[k : k + 20])
+            node.refresh_map()
+        node.map.finish()
+        state = RobotState("r0", 60.0, "holding", node.epoch, 120, 119, 0, kfs[-1].pose_odom,
+                           kfs[-1].pose_odom)  # fmt: skip
+        _settle(node)
+        tracemalloc.start()  # before the warm-up: what it frees must be counted too
+        for _ in range(50):  # warm up caches (logging, zenoh publishers, exploration)
+            node._on_state(state, "")
+            node.process([kfs[-1]])
+            node.step(timeout=0.0)
+        _settle(node)
+        gc.collect()
+        before = tracemalloc.get_traced_memory()[0]
+        for _ in range(500):  # hovering: states and resent (duplicate) keyframes only
+            node._on_state(state, "")
+            node.process([kfs[-1]])
+            node.step(timeout=0.0)
+        _settle(node)
+        gc.collect()
+        grown = tracemalloc.get_traced_memory()[0] - before
+        tracemalloc.stop()
+        assert node.slam.store.robot("r0").duplicates == 550
+        assert node.slam.graph.num_nodes("r0") == 120
+        node.drain(1.0)
+        json.dumps(node.stats())  # plain numbers
+    assert abs(grown) < 8_000, grown  # nothing per step (a leak: >= 500 x 32 B)

@@ -1,4 +1,5 @@
-"""Helpers for the tests that run real base-station processes with a SQLite record."""
+"""Helpers for the base-station tests: synthetic keyframes, and real base-station
+processes with a SQLite record."""
 
 from __future__ import annotations
 
@@ -7,7 +8,31 @@ import time
 from collections.abc import Callable
 from pathlib import Path
 
+import numpy as np
+
 from collabslam.supervisor import Child, ProcessGroup
+from common.geometry import pose4_to_pose7
+from protocol import Keyframe, Scan2D
+
+
+def synthetic_keyframe(
+    robot: str, seq: int, pose: np.ndarray, delta: np.ndarray, beams: int = 91,
+    fov: float = np.pi, base_range: float = 2.0, ripple: float = 0.1, phase: float = 1.0,
+) -> Keyframe:  # fmt: skip
+    """A keyframe at `pose` [x, y, yaw] (odom, 1 m up) after `delta`, 0.5 s per seq,
+    whose scan (`beams` over `fov` rad) is base_range + ripple * sin(3 a + phase * seq)."""
+    angles = np.linspace(-0.5 * fov, 0.5 * fov, beams)
+    ranges = base_range + ripple * np.sin(3 * angles + phase * seq)
+    return Keyframe(
+        robot,
+        seq,
+        0.5 * seq,
+        pose4_to_pose7([pose[0], pose[1], 1.0, pose[2]]),
+        pose4_to_pose7([delta[0], delta[1], 0.0, delta[2]]),
+        np.diag([4e-4, 4e-4, 1e-4, 1e-4, 1e-4, 1e-4]),
+        Scan2D.from_ranges(angles[0], angles[1] - angles[0], 30.0, ranges),
+        None,
+    )
 
 
 def stored_keyframes(db: Path) -> int:

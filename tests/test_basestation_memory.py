@@ -10,30 +10,20 @@ import time
 import tracemalloc
 
 import numpy as np
+from process_helpers import synthetic_keyframe
 
 from basestation.keyframe_store import KeyframeStore, scan_points
 from basestation.node import BaseStationNode
 from common.bus import Bus
 from common.config import Config
-from common.geometry import pose4_to_pose7, se2_compose
-from protocol import Keyframe, RobotState, Scan2D
+from common.geometry import se2_compose
+from protocol import Keyframe, RobotState
 
 BEAMS = 1081  # the simulated lidar's
 
 
 def _keyframe(robot: str, seq: int, pose: np.ndarray, delta: np.ndarray) -> Keyframe:
-    angles = np.linspace(-0.75 * np.pi, 0.75 * np.pi, BEAMS)
-    ranges = 3.0 + 0.5 * np.sin(3 * angles + 0.1 * seq)
-    return Keyframe(
-        robot,
-        seq,
-        0.5 * seq,
-        pose4_to_pose7([pose[0], pose[1], 1.0, pose[2]]),
-        pose4_to_pose7([delta[0], delta[1], 0.0, delta[2]]),
-        np.diag([4e-4, 4e-4, 1e-4, 1e-4, 1e-4, 1e-4]),
-        Scan2D.from_ranges(angles[0], angles[1] - angles[0], 30.0, ranges),
-        None,
-    )
+    return synthetic_keyframe(robot, seq, pose, delta, BEAMS, 1.5 * np.pi, 3.0, 0.5, 0.1)
 
 
 def _tour(robot: str, n: int, step: float = 0.2) -> list[Keyframe]:

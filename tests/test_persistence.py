@@ -8,6 +8,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from process_helpers import synthetic_keyframe
 
 from basestation.global_slam import GlobalSlam
 from basestation.node import BaseStationNode
@@ -16,24 +17,13 @@ from basestation.persistence import Batch, KeyframeDatabase, NullDatabase, open_
 from common.bus import Bus
 from common.config import Config
 from common.errors import PersistenceError
-from common.geometry import pose4_to_pose7, se2_compose
-from protocol import Keyframe, Scan2D, encode
+from common.geometry import se2_compose
+from protocol import Keyframe, encode
 from protocol import Path as PathMsg
 
 
 def _keyframe(robot: str, seq: int, pose: np.ndarray, delta: np.ndarray) -> Keyframe:
-    angles = np.linspace(-np.pi / 2, np.pi / 2, 91)
-    ranges = 2.0 + 0.1 * np.sin(3 * angles + seq)
-    return Keyframe(
-        robot,
-        seq,
-        0.5 * seq,
-        pose4_to_pose7([pose[0], pose[1], 1.0, pose[2]]),
-        pose4_to_pose7([delta[0], delta[1], 0.0, delta[2]]),
-        np.diag([4e-4, 4e-4, 1e-4, 1e-4, 1e-4, 1e-4]),
-        Scan2D.from_ranges(-np.pi / 2, np.pi / 90, 30.0, ranges),
-        None,
-    )
+    return synthetic_keyframe(robot, seq, pose, delta)
 
 
 def _square_keyframes(robot: str, start: np.ndarray, n: int) -> list[Keyframe]:

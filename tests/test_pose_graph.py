@@ -16,7 +16,6 @@ from common.errors import CollabSlamError
 from common.g2o_io import read_g2o
 from common.geometry import se2_between, se2_compose, wrap_angle
 
-G2O_DIR = Path(__file__).parents[2] / "shared/data/g2o"
 ODO_COV = np.diag([0.05**2, 0.05**2, 0.01**2])  # m^2, m^2, rad^2
 LC_COV = np.diag([0.1**2, 0.1**2, 0.02**2])
 
@@ -224,11 +223,11 @@ def test_robot_alphabet_is_bounded() -> None:
         graph.add_robot("one_too_many", None)
 
 
-def _feed_m3500(graph: PoseGraph, n_nodes: int, n_robots: int) -> int:
+def _feed_m3500(graph: PoseGraph, m3500: Path, n_nodes: int, n_robots: int) -> int:
     """Feed an M3500 prefix node by node, cut into one chain per robot (the bench's
     split, robot 0 at the file's first vertex, the others floating until an edge
     links them), one update per node. Returns the number of inter-robot constraints."""
-    feed = split_g2o(read_g2o(G2O_DIR / "M3500.g2o"), n_nodes,
+    feed = split_g2o(read_g2o(m3500), n_nodes,
                      [f"r{k}" for k in range(n_robots)], known_starts=False)  # fmt: skip
     for robot, start in feed.starts.items():
         graph.add_robot(robot, start)
@@ -242,11 +241,10 @@ def _feed_m3500(graph: PoseGraph, n_nodes: int, n_robots: int) -> int:
     return inter_robot
 
 
-@pytest.mark.skipif(not G2O_DIR.is_dir(), reason=f"shared g2o data folder {G2O_DIR} is absent")
 @pytest.mark.parametrize("n_robots", [1, 3])
-def test_incremental_m3500_prefix_matches_batch(n_robots: int) -> None:
+def test_incremental_m3500_prefix_matches_batch(n_robots: int, shared_data: Path) -> None:
     graph = PoseGraph()
-    inter_robot = _feed_m3500(graph, n_nodes=900, n_robots=n_robots)
+    inter_robot = _feed_m3500(graph, shared_data / "g2o/M3500.g2o", n_nodes=900, n_robots=n_robots)
     assert graph.num_nodes() == 900
     assert (inter_robot > 0) == (n_robots > 1)
     batch = batch_optimize(graph, start="current")
@@ -257,15 +255,14 @@ def test_incremental_m3500_prefix_matches_batch(n_robots: int) -> None:
         assert batch_optimize(graph, start="guess").chi2 == pytest.approx(batch.chi2, rel=1e-3)
 
 
-@pytest.mark.skipif(not G2O_DIR.is_dir(), reason=f"shared g2o data folder {G2O_DIR} is absent")
-def test_base_station_settings_match_batch_and_reorder() -> None:
+def test_base_station_settings_match_batch_and_reorder(shared_data: Path) -> None:
     """The shipped iSAM2 settings (relinearize_skip, adaptive re-ordering, no change
     tracking) stay as accurate as batch LM; a low reorder threshold really re-orders."""
     b = Config().basestation
     assert not b.track_changes
     b.adaptive_reorder_threshold = 1.05  # re-order often on a short prefix
     graph = PoseGraph.from_config(b)
-    feed = split_g2o(read_g2o(G2O_DIR / "M3500.g2o"), 600)
+    feed = split_g2o(read_g2o(shared_data / "g2o/M3500.g2o"), 600)
     for robot, start in feed.starts.items():
         graph.add_robot(robot, start)
     reorders = 0

@@ -41,7 +41,7 @@ from pathlib import Path
 from typing import Any
 
 from benchmarks.fault_injection import Replayer, bad_payloads
-from collabslam.launcher import Launcher, make_scenario
+from collabslam.launcher import Launcher, agent_command, make_scenario
 from collabslam.summary import build_summary
 from collabslam.supervisor import Child, ProcessGroup
 from common.bus import Bus, endpoint
@@ -165,18 +165,13 @@ def run_faulted(
         agents = [
             g.spawn(
                 r.robot_id,
-                [
-                    "agent",
-                    *m.common,
-                    "--robot-id",
+                agent_command(
+                    m.common,
                     r.robot_id,
-                    "--connect",
                     m.sim_ep,
-                    "--connect",
                     m.relays[r.robot_id].endpoint,
-                    "--connect",
                     endpoint(tap_port),
-                ],
+                ),
             )  # fmt: skip
             for r in m.scenario.robots
         ]

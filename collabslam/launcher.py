@@ -32,6 +32,18 @@ from simulation.world import World, resolve_world
 log = logging.getLogger(__name__)
 
 
+def agent_command(common: list[str], robot_id: str, *connect: str) -> list[str]:
+    """`collabslam agent` arguments for one robot (`common`: --config/--out/... options)
+    connecting to each of the `connect` endpoints."""
+    return [
+        "agent",
+        *common,
+        "--robot-id",
+        robot_id,
+        *(a for ep in connect for a in ("--connect", ep)),
+    ]
+
+
 def make_scenario(cfg: Config, world_yaml: Path, n_robots: int) -> Scenario:
     world = World.load(str(world_yaml))
     if cfg.sim.start_apart:
@@ -103,19 +115,7 @@ class Launcher:
                 ],
             )
             agents = [
-                g.spawn(
-                    r.robot_id,
-                    [
-                        "agent",
-                        *common,
-                        "--robot-id",
-                        r.robot_id,
-                        "--connect",
-                        sim_ep,
-                        "--connect",
-                        base_ep,
-                    ],
-                )
+                g.spawn(r.robot_id, agent_command(common, r.robot_id, sim_ep, base_ep))
                 for r in scenario.robots
             ]
             self._supervise_until(sim, [base, *agents])

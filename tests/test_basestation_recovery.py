@@ -16,7 +16,7 @@ from pathlib import Path
 import pytest
 from process_helpers import stored_keyframes, wait_for
 
-from collabslam.launcher import make_scenario
+from collabslam.launcher import agent_command, make_scenario
 from collabslam.summary import build_summary
 from collabslam.supervisor import ProcessGroup, free_port
 from common.bus import endpoint
@@ -53,19 +53,7 @@ def test_basestation_killed_and_restarted_loses_nothing(tmp_path: Path) -> None:
         sim_args = ["sim", *common, "--listen", sim_ep, "--connect", base_ep]
         sim = g.spawn("sim", [*sim_args, "--max-sim-time", "600"])
         agents = [
-            g.spawn(
-                r.robot_id,
-                [
-                    "agent",
-                    *common,
-                    "--robot-id",
-                    r.robot_id,
-                    "--connect",
-                    sim_ep,
-                    "--connect",
-                    base_ep,
-                ],
-            )  # fmt: skip
+            g.spawn(r.robot_id, agent_command(common, r.robot_id, sim_ep, base_ep))
             for r in scenario.robots
         ]
         for kill in range(2):  # killed and restarted once, then run on a little

@@ -44,6 +44,16 @@ def stored_keyframes(db: Path) -> int:
         return 0
 
 
+def poll_until(pred: Callable[[], bool], timeout: float = 20.0) -> bool:
+    """Poll `pred` every 50 ms; whether it became true within `timeout` s."""
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if pred():
+            return True
+        time.sleep(0.05)
+    return False
+
+
 def wait_for(
     pred: Callable[[], bool], timeout: float, what: str, group: ProcessGroup, running: list[Child]
 ) -> None:

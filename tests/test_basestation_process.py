@@ -9,11 +9,11 @@ import signal
 import subprocess
 import sys
 import threading
-import time
 from pathlib import Path
 
 import msgpack
 import numpy as np
+from process_helpers import poll_until
 
 from common.bus import Bus
 from common.config import ZenohConfig
@@ -36,15 +36,6 @@ def _keyframe(seq: int, robot: str = "r0", x: float | None = None) -> Keyframe:
         Scan2D.from_ranges(-np.pi / 2, np.pi / 180, 30.0, ranges),
         None,
     )
-
-
-def _wait(pred, timeout: float = 20.0) -> bool:
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        if pred():
-            return True
-        time.sleep(0.05)
-    return False
 
 
 def test_basestation_survives_bad_input_and_acks_valid(tmp_path: Path, endpoint: str) -> None:
@@ -89,7 +80,7 @@ def test_basestation_survives_bad_input_and_acks_valid(tmp_path: Path, endpoint:
             )
             alive: list[str] = []
             bus.watch_alive("basestation", lambda n, a: alive.append(n) if a else None)
-            assert _wait(lambda: alive), "base station never came alive"
+            assert poll_until(lambda: alive), "base station never came alive"
             key = bus.keys.robot("r0", "keyframe")
             good = encode(_keyframe(0))
             env = msgpack.unpackb(good, raw=False)
@@ -110,8 +101,8 @@ def test_basestation_survives_bad_input_and_acks_valid(tmp_path: Path, endpoint:
             # valid keyframes, out of order and duplicated
             for seq in (0, 2, 1, 1, 3, 4):
                 bus.publish(key, _keyframe(seq))
-            assert _wait(lambda: acks and acks[-1] == 4), f"acks seen: {acks}"
-            assert _wait(lambda: len(corrections) > 0)
+            assert poll_until(lambda: acks and acks[-1] == 4), f"acks seen: {acks}"
+            assert poll_until(lambda: len(corrections) > 0)
             T = corrections[-1].T_map_odom
             assert np.allclose(T[:2], [1.0, 2.0], atol=1e-3)  # known start pose
             assert proc.poll() is None, "base station died on bad input"

@@ -3,22 +3,12 @@ leave, forgets a lost agent's state and releases its exploration goal."""
 
 from __future__ import annotations
 
-import time
-
 import numpy as np
+from process_helpers import poll_until
 
 from basestation.node import BaseStationNode
 from common.bus import Bus
 from common.config import Config, ZenohConfig
-
-
-def _wait(pred, timeout: float = 15.0) -> bool:
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        if pred():
-            return True
-        time.sleep(0.05)
-    return False
 
 
 def test_lost_agent_releases_its_goal(cfg: Config, endpoint: str) -> None:
@@ -32,11 +22,11 @@ def test_lost_agent_releases_its_goal(cfg: Config, endpoint: str) -> None:
         node.explorer.restore_task("r1", np.array([[0.0, 0.0], [-3.0, 1.0]]))
         agent = Bus(ZenohConfig(connect=[endpoint]), cfg.fleet)
         agent.declare_alive("agent", "r0")
-        assert _wait(lambda: node.links.get("r0", {}).get("joins") == 1)
+        assert poll_until(lambda: node.links.get("r0", {}).get("joins") == 1)
         node.step()
         assert "r0" in node.explorer.tasks  # alive: keeps its goal
         agent.close()
-        assert _wait(lambda: node.links["r0"]["losses"] == 1)
+        assert poll_until(lambda: node.links["r0"]["losses"] == 1)
         node.step()
         assert "r0" not in node.explorer.tasks and "r1" in node.explorer.tasks
         assert node.stats()["links"]["r0"] == {"joins": 1, "losses": 1}

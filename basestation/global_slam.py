@@ -75,6 +75,7 @@ class GlobalSlam:
         self._false_rng = np.random.default_rng(self.cc.false_match_seed)
         self._global_map: tuple[object, list[np.ndarray], list[np.ndarray]] | None = None
         self._last_candidate: dict[tuple[str, str], int] = {}  # (robot, target robot) -> index
+        self._together: dict[str, frozenset[str]] = {}  # robot -> its map's robots, last search
         self._unsaved: list[Keyframe] = []  # admitted since the last take_journal()
 
     # --- keyframes ----------------------------------------------------------------------
@@ -141,6 +142,7 @@ class GlobalSlam:
             self.optimize()
         self.optimize()
         self._new_nodes.clear()  # their candidates were searched before the crash
+        self._together = {r: frozenset(c) for c in self.graph.components() for r in c}
         self.take_journal()  # all of it is on disk already
         accepted = self.loops.accepted
         differ = sum(c.in_graph != (c.measurement.id in accepted) for c in rec.constraints)
@@ -234,11 +236,15 @@ class GlobalSlam:
         return [(rid, j) for j in range(max(0, i - k), min(n, i + k + 1))]
 
     def search_constraints(self) -> None:
-        """Queue verification jobs for the nodes added since the last call."""
+        """Queue verification jobs for the nodes added since the last call, and for the
+        earlier nodes of robots whose maps have just been joined (see `_backfill`)."""
         new, self._new_nodes = self._new_nodes, []
-        if self.builder is None or not new:
+        if self.builder is None:
             return
         components = self.graph.components()
+        joined = self._newly_joined(components)
+        if not new and not joined:
+            return
         comp_of = {r: c for c in components for r in c}
         poses = {r: self.graph.poses(r) for r in self.graph.robots() if r in comp_of}
         links = self.loops.pending_links()
@@ -255,6 +261,44 @@ class GlobalSlam:
                     self._submit_candidates(key, hyp, [*comp_of[other], key[0]], query, "inter")
             if not self.graph.is_anchored(key[0]) and key[1] % self.cc.global_search_every == 0:
                 self._submit_global(key, poses)
+        for a, b in joined:
+            self._backfill(a, b, poses)
+
+    def _newly_joined(self, components: list[list[str]]) -> list[tuple[str, str]]:
+        """Pairs of robots that had nodes at the last search, each in a different map
+        then and in one map now (the pair's robot with fewer nodes first)."""
+        before, self._together = self._together, {r: frozenset(c) for c in components for r in c}
+        pairs = []
+        for comp in components:
+            for i, a in enumerate(comp):
+                for b in comp[i + 1 :]:
+                    if a in before and b in before and b not in before[a]:
+                        n_a, n_b = self.graph.num_nodes(a), self.graph.num_nodes(b)
+                        pairs.append((a, b) if n_a <= n_b else (b, a))
+        return pairs
+
+    def _backfill(self, robot: str, other: str, poses: dict[str, np.ndarray]) -> None:
+        """Inter-robot candidates for the nodes ``robot`` added before its map and
+        ``other``'s were joined. New nodes are searched against the robots of their own
+        map only, so without this the part of a chain flown before the join (a robot
+        with an unknown start: everything before its first verified match) would never
+        be tied to the places the other robot saw too, and would hang on its odometry
+        alone. Every `candidate_stride`-th node with a candidate, thinned evenly to at
+        most `backfill_max_candidates`."""
+        found = []
+        for i in range(0, len(poses[robot]), self.cc.candidate_stride):
+            key = (robot, i)
+            found += [(key, t) for _, t in find_candidates(self.cc, key, poses, [other])]
+        n = self.cc.backfill_max_candidates
+        keep = np.unique(np.linspace(0, len(found) - 1, n).astype(int)) if found else []
+        chosen = [found[k] for k in keep]
+        for key, target in chosen:
+            query = self._query(key, self._neighbours(key, 1), poses)
+            self._submit_match("inter", key, target, poses, query)
+        log.info(
+            "maps of %s and %s joined: %d earlier nodes of %s queued against %s",
+            robot, other, len(chosen), robot, other,
+        )  # fmt: skip
 
     def _submit_candidates(
         self,
@@ -269,14 +313,26 @@ class GlobalSlam:
             if (only and kind != only) or key[1] - last < self.cc.candidate_stride:
                 continue
             self._last_candidate[(key[0], target[0])] = key[1]
-            k = self.cc.target_neighbours
-            scans, origins = self._points_in(target, self._neighbours(target, k), poses)
-            guess = se2_between(poses[target[0]][target[1]], poses[key[0]][key[1]])
-            q_points, q_origins, n_own = query
-            self.builder.submit(
-                Job(kind, target, key, guess, scans, q_points, origins, n_own,
-                    in_node_frames=True, query_origins=q_origins)
-            )  # fmt: skip
+            self._submit_match(kind, key, target, poses, query)
+
+    def _submit_match(
+        self,
+        kind: str,
+        key: NodeKey,
+        target: NodeKey,
+        poses: dict[str, np.ndarray],
+        query: tuple[list[np.ndarray], list[np.ndarray], int],
+    ) -> None:
+        """Queue the verification of node ``key`` (``query``: its scan and neighbours, as
+        `_query` gives them) against ``target`` and its `target_neighbours`."""
+        k = self.cc.target_neighbours
+        scans, origins = self._points_in(target, self._neighbours(target, k), poses)
+        guess = se2_between(poses[target[0]][target[1]], poses[key[0]][key[1]])
+        q_points, q_origins, n_own = query
+        self.builder.submit(
+            Job(kind, target, key, guess, scans, q_points, origins, n_own,
+                in_node_frames=True, query_origins=q_origins)
+        )  # fmt: skip
 
     @staticmethod
     def _hypothesis(

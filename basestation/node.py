@@ -328,7 +328,6 @@ class BaseStationNode:
             admitted += self.slam.admit(kf)
         if admitted:
             self._optimized()  # persists the batch before any ack below
-            self.slam.search_constraints()
         for rid in touched:  # ack admitted and duplicate keyframes alike
             acked = self.slam.store.acked_seq(rid)
             if acked >= 0:
@@ -340,6 +339,7 @@ class BaseStationNode:
         self.slam.optimize()
         self._map_dirty = True
         self.publish_corrections()
+        self.slam.search_constraints()  # new nodes, and nodes of maps just joined
 
     def publish_corrections(self) -> None:
         self.epoch += 1

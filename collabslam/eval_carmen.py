@@ -72,6 +72,8 @@ def eval_carmen(
     b = cfg.basestation
     b.pause_intake_backlog = b.pause_intake_backlog or 20
     b.drain_timeout_s = max(b.drain_timeout_s, 600.0)
+    # agents wait for every ack too (a loaded machine may be minutes behind the log)
+    cfg.agent.drain_timeout_s = max(cfg.agent.drain_timeout_s, 600.0)
     dump_config(cfg, out / "config.toml")
     ep = endpoint(free_port())
     group = ProcessGroup(out, log_level)

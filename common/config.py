@@ -248,6 +248,9 @@ class ConstraintConfig:
     global_map_rebuild_nodes: int = 200  # rebuild the whole-map search target this often
     global_query_keyframes: int = 20  # recent keyframes matched against the map at once
     candidate_stride: int = 3  # keyframes of a robot between candidates against one robot
+    # When two robots' maps are joined, the earlier nodes of the one with fewer nodes are
+    # searched against the other (every candidate_stride-th with a candidate), at most this many.
+    backfill_max_candidates: int = 200
     target_neighbours: int = 3  # keyframes on each side of the target node form its "submap"
     linear_window_m: float = 1.5  # m, correlative search half-width around the guess
     angular_window_deg: float = 30.0  # deg

@@ -170,6 +170,7 @@ def _validate_backend(b: BaseStationConfig) -> None:
             "global_map_rebuild_nodes",
             "global_query_keyframes",
             "candidate_stride",
+            "backfill_max_candidates",
             "search_radius_m",
             "global_search_every",
             "min_consistent_to_merge",

@@ -5,8 +5,8 @@ builder (candidate search + verification worker) and the loop-closure manager
 (PCM + robust factors). The node around it only moves messages.
 
 Anchoring: a robot with a known start pose is tied to the map there. Without
-any known start, the first robot to send a keyframe defines the map frame
-(its odom frame at its first keyframe). Every other robot's chain floats in its
+any known start, ``basestation.map_frame_robot`` (or else the first robot to send
+a keyframe) defines the map frame (its odom frame at its first keyframe). Every other robot's chain floats in its
 own frame until verified inter-robot constraints join it to the map; until
 then it gets no correction and is left out of the map.
 
@@ -163,11 +163,10 @@ class GlobalSlam:
                 log.info("robot %s starts georeferenced at its latest GNSS fix", rid)
             elif start is None and rid in self.start_headings:
                 log.warning("robot %s: no GNSS fix before its first keyframe, it floats", rid)
-            elif start is None and not self.known_starts and not self.start_headings:
-                if not self.graph.robots():
-                    start = np.zeros(3)  # the first robot defines the map frame
-                    self.known_starts[rid] = start
-                    log.info("robot %s defines the map frame", rid)
+            elif start is None and self._defines_map(rid):
+                start = np.zeros(3)
+                self.known_starts[rid] = start
+                log.info("robot %s defines the map frame", rid)
             self.graph.add_robot(rid, start, start_sigmas)
             self.graph.add_node(rid, 0, None, None, initial_guess=start, stamp=stamp)
             for fix in self._early_fixes.pop(rid, []):  # fixes older than the node drop
@@ -181,6 +180,14 @@ class GlobalSlam:
             cov = kf.delta_cov[np.ix_([0, 1, 5], [0, 1, 5])]
             self.graph.add_node(rid, kf.seq, delta, cov, stamp=stamp)
         self._new_nodes.append((rid, kf.seq))
+
+    def _defines_map(self, rid: str) -> bool:
+        """Whether a robot's first node, with no start pose known, defines `map`: without
+        any known start, `basestation.map_frame_robot` or else the first robot to send."""
+        if self.known_starts or self.start_headings:
+            return False
+        chosen = self.cfg.basestation.map_frame_robot
+        return rid == chosen if chosen else not self.graph.robots()
 
     def _node_stamp(self, kf: Keyframe) -> float:
         """The keyframe's stamp, nudged past its predecessor's if time went backwards

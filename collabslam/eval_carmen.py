@@ -69,7 +69,9 @@ def eval_carmen(
     # verifier keeps up with (the base station delays acks, the agents wait), as a
     # live run at sensor rate would be, instead of dropping candidates.
     cfg.exploration.enabled = False  # replayed robots fly nothing
+    # the first segment defines `map`, whichever agent's first keyframe arrives first
     b = cfg.basestation
+    b.map_frame_robot = b.map_frame_robot or "seg0"
     b.pause_intake_backlog = b.pause_intake_backlog or 20
     b.drain_timeout_s = max(b.drain_timeout_s, 600.0)
     # agents wait for every ack too (a loaded machine may be minutes behind the log)

@@ -330,6 +330,9 @@ class BaseStationConfig:
     # used first; older ones are made again from their scans (~0.1 ms) when asked for.
     scan_points_cache: int = 3000
     known_start_poses: bool = True  # use the scenario's start poses (false: find by matching)
+    # With no known start at all, this robot's first keyframe defines `map` (its odom frame
+    # there); the others float until matched to it. Empty: whichever robot sends first.
+    map_frame_robot: str = ""
     # Keyframe intake pauses while more candidates than this wait for verification
     # (0: never). Acks then wait too, which paces a log replay to what the verifier
     # keeps up with; live robots keep flying and their outboxes hold the keyframes.

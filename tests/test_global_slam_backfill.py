@@ -87,9 +87,7 @@ def test_nodes_flown_before_a_join_are_matched_against_the_other_robot() -> None
 
     group = slam.loops.groups[("a", "b")]
     early = [
-        m
-        for i, m in group.measurements.items()
-        if i in slam.loops.accepted and m.index_b < n - 11
+        m for i, m in group.measurements.items() if i in slam.loops.accepted and m.index_b < n - 11
     ]
     assert len(early) >= 5, f"only {len(early)} accepted matches on b's earlier nodes"
     for m in early:  # each agrees with the truth

@@ -178,3 +178,21 @@ def test_trajectory_composed_from_intel_relations_scores_zero(
     assert result.n_relations == len(tree) > 1000
     assert result.trans_err_mean_m < 1e-9
     assert result.rot_err_mean_deg < 1e-7
+
+
+def test_eval_scores_only_relations_within_robots_on_the_map() -> None:
+    from collabslam.eval_carmen import on_map_relations
+
+    # robots on the map flew 0-10 s and 20-30 s; the one between never joined
+    parts = [
+        se2_trajectory(np.arange(0.0, 10.01, 0.5), np.zeros((21, 3))),
+        se2_trajectory(np.arange(20.0, 30.01, 0.5), np.zeros((21, 3))),
+    ]
+    rel = Relations(
+        np.array([1.0, 9.0, 12.0, 5.0, 21.0]),
+        np.array([2.0, 21.0, 13.0, 15.0, 29.0]),
+        np.zeros((5, 3)),
+    )
+    kept = on_map_relations(rel, parts)
+    np.testing.assert_array_equal(kept.t1, [1.0, 9.0, 21.0])
+    np.testing.assert_array_equal(kept.t2, [2.0, 21.0, 29.0])

@@ -259,6 +259,10 @@ class ConstraintConfig:
     robust_kernel: str = "huber"  # huber | cauchy | none
     robust_k: float = 1.345
     pcm_chi2: float = 11.345  # chi2(3 dof, 0.99): pairwise consistency threshold
+    # Matches per robot pair (or robot's loops) PCM keeps and tests a new one against; one
+    # leaving this window keeps its state (accepted: stays in the graph). Bounds PCM's
+    # consistency matrix to pcm_window^2 float64 per pair (80 kB at 100).
+    pcm_window: int = 100
     min_consistent_to_merge: int = 3  # consistent matches needed to join two robots' maps
     merge_min_spread_m: float = 2.0  # m between the places those matches were seen from
     global_search_every: int = 5  # keyframes of an unanchored robot between global searches

@@ -177,6 +177,7 @@ def _validate_backend(b: BaseStationConfig) -> None:
             "angular_window_deg",
             "max_corr_dist_m",
             "pcm_chi2",
+            "pcm_window",
             "robust_k",
         ),
     )

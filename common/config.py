@@ -330,6 +330,10 @@ class BaseStationConfig:
     # Keyframes whose scan points (for matching, ~5 kB each) stay in memory, most recently
     # used first; older ones are made again from their scans (~0.1 ms) when asked for.
     scan_points_cache: int = 3000
+    # With a database (db_path): keyframes whose scans (2.2 kB each) stay in memory, most
+    # recently used first; older ones are read back from the database (~35 us) when a
+    # loop closure or a map redraw needs them. Without a database all stay in memory.
+    scan_cache: int = 5000
     known_start_poses: bool = True  # use the scenario's start poses (false: find by matching)
     # Keyframe intake pauses while more candidates than this wait for verification
     # (0: never). Acks then wait too, which paces a log replay to what the verifier

@@ -450,6 +450,8 @@ class GlobalSlam:
             "isam2_update_ms_p95": float(np.percentile(upd, 95)),
             "isam2_update_ms_series": self.update_series.to_json(),
             **self.loops.counts(),
+            "pcm": self.loops.pcm_stats(),
+            "scans": self.store.scan_archive.stats(),
         }
         failed = 0
         if self.builder is not None:

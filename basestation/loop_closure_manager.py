@@ -189,6 +189,15 @@ class LoopClosureManager:
             out.append(g.measurements[max(g.measurements)])
         return out
 
+    def pcm_stats(self) -> dict[str, int]:
+        """Groups, matches in their PCM windows (largest), matches settled out of them."""
+        windows = [len(g.pcm.measurements) for g in self.groups.values()]
+        return {
+            "groups": len(windows),
+            "largest_window": max(windows, default=0),
+            "settled": sum(g.pcm.settled for g in self.groups.values()),
+        }
+
     def counts(self) -> dict[str, int]:
         loops = sum(1 for i in self.accepted if self.kinds[i] == "loop")
         false = sum(1 for k in self.kinds.values() if k == "false")

@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import sqlite3
 import threading
+import time
 from collections import OrderedDict
 from collections.abc import Sequence
 from pathlib import Path
@@ -38,6 +39,7 @@ class ScanReader:
         self._connections: list[sqlite3.Connection] = []
         self._lock = threading.Lock()
         self.reads = 0  # scans read so far
+        self.read_s = 0.0  # s spent reading them
 
     def _connection(self) -> sqlite3.Connection:
         con = getattr(self._local, "con", None)
@@ -56,19 +58,21 @@ class ScanReader:
     def read(self, keys: Sequence[NodeKey]) -> list[Scan2D | None]:
         """The scans of keyframes `keys` (committed ones; None: a keyframe without a scan).
         Raises PersistenceError if one is not in the database or cannot be decoded."""
+        t0 = time.perf_counter()
         con = self._connection()
         out: list[Scan2D | None] = []
         for rid, seq in keys:
-            row = con.execute(
+            rows = con.execute(  # fetchall: the statement ends, no read snapshot stays open
                 "SELECT payload FROM keyframes WHERE robot_id = ? AND seq = ?", (rid, seq)
-            ).fetchone()
-            if row is None:
+            ).fetchall()
+            if not rows:
                 raise PersistenceError(f"{self.path}: keyframe {rid}/{seq} is not stored")
             try:
-                out.append(decode_field(row[0], Keyframe, "scan2d"))
+                out.append(decode_field(rows[0][0], Keyframe, "scan2d"))
             except ProtocolError as exc:
                 raise PersistenceError(f"{self.path}: keyframe {rid}/{seq}: {exc}") from None
         self.reads += len(keys)
+        self.read_s += time.perf_counter() - t0
         return out
 
     def close(self) -> None:
@@ -138,3 +142,10 @@ class ScanArchive:
     def reads(self) -> int:
         """Scans read back from the database so far."""
         return 0 if self.reader is None else self.reader.reads
+
+    def stats(self) -> dict[str, float]:
+        return {
+            "in_memory": self.in_memory,
+            "read_back": self.reads,
+            "read_s": 0.0 if self.reader is None else round(self.reader.read_s, 3),
+        }

@@ -28,6 +28,7 @@ from protocol.codec import decode_field
 from protocol.messages import Scan2D
 
 NodeKey = tuple[str, int]  # (robot_id, seq)
+MAX_PARAMS = 500  # seqs per query (SQLite allows 999 parameters in old builds)
 
 
 class ScanReader:
@@ -56,21 +57,34 @@ class ScanReader:
         return con
 
     def read(self, keys: Sequence[NodeKey]) -> list[Scan2D | None]:
-        """The scans of keyframes `keys` (committed ones; None: a keyframe without a scan).
-        Raises PersistenceError if one is not in the database or cannot be decoded."""
+        """The scans of keyframes `keys` (committed ones; None: a keyframe without a scan),
+        one query per robot. Raises PersistenceError if one is not in the database or
+        cannot be decoded."""
         t0 = time.perf_counter()
         con = self._connection()
-        out: list[Scan2D | None] = []
+        by_robot: dict[str, list[int]] = {}
         for rid, seq in keys:
-            rows = con.execute(  # fetchall: the statement ends, no read snapshot stays open
-                "SELECT payload FROM keyframes WHERE robot_id = ? AND seq = ?", (rid, seq)
-            ).fetchall()
-            if not rows:
-                raise PersistenceError(f"{self.path}: keyframe {rid}/{seq} is not stored")
-            try:
-                out.append(decode_field(rows[0][0], Keyframe, "scan2d"))
-            except ProtocolError as exc:
-                raise PersistenceError(f"{self.path}: keyframe {rid}/{seq}: {exc}") from None
+            by_robot.setdefault(rid, []).append(seq)
+        found: dict[NodeKey, Scan2D | None] = {}
+        for rid, seqs in by_robot.items():
+            for i in range(0, len(seqs), MAX_PARAMS):
+                part = seqs[i : i + MAX_PARAMS]
+                rows = con.execute(  # fetchall: the statement ends, no snapshot stays open
+                    "SELECT seq, payload FROM keyframes WHERE robot_id = ? AND seq IN "
+                    f"({', '.join('?' * len(part))})",
+                    (rid, *part),
+                ).fetchall()
+                for seq, payload in rows:
+                    try:
+                        found[(rid, seq)] = decode_field(payload, Keyframe, "scan2d")
+                    except ProtocolError as exc:
+                        raise PersistenceError(
+                            f"{self.path}: keyframe {rid}/{seq}: {exc}"
+                        ) from None
+        try:
+            out = [found[key] for key in keys]
+        except KeyError as exc:
+            raise PersistenceError(f"{self.path}: keyframe {exc} is not stored") from None
         self.reads += len(keys)
         self.read_s += time.perf_counter() - t0
         return out

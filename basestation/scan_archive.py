@@ -105,11 +105,16 @@ class ScanArchive:
         self.capacity = capacity
         self._unsaved: dict[NodeKey, Scan2D | None] = {}  # not committed yet: kept
         self._cache: OrderedDict[NodeKey, Scan2D | None] = OrderedDict()
+        self._all: dict[str, list[Scan2D | None]] = {}  # without a reader: robot -> by seq
 
     def add(self, key: NodeKey, scan: Scan2D | None) -> None:
-        """A newly admitted keyframe's scan (kept until `saved`)."""
+        """A newly admitted keyframe's scan (kept until `saved`); keyframes of a robot
+        are added in seq order from 0."""
         if self.reader is None:
-            self._cache[key] = scan
+            scans = self._all.setdefault(key[0], [])
+            if key[1] != len(scans):
+                raise KeyError(f"scan {key} added out of order (expected seq {len(scans)})")
+            scans.append(scan)
         else:
             self._unsaved[key] = scan
 
@@ -121,6 +126,8 @@ class ScanArchive:
 
     def get(self, keys: Sequence[NodeKey]) -> list[Scan2D | None]:
         """The scans of admitted keyframes `keys` (None: a keyframe without a scan)."""
+        if self.reader is None:
+            return [self._all[rid][seq] for rid, seq in keys]
         out: list[Scan2D | None] = []
         missing: list[int] = []
         for n, key in enumerate(keys):
@@ -133,8 +140,6 @@ class ScanArchive:
                 out.append(None)
                 missing.append(n)
         if missing:
-            if self.reader is None:
-                raise KeyError(f"no scan for keyframe {keys[missing[0]]}")
             wanted = [keys[n] for n in missing]
             for n, key, scan in zip(missing, wanted, self.reader.read(wanted), strict=True):
                 out[n] = scan
@@ -150,7 +155,7 @@ class ScanArchive:
     @property
     def in_memory(self) -> int:
         """Scans held in memory now."""
-        return len(self._unsaved) + len(self._cache)
+        return len(self._unsaved) + len(self._cache) + sum(map(len, self._all.values()))
 
     @property
     def reads(self) -> int:

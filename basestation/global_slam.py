@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import logging
 import time
+from collections.abc import Sequence
 from typing import Any
 
 import numpy as np
@@ -33,12 +34,14 @@ from basestation.loop_closure_manager import LoopClosureManager
 from basestation.pcm import LoopMeasurement
 from basestation.persistence import Batch, Recovered, StoredConstraint
 from basestation.pose_graph import PoseGraph
+from basestation.scan_archive import ScanArchive, ScanReader
 from basestation.update_series import UpdateSeries
 from common.config import Config
 from common.errors import CollabSlamError
 from common.geometry import quat_to_yaw, se2_between, se2_compose, se2_inverse, se2_transform_points
 from common.trajectory_io import Trajectory
 from protocol import Keyframe
+from protocol.messages import Scan2D
 
 log = logging.getLogger(__name__)
 
@@ -51,13 +54,15 @@ class GlobalSlam:
         cfg: Config,
         known_starts: dict[str, np.ndarray] | None = None,
         start_headings: dict[str, float] | None = None,  # rad in ENU, GPS only
+        scan_reader: ScanReader | None = None,  # old scans from the database; None: in RAM
     ) -> None:
         self.cfg = cfg
         b = cfg.basestation
         self.gps_enabled = b.gps.enabled
         self.gps_fixes_ignored = 0  # fixes of robots not (yet) anchored by a known start
         self.graph = PoseGraph.from_config(b)
-        self.store = KeyframeStore(b.reorder_window, b.scan_points_cache)
+        scans = ScanArchive(scan_reader, b.scan_cache)
+        self.store = KeyframeStore(b.reorder_window, b.scan_points_cache, scans)
         self.known_starts = dict(known_starts or {})
         # robots started at a given map pose (not the first robot defining map): GPS-able
         self._georeferenced = set(self.known_starts)
@@ -112,6 +117,10 @@ class GlobalSlam:
         self._unsaved = []
         return batch
 
+    def saved(self, batch: Batch) -> None:
+        """`batch` (from take_journal) is committed: its scans may leave memory."""
+        self.store.saved([(k.robot_id, k.seq) for k in batch.keyframes])
+
     def restore(self, rec: Recovered) -> None:
         """Rebuild the graph from the database: keyframes and stored matches are replayed
         through the same admission path and the same loop-closure manager (PCM), batch by
@@ -127,6 +136,7 @@ class GlobalSlam:
             for kf in kfs.get(b, []):
                 if self.admit(kf) == 0:
                     log.error("stored keyframe %s/%d was not admitted", kf.robot_id, kf.seq)
+            self.saved(Batch(kfs.get(b, [])))  # on disk already
             if b not in cons:
                 continue
             self.optimize()
@@ -458,20 +468,20 @@ class GlobalSlam:
         T_odom_base = self.store.robot(rid).poses_odom[idx][[0, 1, 3]]
         return se2_compose(self.graph.pose(rid, idx), se2_inverse(T_odom_base))
 
-    def map_keyframes(self) -> tuple[list[NodeKey], list[Any], np.ndarray]:
-        """Keyframes of robots on the map, with scans and optimized poses."""
-        keys, scans, poses = [], [], []
+    def map_keyframes(self) -> tuple[list[NodeKey], Sequence[Scan2D], np.ndarray]:
+        """Keyframes of robots on the map that have a scan, their scans (fetched when
+        indexed: memory or database) and optimized poses."""
+        keys: list[NodeKey] = []
+        poses = []
         for rid, r in self.store.robots.items():
             n = self.graph.num_nodes(rid) if rid in self.graph.robots() else 0
             if n == 0 or not self.graph.is_anchored(rid):
                 continue
-            est = self.graph.poses(rid)
-            for i in range(n):
-                if r.scans[i] is not None:
-                    keys.append((rid, i))
-                    scans.append(r.scans[i])
-                    poses.append(est[i])
-        return keys, scans, np.array(poses).reshape(-1, 3)
+            idx = np.flatnonzero(np.frombuffer(r.has_scan, dtype=np.uint8)[:n])
+            keys.extend((rid, int(i)) for i in idx)
+            poses.append(self.graph.poses(rid)[idx])
+        P = np.concatenate(poses) if poses else np.zeros((0, 3))
+        return keys, KeyframeScans(self.store, keys), P
 
     def trajectories(self) -> dict[str, Trajectory]:
         out = {}
@@ -503,6 +513,8 @@ class GlobalSlam:
             "isam2_update_ms_p95": float(np.percentile(upd, 95)),
             "isam2_update_ms_series": self.update_series.to_json(),
             **self.loops.counts(),
+            "pcm": self.loops.pcm_stats(),
+            "scans": self.store.scan_archive.stats(),
         }
         failed = 0
         if self.builder is not None:
@@ -513,3 +525,21 @@ class GlobalSlam:
         if self.gps_enabled:
             out["gps"] = {**self.graph.gps_stats(), "fixes_ignored": self.gps_fixes_ignored}
         return out
+
+
+class KeyframeScans(Sequence[Scan2D]):
+    """The scans of `keys`, read from the keyframe store when indexed (not held here)."""
+
+    def __init__(self, store: KeyframeStore, keys: list[NodeKey]) -> None:
+        self._store = store
+        self._keys = keys
+
+    def __len__(self) -> int:
+        return len(self._keys)
+
+    def __getitem__(self, i):  # noqa: ANN001, ANN204 (int or slice)
+        if isinstance(i, slice):
+            return self._store.scans(self._keys[i])
+        scan = self._store.scan(*self._keys[i])
+        assert scan is not None  # map_keyframes lists keyframes with a scan only
+        return scan

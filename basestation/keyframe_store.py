@@ -15,6 +15,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import ArrayLike
 
+from basestation.scan_archive import NodeKey, ScanArchive
 from common.geometry import pose7_to_pose4
 from protocol.messages import Keyframe, Scan2D
 
@@ -49,15 +50,15 @@ class Rows:
 @dataclass
 class RobotKeyframes:
     """One robot's admitted keyframes. Per keyframe only what the base station uses
-    later is kept (~2.3 kB for a 1081-beam scan): its scan (the protocol's uint16
-    millimetres: the map and the scan points for matching are made from it), stamp,
-    odometry pose and running variances in growable arrays. The whole keyframe is in
-    the database (basestation/persistence.py)."""
+    later is kept (~75 bytes): stamp, odometry pose and running variances in growable
+    arrays, and whether it has a scan. The scans (the protocol's uint16 millimetres:
+    the map and the scan points for matching are made from them) are in the store's
+    `ScanArchive`, the whole keyframe in the database (basestation/persistence.py)."""
 
     robot_id: str
     stamps: Rows = field(default_factory=lambda: Rows(1))
     poses_odom: Rows = field(default_factory=lambda: Rows(4))  # T_odom_base [x, y, z, yaw]
-    scans: list[Scan2D | None] = field(default_factory=list)
+    has_scan: bytearray = field(default_factory=bytearray)  # 1: the keyframe has a scan
     var_cumsum: Rows = field(default_factory=lambda: Rows(2))  # running [var_xy, var_yaw]
     held: dict[int, Keyframe] = field(default_factory=dict)
     duplicates: int = 0
@@ -82,7 +83,7 @@ class RobotKeyframes:
 
     @property
     def next_seq(self) -> int:
-        return len(self.scans)
+        return len(self.stamps)
 
 
 def scan_points(scan: Scan2D | None, voxel_m: float = 0.05) -> np.ndarray:
@@ -101,11 +102,16 @@ def scan_points(scan: Scan2D | None, voxel_m: float = 0.05) -> np.ndarray:
 
 
 class KeyframeStore:
-    def __init__(self, reorder_window: int = 1000, points_cache: int = 3000) -> None:
+    def __init__(
+        self, reorder_window: int = 1000, points_cache: int = 3000,
+        scans: ScanArchive | None = None,
+    ) -> None:  # fmt: skip
         """`points_cache`: keyframes whose scan points are kept (least recently used
-        dropped first); the others are made again from their scans when asked for."""
+        dropped first); the others are made again from their scans when asked for.
+        `scans`: where the scans are kept (None: an archive holding all in memory)."""
         self.reorder_window = reorder_window
         self.points_cache = points_cache
+        self.scan_archive = ScanArchive() if scans is None else scans
         self.robots: dict[str, RobotKeyframes] = {}
         self._points: OrderedDict[tuple[str, int], np.ndarray] = OrderedDict()
         self.points_made = 0  # scan_points() calls (cache misses)
@@ -117,13 +123,25 @@ class KeyframeStore:
         if pts is not None:
             self._points.move_to_end(key)
             return pts
-        pts = scan_points(self.robots[robot_id].scans[i])
+        pts = scan_points(self.scan(robot_id, i))
         pts.flags.writeable = False  # shared with verification jobs
         self.points_made += 1
         self._points[key] = pts
         while len(self._points) > self.points_cache:
             self._points.popitem(last=False)
         return pts
+
+    def scan(self, robot_id: str, i: int) -> Scan2D | None:
+        """Keyframe i's scan (None: it has none)."""
+        return self.scans([(robot_id, i)])[0]
+
+    def scans(self, keys: list[NodeKey]) -> list[Scan2D | None]:
+        """The scans of admitted keyframes `keys` (memory or database)."""
+        return self.scan_archive.get(keys)
+
+    def saved(self, keys: list[NodeKey]) -> None:
+        """These keyframes are committed to the database (their scans may leave memory)."""
+        self.scan_archive.saved(keys)
 
     def robot(self, robot_id: str) -> RobotKeyframes:
         if robot_id not in self.robots:
@@ -168,7 +186,8 @@ class KeyframeStore:
                 prev
                 + (np.zeros(2) if k.seq == 0 else np.array([0.5 * (c[0, 0] + c[1, 1]), c[5, 5]]))
             )
-            r.scans.append(k.scan2d)
+            r.has_scan.append(k.scan2d is not None)
+            self.scan_archive.add((k.robot_id, k.seq), k.scan2d)
         return ready
 
     def acked_seq(self, robot_id: str) -> int:

@@ -5,7 +5,9 @@ Every verified match becomes a measurement in the group of its robot pair
 largest pairwise-consistent set is updated (incremental PCM, Mangelson et al.
 2018, see `basestation.pcm.IncrementalPcm`):
 measurements in it enter iSAM2 with a robust kernel; a measurement that drops
-out of it is removed from the graph again. Two robots whose maps are not yet
+out of it is removed from the graph again. Each group keeps only its last
+`pcm_window` matches (PCM's sliding window): an older match's state is final and
+its record is dropped here (an accepted one keeps its factor). Two robots whose maps are not yet
 connected are joined only when `min_consistent_to_merge` mutually consistent
 matches from places at least `merge_min_spread_m` apart agree, so one lucky
 match (and the matches it leads to nearby) cannot fuse two maps.
@@ -90,7 +92,8 @@ class LoopClosureManager:
         self.journal.append((m, kind))
         group = self.groups.get((a[0], b[0]))
         if group is None:
-            group = self.groups[(a[0], b[0])] = _Group(IncrementalPcm(self.cfg.pcm_chi2))
+            pcm = IncrementalPcm(self.cfg.pcm_chi2, window=self.cfg.pcm_window)
+            group = self.groups[(a[0], b[0])] = _Group(pcm)
         group.measurements[m.id] = m
         poses: dict[str, np.ndarray] = {}
 
@@ -105,6 +108,7 @@ class LoopClosureManager:
             return T[0], C[0]
 
         consistent = group.pcm.add(m, odometry, batch)
+        self._settle(group)
         log.debug(
             "match %d (%s) %s:%d -> %s:%d at %s: %d of %d consistent, in: %s",
             m.id, kind, m.robot_a, m.index_a, m.robot_b, m.index_b,
@@ -112,6 +116,16 @@ class LoopClosureManager:
             m.id in consistent,
         )  # fmt: skip
         self._reconcile(group, consistent)
+
+    def _settle(self, group: _Group) -> None:
+        """Forget the matches that left the group's PCM window: their state is final (an
+        accepted one keeps its factor in the graph, and its id in `accepted`)."""
+        if len(group.measurements) <= group.pcm.window:
+            return
+        window = group.pcm.ids
+        for mid in [i for i in group.measurements if i not in window]:
+            del group.measurements[mid]
+            group.in_graph.pop(mid, None)
 
     def _reconcile(self, group: _Group, consistent: set[int]) -> None:
         m0 = next(iter(group.measurements.values()))
@@ -174,6 +188,15 @@ class LoopClosureManager:
                 continue
             out.append(g.measurements[max(g.measurements)])
         return out
+
+    def pcm_stats(self) -> dict[str, int]:
+        """Groups, matches in their PCM windows (largest), matches settled out of them."""
+        windows = [len(g.pcm.measurements) for g in self.groups.values()]
+        return {
+            "groups": len(windows),
+            "largest_window": max(windows, default=0),
+            "settled": sum(g.pcm.settled for g in self.groups.values()),
+        }
 
     def counts(self) -> dict[str, int]:
         loops = sum(1 for i in self.accepted if self.kinds[i] == "loop")

@@ -11,15 +11,18 @@ never spends O(all keyframes) at once however large the correction. A redrawn ti
 replaces the grid's cells only when complete. `finish()` completes every pending
 tile (the map written at shutdown is consistent with the final poses).
 
-Memory per keyframe: a reference to its scan (owned by the keyframe store), its
-current and last drawn pose and its reach (~70 bytes in numpy arrays).
+Memory per keyframe: its key, current and last drawn pose and reach (~80 bytes in
+numpy arrays, plus the key's index entry). The scans are not kept here when a
+`scan_source` is given (the base station's keyframe store: recent scans in memory,
+older ones read back from the database); they are fetched again, a few at a time,
+when a tile is redrawn. Without one the builder keeps a reference to each scan.
 """
 
 from __future__ import annotations
 
 import logging
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -33,6 +36,7 @@ from protocol.messages import Scan2D
 log = logging.getLogger(__name__)
 
 NodeKey = tuple[str, int]
+ScanSource = Callable[[list[NodeKey]], list[Scan2D]]  # the scans of keyframes (keys)
 Tile = tuple[int, int]  # (column, row) of the tile lattice
 PAD = 3  # cells drawn around a tile but not pasted (see OccupancyGrid.paste)
 CHUNK = 512  # keyframes box-tested at once while redrawing a tile
@@ -54,11 +58,15 @@ class _TileJob:
 
 
 class MapBuilder:
-    def __init__(self, cfg: MapConfig) -> None:
+    def __init__(self, cfg: MapConfig, scan_source: ScanSource | None = None) -> None:
+        """`scan_source`: reads keyframes' scans again for tile redraws (called on the
+        caller's thread); None: the builder keeps every scan it is given."""
         self.cfg = cfg
         self.grid: OccupancyGrid | None = None
         self._index: dict[NodeKey, int] = {}  # key -> row in the arrays below
-        self._scans: list[Scan2D] = []
+        self._keys: list[NodeKey] = []  # row -> key
+        self._source = scan_source
+        self._held: list[Scan2D] = []  # row -> scan, without a scan_source
         self._pose = np.zeros((0, 3))  # latest pose given, [x, y, yaw] in map
         self._drawn = np.zeros((0, 3))  # pose it was last drawn (or marked) at
         self._reach = np.zeros(0, dtype=np.float32)  # farthest ray end (m)
@@ -91,18 +99,27 @@ class MapBuilder:
         r = np.where(r >= scan.range_max, np.minimum(r, self.cfg.max_free_range_m), r)
         return float(r.max(initial=0.0))
 
-    def _draw(self, grid: OccupancyGrid, idx: Sequence[int]) -> None:
+    def _scans_of(self, idx: Sequence[int]) -> list[Scan2D]:
+        if self._source is None:
+            return [self._held[i] for i in idx]
+        return self._source([self._keys[i] for i in idx])
+
+    def _draw(
+        self, grid: OccupancyGrid, idx: Sequence[int], scans: Sequence[Scan2D] | None = None
+    ) -> None:
         """Draw keyframes `idx` into `grid` in order at their current poses; each run of
-        scans of one geometry in one kernel call."""
+        scans of one geometry in one kernel call. `scans`: theirs, if at hand."""
+        if scans is None:
+            scans = self._scans_of(idx)
         start = 0
         while start < len(idx):
-            first = self._scans[idx[start]]
+            first = scans[start]
             geom = _geometry(first)
             end = start + 1
-            while end < len(idx) and _geometry(self._scans[idx[end]]) == geom:
+            while end < len(idx) and _geometry(scans[end]) == geom:
                 end += 1
             run = list(idx[start:end])
-            mm = np.stack([self._scans[i].ranges_mm for i in run])
+            mm = np.stack([s.ranges_mm for s in scans[start:end]])
             r = mm.astype(np.float32) * np.float32(1e-3)
             r[mm == 0] = np.float32(first.range_max)  # as in _beams
             _, a = self._beams(first)
@@ -123,7 +140,9 @@ class MapBuilder:
                 setattr(self, name, new)
         for j, (key, scan) in enumerate(zip(keys, scans, strict=True)):
             self._index[key] = n + j
-            self._scans.append(scan)
+            self._keys.append(key)
+            if self._source is None:
+                self._held.append(scan)
             self._reach[n + j] = self._reach_of(scan)
         self._pose[n : n + k] = self._drawn[n : n + k] = poses
         self._n = n + k
@@ -139,6 +158,8 @@ class MapBuilder:
         """Bring the grid up to date with keyframes `keys` at `poses` ([x, y, yaw] in map):
         insert the new ones, mark the tiles of moved ones dirty, and redraw dirty tiles
         for up to `budget_s` (s; -1: the config's `rerender_budget_s`; None: all).
+        `scans[j]` is keyframe j's scan; only new keyframes' are read (CHUNK at a time:
+        after a recovery they may come from the database).
 
         Returns True if keyframes already in the map moved (tiles were marked dirty).
         """
@@ -148,8 +169,11 @@ class MapBuilder:
         poses = np.asarray(poses, dtype=np.float64).reshape(-1, 3)
         new = [j for j, k in enumerate(keys) if k not in self._index]
         n_old = self._n
-        if new:
-            self._append([keys[j] for j in new], [scans[j] for j in new], poses[new])
+        parts = [new[i : i + CHUNK] for i in range(0, len(new), CHUNK)]
+        part_scans: list[Scan2D] = []
+        for part in parts:
+            part_scans = [scans[j] for j in part]
+            self._append([keys[j] for j in part], part_scans, poses[part])
         idx = np.fromiter((self._index[k] for k in keys), dtype=np.int64, count=len(keys))
         self._pose[idx] = poses
         lo, hi = self._boxes(slice(n_old, self._n))
@@ -163,8 +187,9 @@ class MapBuilder:
         elif len(lo):
             self.grid.grow_to_include(lo.min(axis=0), hi.max(axis=0), 1.0)
         moved = self._mark_moved(idx[idx < n_old])
-        for i in range(n_old, self._n, CHUNK):  # bounded temporaries after a recovery
-            self._draw(self.grid, range(i, min(i + CHUNK, self._n)))
+        for k, i in enumerate(range(n_old, self._n, CHUNK)):  # bounded after a recovery
+            last = k == len(parts) - 1  # its scans are still at hand
+            self._draw(self.grid, range(i, min(i + CHUNK, self._n)), part_scans if last else None)
         self.work(None if budget_s is None else c.rerender_budget_s if budget_s < 0 else budget_s)
         self.last_render_ms = (time.perf_counter() - t0) * 1e3
         log.debug(

@@ -73,7 +73,8 @@ class BaseStationNode:
                 starts = {}
             elif not cfg.basestation.known_start_poses:
                 starts = dict(list(starts.items())[:1])
-        self.slam = GlobalSlam(cfg, starts, headings)
+        self.db = open_database(cfg.basestation.db_path)
+        self.slam = GlobalSlam(cfg, starts, headings, self.db.scan_reader())
         # With a scenario, map is the world frame: ENU at the world's WGS84 origin (if any).
         self.wgs84_origin = None
         if scenario is not None:
@@ -81,7 +82,7 @@ class BaseStationNode:
                 self.wgs84_origin = read_wgs84_origin(scenario.world)
             except FileFormatError as exc:
                 log.warning("no WGS84 origin for the map: %s", exc)
-        self.map = MapBuilder(cfg.map)
+        self.map = MapBuilder(cfg.map, self.slam.store.scans)
         self.explorer = make_explorer(cfg) if cfg.exploration.enabled else None
         self._last_explore = 0.0
         self._path_id = 0
@@ -101,7 +102,6 @@ class BaseStationNode:
         self.map_history = MapHistory(max_snapshots=cfg.basestation.map_history_max_snapshots)
         self.links: dict[str, dict[str, int]] = {}  # agent -> {"joins": n, "losses": n}
         self._lost: list[str] = []  # agents whose token went away, for run()'s thread
-        self.db = open_database(cfg.basestation.db_path)
         self._epoch_reserved = 0
         self.recovered: dict[str, Any] = {}
 
@@ -140,7 +140,10 @@ class BaseStationNode:
 
     def _persist(self, batch: Batch | None = None) -> None:
         """Write what changed (one transaction) before anything is acked or published."""
-        self.db.commit(batch if batch is not None else self.slam.take_journal())
+        if batch is None:
+            batch = self.slam.take_journal()
+        self.db.commit(batch)
+        self.slam.saved(batch)  # its scans may leave memory now
 
     # --- wiring -------------------------------------------------------------------------
     def start(self) -> None:

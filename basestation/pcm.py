@@ -306,26 +306,35 @@ class IncrementalPcm:
     current clique when consistent with all of it, and otherwise the best clique
     grown greedily from it replaces the current one only if it is larger. This is the
     incremental use of PCM in multi-robot systems (DOOR-SLAM, Kimera-Multi).
-    A new measurement is tested against the `window` most recent ones only (older
-    ones count as consistent with it), so each arrival costs O(window).
+
+    Sliding window: only the `window` most recent measurements of the group are kept
+    (with their consistency matrix, window x window float64, ~80 kB at 100); a new one
+    is tested against them only, so memory and each arrival's cost stay bounded
+    however many loops a pair closes (the whole matrix grew with the square of the
+    matches). A measurement leaving the window keeps its last state for good: accepted
+    ones stay in the graph (the caller's factors), rejected ones stay out.
+    `settled` counts the measurements that left.
     """
 
     def __init__(
         self, threshold_chi2: float = DEFAULT_THRESHOLD_CHI2, max_exact: int = 40,
-        window: int = 200,
+        window: int = 100,
     ) -> None:  # fmt: skip
+        if window < 1:
+            raise CollabSlamError(f"PCM window must be >= 1, got {window}")
         self.threshold_chi2 = float(threshold_chi2)
         self.max_exact = int(max_exact)
         self.window = int(window)
-        self.measurements: list[LoopMeasurement] = []
+        self.measurements: list[LoopMeasurement] = []  # the window, oldest first
         self._d2 = np.zeros((0, 0))
         self._clique: list[int] = []  # indices into self.measurements
+        self.settled = 0  # measurements that left the window
 
     def add(
         self, m: LoopMeasurement, odometry: Odometry, batch_odometry: BatchOdometry | None = None
     ) -> set[int]:
         """Add `m` (oriented like the group's first measurement or not); returns the
-        ids of the accepted (pairwise-consistent) measurements of the group. With
+        ids of the accepted (pairwise-consistent) measurements in the window. With
         `batch_odometry` the tests against the window run vectorized."""
         if self.measurements:
             first = self.measurements[0]
@@ -333,8 +342,18 @@ class IncrementalPcm:
                 raise CollabSlamError(f"measurement {m.id} belongs to another group")
             if m.robot_a != first.robot_a:
                 m = _reversed(m)
+        if len(self.measurements) >= self.window:  # the oldest leaves, its state final
+            del self.measurements[0]
+            self._d2 = self._d2[1:, 1:]
+            self._clique = [i - 1 for i in self._clique if i > 0]
+            self.settled += 1
         n = len(self.measurements)
-        row = _pairs_d2([(old, m) for old in self.measurements], odometry) if n else np.zeros(0)
+        if n == 0:
+            row = np.zeros(0)
+        elif batch_odometry is not None:
+            row = _window_d2(self.measurements, m, batch_odometry)
+        else:
+            row = _pairs_d2([(old, m) for old in self.measurements], odometry)
         d2 = np.zeros((n + 1, n + 1))
         d2[:n, :n] = self._d2
         d2[n, :n] = d2[:n, n] = row
@@ -354,7 +373,13 @@ class IncrementalPcm:
 
     @property
     def accepted(self) -> set[int]:
+        """Ids of the accepted measurements in the window."""
         return {self.measurements[i].id for i in self._clique}
+
+    @property
+    def ids(self) -> set[int]:
+        """Ids of the measurements in the window."""
+        return {m.id for m in self.measurements}
 
 
 def _window_d2(olds: list[LoopMeasurement], m: LoopMeasurement, odo: BatchOdometry) -> FloatArray:

@@ -30,6 +30,7 @@ from pathlib import Path
 import numpy as np
 
 from basestation.pcm import LoopMeasurement
+from basestation.scan_archive import ScanReader
 from common.errors import PersistenceError
 from protocol import Keyframe, decode, encode
 
@@ -132,6 +133,7 @@ class KeyframeDatabase:
         self.starts = self._meta("starts", 0) + 1
         self._set_meta("starts", self.starts)
         self.commits = 0
+        self._reader: ScanReader | None = None
 
     # --- writing ------------------------------------------------------------------------
     def commit(self, batch: Batch) -> None:
@@ -214,11 +216,21 @@ class KeyframeDatabase:
         rows = self._db.execute("SELECT robot_id, count(*) FROM keyframes GROUP BY robot_id")
         return {r: int(n) for r, n in rows}
 
+    def scan_reader(self) -> ScanReader:
+        """Reads committed keyframes' scans back (its own connection per thread)."""
+        if self._reader is None:
+            self._reader = ScanReader(self.path)
+        return self._reader
+
     def journal_mode(self) -> str:
         return str(self._db.execute("PRAGMA journal_mode").fetchone()[0])
 
     def close(self) -> None:
+        """Close the writer and the scan reader's connections (a later read through the
+        reader opens a new one: the map written after a drain reads old scans)."""
         self._db.close()
+        if self._reader is not None:
+            self._reader.close()
 
     # --- helpers ------------------------------------------------------------------------
     def _transaction(self) -> _Transaction:
@@ -263,6 +275,10 @@ class NullDatabase:
 
     def counts(self) -> dict[str, int]:
         return {}
+
+    def scan_reader(self) -> None:
+        """Nothing to read scans back from: they stay in memory."""
+        return None
 
     def close(self) -> None:
         pass

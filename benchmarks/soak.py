@@ -23,7 +23,8 @@ keyframe counts and the map accuracy (summary.json).
 line fitted to the base station's RSS over the second half of the mission
 (`mission_wall_s`: from the first sim tick the bench sees to the simulator's exit;
 process start-up, imports and tour planning come before it). The base station keeps every
-keyframe's scan (2.2 kB) and its node in iSAM2, so it must grow with the keyframes;
+keyframe's node in iSAM2 (its scan only in a bounded cache, older ones in the database),
+so it must grow with the keyframes;
 `rss_mb_per_1000_keyframes_second_half` gives that slope per keyframe for comparison
 (docs/architecture.md "Soak benchmark" has the measured numbers).
 """

@@ -262,6 +262,10 @@ class ConstraintConfig:
     robust_kernel: str = "huber"  # huber | cauchy | none
     robust_k: float = 1.345
     pcm_chi2: float = 11.345  # chi2(3 dof, 0.99): pairwise consistency threshold
+    # Matches per robot pair (or robot's loops) PCM keeps and tests a new one against; one
+    # leaving this window keeps its state (accepted: stays in the graph). Bounds PCM's
+    # consistency matrix to pcm_window^2 float64 per pair (80 kB at 100).
+    pcm_window: int = 100
     min_consistent_to_merge: int = 3  # consistent matches needed to join two robots' maps
     merge_min_spread_m: float = 2.0  # m between the places those matches were seen from
     global_search_every: int = 5  # keyframes of an unanchored robot between global searches
@@ -329,6 +333,10 @@ class BaseStationConfig:
     # Keyframes whose scan points (for matching, ~5 kB each) stay in memory, most recently
     # used first; older ones are made again from their scans (~0.1 ms) when asked for.
     scan_points_cache: int = 3000
+    # With a database (db_path): keyframes whose scans (2.2 kB each) stay in memory, most
+    # recently used first; older ones are read back from the database (~35 us) when a
+    # loop closure or a map redraw needs them. Without a database all stay in memory.
+    scan_cache: int = 5000
     known_start_poses: bool = True  # use the scenario's start poses (false: find by matching)
     # With no known start at all, this robot's first keyframe defines `map` (its odom frame
     # there); the others float until matched to it. Empty: whichever robot sends first.

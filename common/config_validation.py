@@ -94,6 +94,7 @@ def _validate_map(cfg: Config) -> None:
     if cfg.map.rerender_tile_m < 10 * cfg.map.resolution_m:
         raise ConfigError("map.rerender_tile_m: expected at least 10 cells (10 x resolution_m)")
     _positive("basestation.scan_points_cache", cfg.basestation.scan_points_cache)
+    _positive("basestation.scan_cache", cfg.basestation.scan_cache)
 
 
 def _validate_agent(cfg: Config) -> None:
@@ -178,6 +179,7 @@ def _validate_backend(b: BaseStationConfig) -> None:
             "angular_window_deg",
             "max_corr_dist_m",
             "pcm_chi2",
+            "pcm_window",
             "robust_k",
         ),
     )

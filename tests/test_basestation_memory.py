@@ -1,6 +1,7 @@
 """Base-station memory by size (tracemalloc, no timing): what a keyframe costs in the
-keyframe store, that scan points are a bounded cache, and that nothing grows while no
-new keyframe arrives (robots hovering: states and resent duplicates only)."""
+keyframe store (with and without a database to read old scans back from), that scan
+points are a bounded cache, and that nothing grows while no new keyframe arrives
+(robots hovering: states and resent duplicates only)."""
 
 from __future__ import annotations
 
@@ -8,12 +9,15 @@ import gc
 import json
 import time
 import tracemalloc
+from pathlib import Path
 
 import numpy as np
 from process_helpers import synthetic_keyframe
 
 from basestation.keyframe_store import KeyframeStore, scan_points
 from basestation.node import BaseStationNode
+from basestation.persistence import Batch, KeyframeDatabase
+from basestation.scan_archive import ScanArchive
 from common.bus import Bus
 from common.config import Config
 from common.geometry import se2_compose
@@ -51,7 +55,7 @@ def test_store_keeps_scans_and_a_bounded_points_cache() -> None:
     # float64 scan points (before: ~14 kB per keyframe)
     assert 2 * BEAMS < per_kf < 2 * BEAMS + 500, per_kf
     r = store.robot("r0")
-    assert r.next_seq == 600 and r.scans[0] is scan0
+    assert r.next_seq == 600 and store.scan("r0", 0) is scan0
     first = store.points("r0", 0)
     assert first.dtype == np.float32 and first.shape[1] == 2 and not first.flags.writeable
     for i in range(600):
@@ -62,6 +66,41 @@ def test_store_keeps_scans_and_a_bounded_points_cache() -> None:
     np.testing.assert_array_equal(again, first)
     np.testing.assert_array_equal(again, scan_points(scan0))
     assert store.points("r0", 0) is again and store.points_made == 601  # cached now
+
+
+def test_store_with_a_database_keeps_a_bounded_number_of_scans(tmp_path: Path) -> None:
+    """With a database, a committed keyframe's scan leaves memory beyond `capacity`
+    and is read back unchanged when asked for; an uncommitted one never leaves."""
+    db = KeyframeDatabase(tmp_path / "base.db", synchronous="OFF")
+    store = KeyframeStore(points_cache=10, scans=ScanArchive(db.scan_reader(), capacity=100))
+    kfs = _tour("r0", 700)  # for comparison; the store gets fresh copies
+    tracemalloc.start()
+    before = tracemalloc.get_traced_memory()[0]
+    fresh = _tour("r0", 600)
+    for k in range(0, 600, 50):  # batches admitted, committed, then marked saved
+        batch = Batch([kf for kf in fresh[k : k + 50] if store.admit(kf)])
+        db.commit(batch)
+        store.saved([(kf.robot_id, kf.seq) for kf in batch.keyframes])
+    del fresh, batch
+    gc.collect()
+    grown = tracemalloc.get_traced_memory()[0] - before
+    tracemalloc.stop()
+    # 100 scans (2.2 kB each) and < 200 bytes per keyframe (all 600 scans: > 1.3 MB)
+    assert grown < 100 * (2 * BEAMS + 400) + 600 * 200, grown
+    assert store.scan_archive.in_memory == 100 and store.scan_archive.reads == 0
+    for i in (0, 250, 599):  # old ones from the database, as sent
+        np.testing.assert_array_equal(store.scan("r0", i).ranges_mm, kfs[i].scan2d.ranges_mm)
+        assert store.scan("r0", i).angle_increment == kfs[i].scan2d.angle_increment
+    assert store.scan_archive.reads == 2  # 599 was still in memory
+    np.testing.assert_array_equal(store.points("r0", 3), scan_points(kfs[3].scan2d))
+    for kf in kfs[600:]:  # admitted, not committed: kept whatever the capacity
+        assert len(store.admit(kf)) == 1
+    reads = store.scan_archive.reads
+    assert [s.ranges_mm.tobytes() for s in store.scans([("r0", i) for i in range(600, 700)])] == [
+        kf.scan2d.ranges_mm.tobytes() for kf in kfs[600:]
+    ]
+    assert store.scan_archive.reads == reads
+    db.close()
 
 
 def _settle(node: BaseStationNode) -> None:

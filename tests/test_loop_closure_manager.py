@@ -136,3 +136,30 @@ def test_agreeing_matches_from_one_spot_do_not_join_two_maps() -> None:
     graph.update()
     assert not graph.is_anchored("b")
     assert manager.counts()["inter_robot_constraints"] == 0
+
+
+def test_matches_leaving_the_pcm_window_keep_their_state() -> None:
+    """With a PCM window of 3, the manager keeps records of the last 3 matches of a
+    pair only; accepted matches that left it stay in the graph (and in the counts),
+    a rejected one stays out."""
+    rng = np.random.default_rng(7)
+    graph, manager, truth = _setup(rng, ConstraintConfig(pcm_window=3))
+    pairs = [(2, 2), (7, 8), (10, 10), (15, 14), (18, 18), (4, 4), (12, 12)]
+    for n, (i, j) in enumerate(pairs, start=1):
+        T = _true_T(truth, ("a", i), ("b", j))
+        if n == 4:  # a wrong one in the middle of the stream
+            T = se2_compose(T, [1.5, -1.0, 0.6])
+        manager.add(("a", i), ("b", j), T, LC_COV, "inter")
+        graph.update(extra_iterations=2)
+        group = manager.groups[("a", "b")]
+        assert len(group.measurements) == len(group.pcm.measurements) == min(n, 3)
+        assert set(group.in_graph) <= set(group.measurements)
+    assert group.pcm.settled == len(pairs) - 3
+    constraints = sum(1 for f in graph._factors.values() if f.kind == "constraint")
+    assert constraints == len(pairs) - 1  # the settled accepted ones are still there
+    assert manager.counts() == {
+        "loop_closures": 0,
+        "inter_robot_constraints": len(pairs) - 1,
+        "rejected_by_pcm": 1,
+    }
+    assert graph.is_anchored("b") and _max_error(graph, truth) < 0.3

@@ -166,3 +166,40 @@ def test_written_map_finishes_pending_tiles_at_the_final_poses(
         diff = np.abs(node.map.grid.log_odds - _full_render(node.map, scans, poses)) > 1e-5
         assert diff.sum() <= 30, diff.sum()
         node.drain(1.0)
+
+
+def test_map_from_scans_read_back_from_the_database_is_the_same(
+    tmp_path: Path, cfg: Config, endpoint: str
+) -> None:
+    """A base station with a database keeps only a few scans in memory (scan_cache) and
+    reads old ones back for tile redraws; its map equals one without a database, after
+    a correction too, and the map written after drain() (database closed) as well."""
+    cfg.zenoh.listen = [endpoint]
+    cfg.exploration.enabled = False
+    cfg.basestation.constraints.enabled = False
+    kfs = _tour("r0", 200)
+    with Bus(cfg.zenoh, cfg.fleet) as bus:
+        plain = BaseStationNode(cfg, bus, None)
+        cfg.basestation.db_path = str(tmp_path / "base.db")
+        cfg.basestation.scan_cache = 20
+        stored = BaseStationNode(cfg, bus, None)
+        for node in (plain, stored):
+            for k in range(0, len(kfs), 25):
+                node.process(kfs[k : k + 25])
+                node.refresh_map()
+            keys, scans, poses = node.slam.map_keyframes()
+            bent = poses + np.column_stack([np.zeros(len(poses)), 0.002 * np.arange(len(poses)),
+                                            np.zeros(len(poses))])  # fmt: skip
+            node.map.update(keys, scans, bent, budget_s=None)  # every tile redrawn
+        archive = stored.slam.store.scan_archive
+        assert archive.in_memory == 20 and archive.reads > 100
+        assert plain.slam.store.scan_archive.in_memory == 200
+        assert stored.map.rerenders == plain.map.rerenders > 0
+        np.testing.assert_array_equal(stored.map.grid.log_odds, plain.map.grid.log_odds)
+        stored.drain(1.0)
+        stored.write_outputs(tmp_path / "out")  # redraws read scans after the db closed
+        plain.drain(1.0)
+        plain.write_outputs(tmp_path / "plain")
+    assert (tmp_path / "out" / "map.pgm").read_bytes() == (
+        tmp_path / "plain" / "map.pgm"
+    ).read_bytes()

@@ -240,3 +240,30 @@ def test_maximum_clique_matches_brute_force():
             clique = _maximum_clique(adj, d2)
             assert len(clique) == best
             assert all(adj[i, j] for i, j in itertools.combinations(clique, 2))
+
+
+def test_incremental_pcm_keeps_a_bounded_window(world):
+    """A pair closing many loops: PCM keeps its last `window` matches and their
+    window x window consistency matrix (it grew with the square of all matches);
+    within the window the answer is the batch one over the same matches, and a
+    match that left the window is counted as settled."""
+    robots, odometry, rng = world
+    pairs = [(i, (7 * i) % 40) for i in range(2, 38)]
+    good = _loops(robots, rng, pairs, False)
+    bad = _loops(robots, rng, [(5, 7), (18, 25), (33, 36), (11, 2)], True, start_id=100)
+    stream = good[:9] + [bad[0]] + good[9:20] + [bad[1], bad[2]] + good[20:] + [bad[3]]
+    window = 8
+    pcm = IncrementalPcm(window=window)
+    for k, m in enumerate(stream, start=1):
+        accepted = pcm.add(m, odometry)
+        kept = pcm.measurements
+        assert len(kept) == min(k, window) and pcm._d2.shape == (len(kept), len(kept))
+        assert pcm.settled == k - len(kept)
+        assert [x.id for x in kept] == [x.id for x in stream[k - len(kept) : k]]
+        assert accepted <= pcm.ids
+        assert accepted == max_consistent_set(kept, odometry)  # exact below max_exact
+        if m.id >= 100:
+            assert m.id not in accepted  # a wrong match in a window of good ones
+    assert len(pcm.accepted) == window - 1  # the last wrong one is out
+    with pytest.raises(CollabSlamError):
+        IncrementalPcm(window=0)

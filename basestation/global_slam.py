@@ -6,9 +6,10 @@ builder (candidate search + verification worker) and the loop-closure manager
 
 Anchoring: a robot with a known start pose is tied to the map there. Without
 any known start, ``basestation.map_frame_robot`` (or else the first robot to send
-a keyframe) defines the map frame (its odom frame at its first keyframe). Every other robot's chain floats in its
-own frame until verified inter-robot constraints join it to the map; until
-then it gets no correction and is left out of the map.
+a keyframe) defines the map frame (its odom frame at its first keyframe). Every
+other robot's chain floats in its own frame until verified inter-robot
+constraints join it to the map; until then it gets no correction and is left out
+of the map.
 
 GPS (``basestation.gps.enabled``): ``map`` is the ENU frame the fixes are
 converted to (in simulation also the world frame). A robot with a known start

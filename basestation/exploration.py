@@ -18,7 +18,7 @@ transformed into each robot's `odom` frame (`common.geometry.map_to_odom`).
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -61,6 +61,7 @@ class ExplorationManager:
     conflict_margin: float = 1.3  # times robot_clearance_m: slack for speed differences
     support_min_m: float = 1.0  # m, shortest move worth sending an idle robot
     busy_radius_factor: float = 2.0  # frontiers within this x clearance of a busy goal: taken
+    goal_shift_m: float = 1.0  # m a frontier goal may move to get out of the inflation
     _failures: list[tuple[NDArray[np.float64], int]] = field(default_factory=list)
     _stopped: set[str] = field(default_factory=set)
 
@@ -75,8 +76,9 @@ class ExplorationManager:
         robot to stop (nothing left for it). Robots not in the result keep theirs.
         `blocked`: robots whose own safety guard holds them (they get a new path)."""
         self.frontiers = [
-            f for f in self.detector.update(grid, touched) if not self._given_up(f.goal)
-        ]
+            f for f in self._approachable(self.detector.update(grid, touched), grid)
+            if not self._given_up(f.goal)
+        ]  # fmt: skip
         P = {r: np.asarray(p, dtype=np.float64)[:3] for r, p in poses.items()}
         pm = PlanningMap(grid, self.planner.inflation_m)
         need = [r for r in P if r in blocked or self._needs_new_path(r, P, pm)]
@@ -100,6 +102,19 @@ class ExplorationManager:
             for r in [r for r in need if out[r] is None]:
                 out[r] = self._support(r, grid, P)
         return out
+
+    def _approachable(self, found: list[Frontier], grid: GridMap) -> list[Frontier]:
+        """Frontiers with their goal moved out of the no-collision zone (up to
+        `goal_shift_m`): a frontier cell beside a wall or a door jamb lies inside the
+        inflation, where no path may end. Those that cannot be moved are left out."""
+        if not found:
+            return found
+        goals = self.planner.approachable(grid, [f.goal for f in found], self.goal_shift_m)
+        return [
+            f if np.array_equal(g, f.goal) else replace(f, goal=g)
+            for f, g in zip(found, goals, strict=True)
+            if np.isfinite(g).all()
+        ]
 
     def _support(
         self, r: str, grid: GridMap, P: dict[str, NDArray[np.float64]]

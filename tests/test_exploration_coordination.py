@@ -7,8 +7,10 @@ import numpy as np
 import pytest
 
 from basestation.exploration import ExplorationManager, _along, _Task
+from basestation.frontiers import FrontierDetector
 from basestation.goal_assigner import GoalAssigner
 from basestation.map_history import MapHistory, read_map_history
+from basestation.path_planner import PathPlanner
 from basestation.travel_distance import travel_distances
 from benchmarks.exploration import speedups
 from common.errors import CollabSlamError
@@ -34,6 +36,34 @@ def test_travel_distance_goes_around_walls() -> None:
     closed[100:102, :] = 100  # the wall now spans the whole floor
     d2 = travel_distances(GridMap(closed, 0.05, (0, 0, 0)), [[1.0, 1.0]], [[1.0, 9.0]])
     assert np.isinf(d2[0, 0])
+
+
+def _strip_along_wall() -> GridMap:
+    """10 x 10 m known free, a wall at y = 5 m, and between x = 2 and 6 m a 0.3 m strip
+    of unknown along the wall's foot (what a laser grazing the wall leaves), inside outer walls."""
+    data = np.zeros((200, 200), np.int8)
+    data[[0, -1], :] = data[:, [0, -1]] = 100  # outer walls: no frontier at the border
+    data[100:102, :] = 100
+    data[94:100, 40:120] = -1
+    return GridMap(data, 0.05, (0.0, 0.0, 0.0))
+
+
+def test_frontier_goal_beside_a_wall_is_moved_out_of_the_inflation() -> None:
+    g = _strip_along_wall()
+    (f,) = FrontierDetector(radius_m=0.3, min_group_cells=8).update(g)
+    planner = PathPlanner(inflation_m=0.35, robot_clearance_m=1.0, time_budget_s=0.2)
+    assert planner.plan(g, [4.0, 2.0], f.goal) is None  # the raw goal: inside the inflation
+    moved = planner.approachable(g, [f.goal, [4.0, 2.0], [4.0, 5.3], [4.0, 5.05]], 1.0)
+    np.testing.assert_allclose(moved[1], [4.0, 2.0])  # a free goal stays where it is
+    assert 0.0 < np.hypot(*(moved[0] - f.goal)) <= 1.0
+    assert moved[0][1] < 5.0  # on the robot's side of the wall, not across it
+    assert planner.plan(g, [4.0, 2.0], moved[0]) is not None
+    assert 5.1 < moved[2][1] <= 5.3 + 1.0  # beyond the wall: moved away from it, not across
+    assert np.isnan(moved[3]).all()  # inside the wall: no way out
+    m = ExplorationManager(detector=FrontierDetector(0.3, min_group_cells=8), planner=planner)
+    out = m.step(g, {"r0": np.array([4.0, 2.0, 0.0])})
+    assert out["r0"] is not None and np.hypot(*(out["r0"][-1] - f.goal)) <= 1.0
+    assert m.unreachable == 0
 
 
 def test_along_interpolates_by_arc_length_and_holds_the_end() -> None:

@@ -62,6 +62,11 @@ class ExplorationManager:
     support_min_m: float = 1.0  # m, shortest move worth sending an idle robot
     busy_radius_factor: float = 2.0  # frontiers within this x clearance of a busy goal: taken
     goal_shift_m: float = 1.0  # m a frontier goal may move to get out of the inflation
+    # A path around other robots (their discs, or their routes) longer than this factor
+    # times the path without them, plus the slack, is refused: wait or go elsewhere.
+    detour_factor: float = 1.5
+    detour_slack_m: float = 3.0  # m
+    detours_refused: int = 0
     _failures: list[tuple[NDArray[np.float64], int]] = field(default_factory=list)
     _stopped: set[str] = field(default_factory=set)
 
@@ -132,9 +137,9 @@ class ExplorationManager:
             if not np.isfinite(dist[j]):
                 break
             path = self.planner.plan(grid, P[r][:2], goals[j], discs)
-            if path is None:
-                continue
-            length = float(np.sum(np.hypot(*np.diff(path, axis=0).T)))
+            if path is None or self._too_long(path, dist[j]):
+                continue  # none, or only around another robot (its path was the long way)
+            length = _length(path)
             for cut in np.arange(length - keep, self.support_min_m - 1e-9, -0.5):
                 prefix = _along(path, np.linspace(0.0, cut, max(2, int(cut / 0.25) + 1)))
                 end = prefix[-1]
@@ -163,15 +168,27 @@ class ExplorationManager:
         while goal is not None:
             discs = [P[o][None, :2] for o in P if o != r]
             path = self.planner.plan(grid, P[r][:2], goal, discs)
+            alone: NDArray[np.float64] | None = None  # the path as if r were alone
             if path is not None and self.coordinated and self._conflict(r, path, P):
                 routes = [self._remaining(o, P[o]) for o in self.tasks if o != r and o in P]
+                direct = path
                 path = self.planner.plan(grid, P[r][:2], goal, discs + routes) if routes else None
+                if path is not None and self._detour(path, _length(direct)):
+                    path = None  # around their routes only the long way: wait, or go elsewhere
+            elif (
+                path is not None
+                and self.coordinated
+                and self._too_long(path, float(np.hypot(*(goal - P[r][:2]))))
+            ):
+                alone = self.planner.plan(grid, P[r][:2], goal)
+                if alone is not None and self._detour(path, _length(alone)):
+                    path = None  # another robot stands in the way (a door, a corridor)
             if path is not None:
                 self.tasks[r] = _Task(goal, path)
                 return path
             self.unreachable += 1
             # blocked by the map itself (not just by another robot for now)?
-            if self.planner.plan(grid, P[r][:2], goal) is None:
+            if alone is None and self.planner.plan(grid, P[r][:2], goal) is None:
                 self._failed(goal)
             log.debug("robot %s: no path to frontier %s", r, goal)
             tried.append(goal)
@@ -179,6 +196,17 @@ class ExplorationManager:
                 return None
             goal = self._goals({r: P[r]}, grid, exclude=tried).get(r)
         return None
+
+    def _too_long(self, path: NDArray[np.float64], reference_m: float) -> bool:
+        """Longer than `detour_factor` x `reference_m` + `detour_slack_m`."""
+        return _length(path) > self.detour_factor * reference_m + self.detour_slack_m
+
+    def _detour(self, path: NDArray[np.float64], without_others_m: float) -> bool:
+        """Whether the other robots make `path` a long detour next to the way without
+        them (`without_others_m` long); counted in `detours_refused`."""
+        refused = self._too_long(path, without_others_m)
+        self.detours_refused += refused
+        return refused
 
     def _conflict(
         self, r: str, path: NDArray[np.float64], P: dict[str, NDArray[np.float64]]
@@ -284,6 +312,10 @@ def make_explorer(cfg: Config) -> ExplorationManager:
         speed_mps=cfg.agent.cruise_speed_mps,
         spread_radius_m=e.spread_radius_m,
     )
+
+
+def _length(path: NDArray[np.float64]) -> float:
+    return float(np.sum(np.hypot(*np.diff(path, axis=0).T)))
 
 
 def _along(path: NDArray[np.float64], s: NDArray[np.float64]) -> NDArray[np.float64]:

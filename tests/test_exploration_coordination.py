@@ -147,3 +147,37 @@ def test_bench_speedups_from_rows() -> None:
     assert s["ours_speedup_3"] == 3.0
     assert s["baseline_speedup_3"] == 0.6  # never reached: counted as the max sim time
     assert s["ours_faster_than_baseline_pct_3"] == 80.0
+
+
+def _door_floor() -> GridMap:
+    """24 x 10 m known free inside outer walls; a wall at y = 5 m from x = 0 to 20 m
+    with a 1.2 m door at x = 2-3.2 m (the long way round is past its end at x = 20 m)."""
+    data = np.zeros((200, 480), np.int8)
+    data[[0, -1], :] = data[:, [0, -1]] = 100
+    data[100:102, :400] = 100
+    data[100:102, 40:64] = 0
+    return GridMap(data, 0.05, (0.0, 0.0, 0.0))
+
+
+@pytest.mark.parametrize("b_moving", [False, True])
+def test_a_robot_in_the_door_is_waited_for_not_flown_around(b_moving: bool) -> None:
+    g = _door_floor()
+    m = ExplorationManager(planner=PathPlanner(0.35, 1.0, 0.2))
+    goal = np.array([5.0, 8.0])
+    P = {"a": np.array([2.6, 2.5, np.pi / 2])}
+    if b_moving:  # b comes down through the door, head-on: a's way is b's route
+        P["b"] = np.array([2.6, 7.0, -np.pi / 2])
+        m.tasks["b"] = _Task(np.array([2.6, 1.0]), np.array([[2.6, 7.0], [2.6, 1.0]]))
+    else:  # b hovers in the door
+        P["b"] = np.array([2.6, 5.05, 0.0])
+    alone = m.planner.plan(g, P["a"][:2], goal)
+    assert alone is not None and _along(alone, np.array([0.0]))[0][1] < 5.0
+    assert float(np.hypot(*np.diff(alone, axis=0).T).sum()) < 9.0  # through the door
+    # the way round the wall's end (~40 m) is refused: a waits or goes elsewhere
+    assert m._plan("a", goal, g, P) is None
+    assert m.detours_refused >= 1 and m.unreachable == 1
+    assert not m._failures  # the map itself does not block the goal: not given up
+    P["b"] = np.array([12.0, 8.0, 0.0])  # b gone: a goes through the door
+    m.tasks.pop("b", None)
+    path = m._plan("a", goal, g, P)
+    assert path is not None and float(np.hypot(*np.diff(path, axis=0).T).sum()) < 9.0

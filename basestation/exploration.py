@@ -137,8 +137,8 @@ class ExplorationManager:
             if not np.isfinite(dist[j]):
                 break
             path = self.planner.plan(grid, P[r][:2], goals[j], discs)
-            if path is None or self._too_long(path, dist[j]):
-                continue  # none, or only around another robot (its path was the long way)
+            if path is None or (discs and self._too_long(path, dist[j])):
+                continue  # none, or only the long way round another robot
             length = _length(path)
             for cut in np.arange(length - keep, self.support_min_m - 1e-9, -0.5):
                 prefix = _along(path, np.linspace(0.0, cut, max(2, int(cut / 0.25) + 1)))
@@ -166,29 +166,13 @@ class ExplorationManager:
         otherwise a path that avoids their remaining paths altogether."""
         tried: list[NDArray[np.float64]] = []
         while goal is not None:
-            discs = [P[o][None, :2] for o in P if o != r]
-            path = self.planner.plan(grid, P[r][:2], goal, discs)
-            alone: NDArray[np.float64] | None = None  # the path as if r were alone
-            if path is not None and self.coordinated and self._conflict(r, path, P):
-                routes = [self._remaining(o, P[o]) for o in self.tasks if o != r and o in P]
-                direct = path
-                path = self.planner.plan(grid, P[r][:2], goal, discs + routes) if routes else None
-                if path is not None and self._detour(path, _length(direct)):
-                    path = None  # around their routes only the long way: wait, or go elsewhere
-            elif (
-                path is not None
-                and self.coordinated
-                and self._too_long(path, float(np.hypot(*(goal - P[r][:2]))))
-            ):
-                alone = self.planner.plan(grid, P[r][:2], goal)
-                if alone is not None and self._detour(path, _length(alone)):
-                    path = None  # another robot stands in the way (a door, a corridor)
+            path = self._path_among_others(r, goal, grid, P)
             if path is not None:
                 self.tasks[r] = _Task(goal, path)
                 return path
             self.unreachable += 1
             # blocked by the map itself (not just by another robot for now)?
-            if alone is None and self.planner.plan(grid, P[r][:2], goal) is None:
+            if self.planner.plan(grid, P[r][:2], goal) is None:
                 self._failed(goal)
             log.debug("robot %s: no path to frontier %s", r, goal)
             tried.append(goal)
@@ -197,16 +181,43 @@ class ExplorationManager:
             goal = self._goals({r: P[r]}, grid, exclude=tried).get(r)
         return None
 
+    def _path_among_others(
+        self,
+        r: str,
+        goal: NDArray[np.float64],
+        grid: GridMap,
+        P: dict[str, NDArray[np.float64]],
+    ) -> NDArray[np.float64] | None:
+        """Robot r's path to `goal` around the other robots (`_plan`), or None. A path
+        the others make more than `detour_factor` x (+ `detour_slack_m`) as long as the
+        way without them is refused (`detours_refused`): one standing in a door, or
+        another's route through it, would send r the long way round, when it could
+        wait a moment or take another frontier."""
+        start = P[r][:2]
+        discs = [P[o][None, :2] for o in P if o != r]
+        path = self.planner.plan(grid, start, goal, discs)
+        if path is None or not self.coordinated or not discs:
+            return path
+        if self._conflict(r, path, P):
+            routes = [self._remaining(o, P[o]) for o in self.tasks if o != r and o in P]
+            around = self.planner.plan(grid, start, goal, discs + routes) if routes else None
+            if around is not None and self._too_long(around, _length(path)):
+                self.detours_refused += 1
+                return None
+            return around
+        if not self._too_long(path, float(np.hypot(*(goal - start)))):
+            return path  # no detour at all: no need to know the way without the others
+        alone = self.planner.plan(grid, start, goal)
+        if alone is None or not self._too_long(path, _length(alone)):
+            return path  # the map itself makes the way that long
+        if self.planner.clear_of(grid, alone, discs) and not self._conflict(r, alone, P):
+            return alone  # the others were not in the way after all
+        self.detours_refused += 1
+        return None
+
     def _too_long(self, path: NDArray[np.float64], reference_m: float) -> bool:
         """Longer than `detour_factor` x `reference_m` + `detour_slack_m`."""
         return _length(path) > self.detour_factor * reference_m + self.detour_slack_m
-
-    def _detour(self, path: NDArray[np.float64], without_others_m: float) -> bool:
-        """Whether the other robots make `path` a long detour next to the way without
-        them (`without_others_m` long); counted in `detours_refused`."""
-        refused = self._too_long(path, without_others_m)
-        self.detours_refused += refused
-        return refused
 
     def _conflict(
         self, r: str, path: NDArray[np.float64], P: dict[str, NDArray[np.float64]]

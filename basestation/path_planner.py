@@ -172,6 +172,12 @@ class PathPlanner:
             path = self._grid_fallback(grid, pm, check, s, g)
         return path
 
+    def clear_of(self, grid: GridMap, path: ArrayLike, others: list[ArrayLike]) -> bool:
+        """Whether `path` ((N, 2), from the robot's position) keeps out of the inflation
+        and `robot_clearance_m` away from `others`, as a path from `plan` would."""
+        p = np.asarray(path, dtype=np.float64).reshape(-1, 2)
+        return self._map(grid, p[0], others, 0.0).segment_free(p)
+
     def approachable(
         self, grid: GridMap, goals: ArrayLike, max_shift_m: float
     ) -> NDArray[np.float64]:

@@ -192,7 +192,8 @@ class ExplorationManager:
         the others make more than `detour_factor` x (+ `detour_slack_m`) as long as the
         way without them is refused (`detours_refused`): one standing in a door, or
         another's route through it, would send r the long way round, when it could
-        wait a moment or take another frontier."""
+        wait a moment or take another frontier. Not when a robot in the way has no
+        goal of its own (it would not move on)."""
         start = P[r][:2]
         discs = [P[o][None, :2] for o in P if o != r]
         path = self.planner.plan(grid, start, goal, discs)
@@ -210,8 +211,11 @@ class ExplorationManager:
         alone = self.planner.plan(grid, start, goal)
         if alone is None or not self._too_long(path, _length(alone)):
             return path  # the map itself makes the way that long
-        if self.planner.clear_of(grid, alone, discs) and not self._conflict(r, alone, P):
+        in_way = [o for o in P if o != r and not self.planner.clear_of(grid, alone, [P[o][:2]])]
+        if not in_way and not self._conflict(r, alone, P):
             return alone  # the others were not in the way after all
+        if not all(o in self.tasks and not self.tasks[o].support for o in in_way):
+            return path  # one in the way stays there (no goal of its own): go round
         self.detours_refused += 1
         return None
 

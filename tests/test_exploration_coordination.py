@@ -159,22 +159,28 @@ def _door_floor() -> GridMap:
     return GridMap(data, 0.05, (0.0, 0.0, 0.0))
 
 
-@pytest.mark.parametrize("b_moving", [False, True])
-def test_a_robot_in_the_door_is_waited_for_not_flown_around(b_moving: bool) -> None:
+@pytest.mark.parametrize("b", ["leaving_the_door", "coming_through_the_door", "idle_in_the_door"])
+def test_a_robot_in_the_door_is_waited_for_not_flown_around(b: str) -> None:
     g = _door_floor()
     m = ExplorationManager(planner=PathPlanner(0.35, 1.0, 0.2))
     goal = np.array([5.0, 8.0])
     P = {"a": np.array([2.6, 2.5, np.pi / 2])}
-    if b_moving:  # b comes down through the door, head-on: a's way is b's route
+    if b == "coming_through_the_door":  # head-on: a's way is b's route
         P["b"] = np.array([2.6, 7.0, -np.pi / 2])
         m.tasks["b"] = _Task(np.array([2.6, 1.0]), np.array([[2.6, 7.0], [2.6, 1.0]]))
-    else:  # b hovers in the door
-        P["b"] = np.array([2.6, 5.05, 0.0])
+    else:  # b stands in the door, on its way up (or with nowhere to go)
+        P["b"] = np.array([2.6, 5.05, np.pi / 2])
+        if b == "leaving_the_door":
+            m.tasks["b"] = _Task(np.array([12.0, 8.0]), np.array([[2.6, 5.05], [12.0, 8.0]]))
     alone = m.planner.plan(g, P["a"][:2], goal)
-    assert alone is not None and _along(alone, np.array([0.0]))[0][1] < 5.0
-    assert float(np.hypot(*np.diff(alone, axis=0).T).sum()) < 9.0  # through the door
-    # the way round the wall's end (~40 m) is refused: a waits or goes elsewhere
-    assert m._plan("a", goal, g, P) is None
+    assert alone is not None and float(np.hypot(*np.diff(alone, axis=0).T).sum()) < 9.0
+    path = m._plan("a", goal, g, P)
+    if b == "idle_in_the_door":  # b will not move on: the way round (~40 m) it is
+        assert path is not None and path[:, 0].max() > 18.0
+        assert m.detours_refused == 0
+        return
+    # b moves on: the way round the wall's end is refused, a waits or goes elsewhere
+    assert path is None
     assert m.detours_refused >= 1 and m.unreachable == 1
     assert not m._failures  # the map itself does not block the goal: not given up
     P["b"] = np.array([12.0, 8.0, 0.0])  # b gone: a goes through the door

@@ -3,13 +3,16 @@
 `ExplorationManager.step` takes the latest global grid (and the boxes the map changed
 in), every robot's pose in `map` and returns, per robot, a new path in `map` when it
 needs one: it has none, reached its goal, its goal is no longer a frontier, or the
-map or another robot now blocks its path. Frontiers (`FrontierDetector`) that no
-robot can reach are skipped; goals are assigned jointly (eq. 3, `GoalAssigner`) and
-each path is planned with RRT* (`PathPlanner`) around the other robots and their
-paths. A frontier the map itself kept a robot from reaching `max_failures` times is given
-up (one only blocked by other robots for now is not). When
-no frontier is left, `done` is True (exploration halts) until a new map brings more;
-a robot that goes silent is `release`d and its goal becomes free.
+map or another robot now blocks its path. A frontier goal inside the inflation (by a
+wall or a door jamb) is first moved out of it (`PathPlanner.approachable`);
+frontiers (`FrontierDetector`) that no robot can reach are skipped; goals are
+assigned jointly (eq. 3, `GoalAssigner`) and each path is planned with RRT*
+(`PathPlanner`) around the other robots and their paths, unless they make it a long
+detour (then the robot waits or goes elsewhere). A frontier the map itself kept a
+robot from reaching `max_failures` times is given up (one only blocked by other
+robots for now is not). When no frontier is left, `done` is True (exploration
+halts) until a new map brings more; a robot that goes silent is `release`d and its
+goal becomes free.
 
 Pure logic over numpy arrays: the base station node feeds it and sends the paths,
 transformed into each robot's `odom` frame (`common.geometry.map_to_odom`).

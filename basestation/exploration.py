@@ -3,13 +3,16 @@
 `ExplorationManager.step` takes the latest global grid (and the boxes the map changed
 in), every robot's pose in `map` and returns, per robot, a new path in `map` when it
 needs one: it has none, reached its goal, its goal is no longer a frontier, or the
-map or another robot now blocks its path. Frontiers (`FrontierDetector`) that no
-robot can reach are skipped; goals are assigned jointly (eq. 3, `GoalAssigner`) and
-each path is planned with RRT* (`PathPlanner`) around the other robots and their
-paths. A frontier the map itself kept a robot from reaching `max_failures` times is given
-up (one only blocked by other robots for now is not). When
-no frontier is left, `done` is True (exploration halts) until a new map brings more;
-a robot that goes silent is `release`d and its goal becomes free.
+map or another robot now blocks its path. A frontier goal inside the inflation (by a
+wall or a door jamb) is first moved out of it (`PathPlanner.approachable`);
+frontiers (`FrontierDetector`) that no robot can reach are skipped; goals are
+assigned jointly (eq. 3, `GoalAssigner`) and each path is planned with RRT*
+(`PathPlanner`) around the other robots and their paths, unless they make it a long
+detour (then the robot waits or goes elsewhere). A frontier the map itself kept a
+robot from reaching `max_failures` times is given up (one only blocked by other
+robots for now is not). When no frontier is left, `done` is True (exploration
+halts) until a new map brings more; a robot that goes silent is `release`d and its
+goal becomes free.
 
 Pure logic over numpy arrays: the base station node feeds it and sends the paths,
 transformed into each robot's `odom` frame (`common.geometry.map_to_odom`).
@@ -18,7 +21,7 @@ transformed into each robot's `odom` frame (`common.geometry.map_to_odom`).
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -61,6 +64,12 @@ class ExplorationManager:
     conflict_margin: float = 1.3  # times robot_clearance_m: slack for speed differences
     support_min_m: float = 1.0  # m, shortest move worth sending an idle robot
     busy_radius_factor: float = 2.0  # frontiers within this x clearance of a busy goal: taken
+    goal_shift_m: float = 1.0  # m a frontier goal may move to get out of the inflation
+    # A path around other robots (their discs, or their routes) longer than this factor
+    # times the path without them, plus the slack, is refused: wait or go elsewhere.
+    detour_factor: float = 1.5
+    detour_slack_m: float = 3.0  # m
+    detours_refused: int = 0
     _failures: list[tuple[NDArray[np.float64], int]] = field(default_factory=list)
     _stopped: set[str] = field(default_factory=set)
 
@@ -75,8 +84,9 @@ class ExplorationManager:
         robot to stop (nothing left for it). Robots not in the result keep theirs.
         `blocked`: robots whose own safety guard holds them (they get a new path)."""
         self.frontiers = [
-            f for f in self.detector.update(grid, touched) if not self._given_up(f.goal)
-        ]
+            f for f in self._approachable(self.detector.update(grid, touched), grid)
+            if not self._given_up(f.goal)
+        ]  # fmt: skip
         P = {r: np.asarray(p, dtype=np.float64)[:3] for r, p in poses.items()}
         pm = PlanningMap(grid, self.planner.inflation_m)
         need = [r for r in P if r in blocked or self._needs_new_path(r, P, pm)]
@@ -101,6 +111,19 @@ class ExplorationManager:
                 out[r] = self._support(r, grid, P)
         return out
 
+    def _approachable(self, found: list[Frontier], grid: GridMap) -> list[Frontier]:
+        """Frontiers with their goal moved out of the no-collision zone (up to
+        `goal_shift_m`): a frontier cell beside a wall or a door jamb lies inside the
+        inflation, where no path may end. Those that cannot be moved are left out."""
+        if not found:
+            return found
+        goals = self.planner.approachable(grid, [f.goal for f in found], self.goal_shift_m)
+        return [
+            f if np.array_equal(g, f.goal) else replace(f, goal=g)
+            for f, g in zip(found, goals, strict=True)
+            if np.isfinite(g).all()
+        ]
+
     def _support(
         self, r: str, grid: GridMap, P: dict[str, NDArray[np.float64]]
     ) -> NDArray[np.float64] | None:
@@ -117,9 +140,9 @@ class ExplorationManager:
             if not np.isfinite(dist[j]):
                 break
             path = self.planner.plan(grid, P[r][:2], goals[j], discs)
-            if path is None:
-                continue
-            length = float(np.sum(np.hypot(*np.diff(path, axis=0).T)))
+            if path is None or (discs and self._too_long(path, dist[j])):
+                continue  # none, or only the long way round another robot
+            length = _length(path)
             for cut in np.arange(length - keep, self.support_min_m - 1e-9, -0.5):
                 prefix = _along(path, np.linspace(0.0, cut, max(2, int(cut / 0.25) + 1)))
                 end = prefix[-1]
@@ -146,11 +169,7 @@ class ExplorationManager:
         otherwise a path that avoids their remaining paths altogether."""
         tried: list[NDArray[np.float64]] = []
         while goal is not None:
-            discs = [P[o][None, :2] for o in P if o != r]
-            path = self.planner.plan(grid, P[r][:2], goal, discs)
-            if path is not None and self.coordinated and self._conflict(r, path, P):
-                routes = [self._remaining(o, P[o]) for o in self.tasks if o != r and o in P]
-                path = self.planner.plan(grid, P[r][:2], goal, discs + routes) if routes else None
+            path = self._path_among_others(r, goal, grid, P)
             if path is not None:
                 self.tasks[r] = _Task(goal, path)
                 return path
@@ -164,6 +183,48 @@ class ExplorationManager:
                 return None
             goal = self._goals({r: P[r]}, grid, exclude=tried).get(r)
         return None
+
+    def _path_among_others(
+        self,
+        r: str,
+        goal: NDArray[np.float64],
+        grid: GridMap,
+        P: dict[str, NDArray[np.float64]],
+    ) -> NDArray[np.float64] | None:
+        """Robot r's path to `goal` around the other robots (`_plan`), or None. A path
+        the others make more than `detour_factor` x (+ `detour_slack_m`) as long as the
+        way without them is refused (`detours_refused`): one standing in a door, or
+        another's route through it, would send r the long way round, when it could
+        wait a moment or take another frontier. Not when a robot in the way has no
+        goal of its own (it would not move on)."""
+        start = P[r][:2]
+        discs = [P[o][None, :2] for o in P if o != r]
+        path = self.planner.plan(grid, start, goal, discs)
+        if path is None or not self.coordinated or not discs:
+            return path
+        if self._conflict(r, path, P):
+            routes = [self._remaining(o, P[o]) for o in self.tasks if o != r and o in P]
+            around = self.planner.plan(grid, start, goal, discs + routes) if routes else None
+            if around is not None and self._too_long(around, _length(path)):
+                self.detours_refused += 1
+                return None
+            return around
+        if not self._too_long(path, float(np.hypot(*(goal - start)))):
+            return path  # no detour at all: no need to know the way without the others
+        alone = self.planner.plan(grid, start, goal)
+        if alone is None or not self._too_long(path, _length(alone)):
+            return path  # the map itself makes the way that long
+        in_way = [o for o in P if o != r and not self.planner.clear_of(grid, alone, [P[o][:2]])]
+        if not in_way and not self._conflict(r, alone, P):
+            return alone  # the others were not in the way after all
+        if not all(o in self.tasks and not self.tasks[o].support for o in in_way):
+            return path  # one in the way stays there (no goal of its own): go round
+        self.detours_refused += 1
+        return None
+
+    def _too_long(self, path: NDArray[np.float64], reference_m: float) -> bool:
+        """Longer than `detour_factor` x `reference_m` + `detour_slack_m`."""
+        return _length(path) > self.detour_factor * reference_m + self.detour_slack_m
 
     def _conflict(
         self, r: str, path: NDArray[np.float64], P: dict[str, NDArray[np.float64]]
@@ -269,6 +330,10 @@ def make_explorer(cfg: Config) -> ExplorationManager:
         speed_mps=cfg.agent.cruise_speed_mps,
         spread_radius_m=e.spread_radius_m,
     )
+
+
+def _length(path: NDArray[np.float64]) -> float:
+    return float(np.sum(np.hypot(*np.diff(path, axis=0).T)))
 
 
 def _along(path: NDArray[np.float64], s: NDArray[np.float64]) -> NDArray[np.float64]:

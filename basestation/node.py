@@ -411,6 +411,7 @@ class BaseStationNode:
                 "paths_sent": self._path_id,
                 "unreachable": self.explorer.unreachable,
                 "planner_grid_fallbacks": self.explorer.planner.fallbacks,
+                "detours_refused": self.explorer.detours_refused,
             },
             "clock_syncs": self.syncs,
             "map_rerenders": self.map.rerenders,  # tiles redrawn

@@ -172,6 +172,47 @@ class PathPlanner:
             path = self._grid_fallback(grid, pm, check, s, g)
         return path
 
+    def clear_of(self, grid: GridMap, path: ArrayLike, others: list[ArrayLike]) -> bool:
+        """Whether `path` ((N, 2), from the robot's position) keeps out of the inflation
+        and `robot_clearance_m` away from `others`, as a path from `plan` would."""
+        p = np.asarray(path, dtype=np.float64).reshape(-1, 2)
+        return self._map(grid, p[0], others, 0.0).segment_free(p)
+
+    def approachable(
+        self, grid: GridMap, goals: ArrayLike, max_shift_m: float
+    ) -> NDArray[np.float64]:
+        """Goals [x, y] moved out of the no-collision zone: each goal that `plan` would
+        refuse as blocked (inside the inflation around a wall, as a frontier cell next
+        to a wall or a door jamb often is) becomes the nearest cell centre that `plan`
+        accepts, if that lies within `max_shift_m` and the straight line to it crosses
+        no occupied cell (never the other side of a wall). Rows of NaN: no such cell.
+        Other robots are not considered here."""
+        g = np.asarray(goals, dtype=np.float64).reshape(-1, 2)
+        out = g.copy()
+        if not len(g):
+            return out
+        pm = PlanningMap(grid, self.inflation_m + 2.0 * grid.resolution)  # as plan() checks goals
+        free = pm.is_free(g)
+        if free.all():
+            return out
+        if pm.blocked.all():
+            out[~free] = np.nan
+            return out
+        _, (ny, nx) = ndimage.distance_transform_edt(pm.blocked, return_indices=True)
+        h, w = pm.blocked.shape
+        for k in np.flatnonzero(~free):
+            iy, ix = (int(v[0]) for v in pm.cells(g[k]))
+            if not (0 <= ix < w and 0 <= iy < h):
+                out[k] = np.nan
+                continue
+            c = pm.origin + (np.array([nx[iy, ix], ny[iy, ix]]) + 0.5) * pm.resolution
+            n = max(2, int(math.ceil(np.hypot(*(c - g[k])) / (0.25 * pm.resolution))) + 1)
+            line = g[k] + np.linspace(0.0, 1.0, n)[:, None] * (c - g[k])
+            ly, lx = pm.cells(line)
+            crosses = bool(pm.occupied[np.clip(ly, 0, h - 1), np.clip(lx, 0, w - 1)].any())
+            out[k] = c if np.hypot(*(c - g[k])) <= max_shift_m and not crosses else np.nan
+        return out
+
     def _grid_fallback(
         self,
         grid: GridMap,

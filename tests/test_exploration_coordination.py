@@ -7,8 +7,10 @@ import numpy as np
 import pytest
 
 from basestation.exploration import ExplorationManager, _along, _Task
+from basestation.frontiers import FrontierDetector
 from basestation.goal_assigner import GoalAssigner
 from basestation.map_history import MapHistory, read_map_history
+from basestation.path_planner import PathPlanner
 from basestation.travel_distance import travel_distances
 from benchmarks.exploration import speedups
 from common.errors import CollabSlamError
@@ -34,6 +36,34 @@ def test_travel_distance_goes_around_walls() -> None:
     closed[100:102, :] = 100  # the wall now spans the whole floor
     d2 = travel_distances(GridMap(closed, 0.05, (0, 0, 0)), [[1.0, 1.0]], [[1.0, 9.0]])
     assert np.isinf(d2[0, 0])
+
+
+def _strip_along_wall() -> GridMap:
+    """10 x 10 m known free, a wall at y = 5 m, and between x = 2 and 6 m a 0.3 m strip
+    of unknown along the wall's foot (what a laser grazing the wall leaves), inside outer walls."""
+    data = np.zeros((200, 200), np.int8)
+    data[[0, -1], :] = data[:, [0, -1]] = 100  # outer walls: no frontier at the border
+    data[100:102, :] = 100
+    data[94:100, 40:120] = -1
+    return GridMap(data, 0.05, (0.0, 0.0, 0.0))
+
+
+def test_frontier_goal_beside_a_wall_is_moved_out_of_the_inflation() -> None:
+    g = _strip_along_wall()
+    (f,) = FrontierDetector(radius_m=0.3, min_group_cells=8).update(g)
+    planner = PathPlanner(inflation_m=0.35, robot_clearance_m=1.0, time_budget_s=0.2)
+    assert planner.plan(g, [4.0, 2.0], f.goal) is None  # the raw goal: inside the inflation
+    moved = planner.approachable(g, [f.goal, [4.0, 2.0], [4.0, 5.3], [4.0, 5.05]], 1.0)
+    np.testing.assert_allclose(moved[1], [4.0, 2.0])  # a free goal stays where it is
+    assert 0.0 < np.hypot(*(moved[0] - f.goal)) <= 1.0
+    assert moved[0][1] < 5.0  # on the robot's side of the wall, not across it
+    assert planner.plan(g, [4.0, 2.0], moved[0]) is not None
+    assert 5.1 < moved[2][1] <= 5.3 + 1.0  # beyond the wall: moved away from it, not across
+    assert np.isnan(moved[3]).all()  # inside the wall: no way out
+    m = ExplorationManager(detector=FrontierDetector(0.3, min_group_cells=8), planner=planner)
+    out = m.step(g, {"r0": np.array([4.0, 2.0, 0.0])})
+    assert out["r0"] is not None and np.hypot(*(out["r0"][-1] - f.goal)) <= 1.0
+    assert m.unreachable == 0
 
 
 def test_along_interpolates_by_arc_length_and_holds_the_end() -> None:
@@ -117,3 +147,43 @@ def test_bench_speedups_from_rows() -> None:
     assert s["ours_speedup_3"] == 3.0
     assert s["baseline_speedup_3"] == 0.6  # never reached: counted as the max sim time
     assert s["ours_faster_than_baseline_pct_3"] == 80.0
+
+
+def _door_floor() -> GridMap:
+    """24 x 10 m known free inside outer walls; a wall at y = 5 m from x = 0 to 20 m
+    with a 1.2 m door at x = 2-3.2 m (the long way round is past its end at x = 20 m)."""
+    data = np.zeros((200, 480), np.int8)
+    data[[0, -1], :] = data[:, [0, -1]] = 100
+    data[100:102, :400] = 100
+    data[100:102, 40:64] = 0
+    return GridMap(data, 0.05, (0.0, 0.0, 0.0))
+
+
+@pytest.mark.parametrize("b", ["leaving_the_door", "coming_through_the_door", "idle_in_the_door"])
+def test_a_robot_in_the_door_is_waited_for_not_flown_around(b: str) -> None:
+    g = _door_floor()
+    m = ExplorationManager(planner=PathPlanner(0.35, 1.0, 0.2))
+    goal = np.array([5.0, 8.0])
+    P = {"a": np.array([2.6, 2.5, np.pi / 2])}
+    if b == "coming_through_the_door":  # head-on: a's way is b's route
+        P["b"] = np.array([2.6, 7.0, -np.pi / 2])
+        m.tasks["b"] = _Task(np.array([2.6, 1.0]), np.array([[2.6, 7.0], [2.6, 1.0]]))
+    else:  # b stands in the door, on its way up (or with nowhere to go)
+        P["b"] = np.array([2.6, 5.05, np.pi / 2])
+        if b == "leaving_the_door":
+            m.tasks["b"] = _Task(np.array([12.0, 8.0]), np.array([[2.6, 5.05], [12.0, 8.0]]))
+    alone = m.planner.plan(g, P["a"][:2], goal)
+    assert alone is not None and float(np.hypot(*np.diff(alone, axis=0).T).sum()) < 9.0
+    path = m._plan("a", goal, g, P)
+    if b == "idle_in_the_door":  # b will not move on: the way round (~40 m) it is
+        assert path is not None and path[:, 0].max() > 18.0
+        assert m.detours_refused == 0
+        return
+    # b moves on: the way round the wall's end is refused, a waits or goes elsewhere
+    assert path is None
+    assert m.detours_refused >= 1 and m.unreachable == 1
+    assert not m._failures  # the map itself does not block the goal: not given up
+    P["b"] = np.array([12.0, 8.0, 0.0])  # b gone: a goes through the door
+    m.tasks.pop("b", None)
+    path = m._plan("a", goal, g, P)
+    assert path is not None and float(np.hypot(*np.diff(path, axis=0).T).sum()) < 9.0

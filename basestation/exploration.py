@@ -343,13 +343,3 @@ def _along(path: NDArray[np.float64], s: NDArray[np.float64]) -> NDArray[np.floa
     if cum[-1] <= 0.0:
         return np.repeat(path[:1], len(s), axis=0)
     return np.column_stack([np.interp(s, cum, path[:, 0]), np.interp(s, cum, path[:, 1])])
-
-
-def densify(path: NDArray[np.float64], spacing_m: float) -> NDArray[np.float64]:
-    """Waypoints at most `spacing_m` apart along the polyline: a follower that turns
-    toward the next waypoint early then cuts corners by little."""
-    out = [path[:1]]
-    for a, b in zip(path[:-1], path[1:], strict=True):
-        n = max(1, int(np.ceil(np.hypot(*(b - a)) / spacing_m)))
-        out.append(a + np.linspace(0.0, 1.0, n + 1)[1:, None] * (b - a))
-    return np.vstack(out)

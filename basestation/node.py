@@ -23,10 +23,11 @@ from typing import Any
 
 import numpy as np
 
-from basestation.exploration import densify, make_explorer
+from basestation.exploration import make_explorer
 from basestation.global_slam import GlobalSlam
 from basestation.map_builder import MapBuilder
 from basestation.map_history import MapHistory
+from basestation.path_planner import densify
 from basestation.persistence import EPOCH_BLOCK, Batch, open_database
 from common.bus import Bus
 from common.config import Config

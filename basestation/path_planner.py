@@ -58,9 +58,13 @@ class PlanningMap:
         dist = ndimage.distance_transform_edt(~occupied) * grid.resolution
         self.blocked = dist <= inflation_m
         self.blocked |= occupied
-        for pts in others or []:  # other robots: positions and paths, (N, 2) each
+        # other robots: positions and paths, (N, 2) each; a path is blocked along its
+        # segments, not only at its vertices (discs a quarter clearance apart: the
+        # corridor's edge is within 1 % of the clearance of the segment)
+        spacing = max(self.resolution, 0.25 * robot_clearance_m)
+        for pts in others or []:
             p = np.atleast_2d(np.asarray(pts, dtype=np.float64))[:, :2]
-            self.block_discs(p, robot_clearance_m)
+            self.block_discs(densify(p, spacing) if len(p) > 1 else p, robot_clearance_m)
         h, w = self.blocked.shape
         self.extent = np.array([w, h], dtype=np.float64) * self.resolution
 
@@ -307,3 +311,13 @@ class PathPlanner:
         path = np.array([[p.getState(i)[0], p.getState(i)[1]] for i in range(p.getStateCount())])
         path[0], path[-1] = s, g
         return path
+
+
+def densify(path: NDArray[np.float64], spacing_m: float) -> NDArray[np.float64]:
+    """Waypoints at most `spacing_m` apart along the polyline: a follower that turns
+    toward the next waypoint early then cuts corners by little."""
+    out = [path[:1]]
+    for a, b in zip(path[:-1], path[1:], strict=True):
+        n = max(1, int(np.ceil(np.hypot(*(b - a)) / spacing_m)))
+        out.append(a + np.linspace(0.0, 1.0, n + 1)[1:, None] * (b - a))
+    return np.vstack(out)

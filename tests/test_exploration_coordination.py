@@ -165,9 +165,9 @@ def test_a_robot_in_the_door_is_waited_for_not_flown_around(b: str) -> None:
     m = ExplorationManager(planner=PathPlanner(0.35, 1.0, 0.2))
     goal = np.array([5.0, 8.0])
     P = {"a": np.array([2.6, 2.5, np.pi / 2])}
-    if b == "coming_through_the_door":  # head-on: a's way is b's route
+    if b == "coming_through_the_door":  # head-on: a's way is b's route (to 1.3 m short of a)
         P["b"] = np.array([2.6, 7.0, -np.pi / 2])
-        m.tasks["b"] = _Task(np.array([2.6, 1.0]), np.array([[2.6, 7.0], [2.6, 1.0]]))
+        m.tasks["b"] = _Task(np.array([2.6, 3.8]), np.array([[2.6, 7.0], [2.6, 3.8]]))
     else:  # b stands in the door, on its way up (or with nowhere to go)
         P["b"] = np.array([2.6, 5.05, np.pi / 2])
         if b == "leaving_the_door":

@@ -50,6 +50,20 @@ def test_another_robot_blocks_a_corridor() -> None:
     assert planner.plan(grid, [1.0, 2.0], [9.0, 2.0], others=[[[5.0, 2.0]]]) is None
 
 
+def test_another_robots_path_is_blocked_along_its_segments() -> None:
+    grid = _grid(np.zeros((100, 100), dtype=np.int8))  # 10 x 10 m, all free
+    route = np.array([[1.0, 5.0], [9.0, 5.0]])  # two vertices 8 m apart
+    pm = PlanningMap(grid, 0.0, [route], robot_clearance_m=1.0)
+    xs = np.linspace(1.0, 9.0, 33)
+    assert not pm.is_free(np.column_stack([xs, np.full_like(xs, 5.0)])).any()
+    assert not pm.is_free(np.column_stack([xs, np.full_like(xs, 5.95)])).any()
+    assert pm.is_free(np.column_stack([xs, np.full_like(xs, 6.1)])).all()
+    # the route walls off the lower half: no way from below it to above it
+    planner = PathPlanner(inflation_m=0.1, robot_clearance_m=1.0, time_budget_s=0.2, seed=4)
+    wall = np.array([[-1.0, 5.0], [11.0, 5.0]])
+    assert planner.plan(grid, [5.0, 2.0], [5.0, 8.0], others=[wall]) is None
+
+
 def test_blocked_goal_gives_no_path() -> None:
     grid = _grid(_room_with_wall())
     assert PathPlanner().plan(grid, [2.0, 2.0], [5.0, 3.0]) is None  # inside the wall

@@ -62,6 +62,7 @@ class ExplorationManager:
     speed_mps: float = 1.0  # cruise speed the robots fly their paths at (conflict checks)
     horizon_s: float = 15.0  # s ahead that paths are checked against each other
     conflict_margin: float = 1.3  # times robot_clearance_m: slack for speed differences
+    lag_s: float = 0.5  # s, the others are also checked this far behind their schedule
     support_min_m: float = 1.0  # m, shortest move worth sending an idle robot
     busy_radius_factor: float = 2.0  # frontiers within this x clearance of a busy goal: taken
     goal_shift_m: float = 1.0  # m a frontier goal may move to get out of the inflation
@@ -106,6 +107,11 @@ class ExplorationManager:
             self.tasks.pop(r, None)
         goals = self._goals({r: P[r] for r in need}, grid)
         out = {r: self._plan(r, goals.get(r), grid, P) for r in need}
+        if self.coordinated and any(p is not None for p in out.values()):
+            # robots planned before another got its path saw that one as standing still:
+            # now it is on its way (judged in time), the way may be open
+            for r in [r for r in need if out[r] is None]:
+                out[r] = self._plan(r, self._goals({r: P[r]}, grid).get(r), grid, P)
         if self.coordinated:  # robots left without a frontier move up behind the others
             for r in [r for r in need if out[r] is None]:
                 out[r] = self._support(r, grid, P)
@@ -133,14 +139,14 @@ class ExplorationManager:
         happened to stop. None if no such path is at least `support_min_m` long."""
         goals = np.array([f.goal for f in self.frontiers])
         dist = travel_distances(grid, P[r][None, :2], goals, self.planner.robot_radius_m)[0]
-        discs = [P[o][None, :2] for o in P if o != r]
+        discs = self._discs(r, P)
         others = [t.goal for o, t in self.tasks.items() if o != r]
         keep = 2.0 * self.planner.robot_clearance_m
         for j in np.argsort(dist)[:3]:
             if not np.isfinite(dist[j]):
                 break
             path = self.planner.plan(grid, P[r][:2], goals[j], discs)
-            if path is None or (discs and self._too_long(path, dist[j])):
+            if path is None or (len(P) > 1 and self._too_long(path, dist[j])):
                 continue  # none, or only the long way round another robot
             length = _length(path)
             for cut in np.arange(length - keep, self.support_min_m - 1e-9, -0.5):
@@ -198,9 +204,9 @@ class ExplorationManager:
         wait a moment or take another frontier. Not when a robot in the way has no
         goal of its own (it would not move on)."""
         start = P[r][:2]
-        discs = [P[o][None, :2] for o in P if o != r]
+        discs = self._discs(r, P)
         path = self.planner.plan(grid, start, goal, discs)
-        if path is None or not self.coordinated or not discs:
+        if path is None or not self.coordinated or len(P) < 2:
             return path
         if self._conflict(r, path, P):
             routes = [self._remaining(o, P[o]) for o in self.tasks if o != r and o in P]
@@ -214,6 +220,8 @@ class ExplorationManager:
         alone = self.planner.plan(grid, start, goal)
         if alone is None or not self._too_long(path, _length(alone)):
             return path  # the map itself makes the way that long
+        if not discs:  # nobody was planned around: RRT* had found a poor path first
+            return path if self._conflict(r, alone, P) else alone
         in_way = [o for o in P if o != r and not self.planner.clear_of(grid, alone, [P[o][:2]])]
         if not in_way and not self._conflict(r, alone, P):
             return alone  # the others were not in the way after all
@@ -221,6 +229,15 @@ class ExplorationManager:
             return path  # one in the way stays there (no goal of its own): go round
         self.detours_refused += 1
         return None
+
+    def _discs(self, r: str, P: dict[str, NDArray[np.float64]]) -> list[NDArray[np.float64]]:
+        """Where the other robots are, as discs to plan around: (coordinated) only those
+        with no path to fly; one on its way is judged by `_conflict`, in time, so that
+        a robot may follow another through the door it is leaving by."""
+        return [
+            P[o][None, :2] for o in P
+            if o != r and not (self.coordinated and o in self.tasks)
+        ]  # fmt: skip
 
     def _too_long(self, path: NDArray[np.float64], reference_m: float) -> bool:
         """Longer than `detour_factor` x `reference_m` + `detour_slack_m`."""
@@ -232,17 +249,26 @@ class ExplorationManager:
         """Whether robot r flying `path` (from where it is) would come within the robot
         clearance of another robot flying the rest of its own path (or hovering), both
         at cruise speed, over the next `horizon_s`. Points within the clearance of r's
-        own start are not judged (robots that are already close move apart)."""
+        own start are not judged (robots that are already close move apart), except its
+        end, where it will hover. The others are also checked `lag_s` behind their
+        schedule: one slowed by a turn or still speeding up must not be caught up by a
+        robot following it."""
         t = np.arange(0.0, self.horizon_s, 0.1)
         mine = _along(path, self.speed_mps * t)
         near_start = np.hypot(*(mine - P[r][:2]).T) <= self.planner.robot_clearance_m
+        near_start &= self.speed_mps * t < _length(path)  # where it will hover is judged
+        keep = self.planner.robot_clearance_m * self.conflict_margin
         for o, q in P.items():
             if o == r:
                 continue
-            theirs = _along(self._remaining(o, q), self.speed_mps * t) if o in self.tasks else q[:2]
-            d = np.hypot(*(mine - theirs).T)
-            if np.any((d < self.planner.robot_clearance_m * self.conflict_margin) & ~near_start):
-                return True
+            for lag in (0.0, self.lag_s) if o in self.tasks else (None,):
+                theirs = (
+                    q[:2] if lag is None
+                    else _along(self._remaining(o, q), self.speed_mps * np.maximum(t - lag, 0.0))
+                )  # fmt: skip
+                d = np.hypot(*(mine - theirs).T)
+                if np.any((d < keep) & ~near_start):
+                    return True
         return False
 
     def _goals(

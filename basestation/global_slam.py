@@ -225,6 +225,14 @@ class GlobalSlam:
         self.update_ms.append(ms)
         self.update_series.add(ms)
 
+    def converge(self, max_iterations: int = 20) -> None:
+        """Relinearize until nothing moves (up to `max_iterations` forced iSAM2 steps):
+        between updates iSAM2 relinearizes only every `relinearize_skip` updates and
+        variables whose step exceeds the threshold, so the estimate after the last match
+        added or removed need not be the optimum yet. Run once the inputs have stopped."""
+        if self.graph.num_nodes():
+            self.graph.update(extra_iterations=max_iterations)
+
     # --- constraints --------------------------------------------------------------------
     def _chain_covariance(self, robot: str, i: np.ndarray, j: np.ndarray) -> np.ndarray:
         return self.store.robot(robot).chain_covariance(i, j)

@@ -383,6 +383,8 @@ class BaseStationNode:
             time.sleep(0.01)
         if self.slam.graph.flush_gps():  # the last GPS batch, due or not
             self._optimized()
+        self.slam.converge()  # the final map and trajectories: the optimum, not a step to it
+        self.publish_corrections()
         self.slam.close()
         self._persist()
         self.db.close()

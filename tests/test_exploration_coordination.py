@@ -90,6 +90,28 @@ def test_head_on_paths_conflict_but_following_does_not() -> None:
     assert m._conflict("a", np.array([[0.0, 0.0], [15.0, 0.0]]), P)
 
 
+def test_a_short_hop_may_not_end_next_to_where_another_robot_will_hover() -> None:
+    m = _mgr()
+    P = {"a": np.array([0.0, 0.0, 0.0]), "b": np.array([5.0, 0.0, np.pi])}
+    m.tasks["b"] = _Task(np.array([1.8, 0.0]), np.array([[5.0, 0.0], [1.8, 0.0]]))
+    # every point of a's 0.9 m hop lies within the clearance of a's start, but a would
+    # hover 0.9 m from where b stops
+    assert m._conflict("a", np.array([[0.0, 0.0], [0.9, 0.0]]), P)
+    assert not m._conflict("a", np.array([[0.0, 0.0], [-0.9, 0.0]]), P)  # moving away
+
+
+def test_a_follower_keeps_its_distance_from_a_leader_running_late() -> None:
+    m = _mgr()
+    P = {"a": np.array([0.0, 0.0, 0.0]), "b": np.array([1.2, 0.0, 0.0])}
+    m.tasks["b"] = _Task(np.array([20.0, 0.0]), np.array([[1.2, 0.0], [20.0, 0.0]]))
+    # 1.2 m behind: on schedule it would keep 1.2 m (> the 1.0 m clearance), but
+    # b half a second late would be caught up to 0.7 m
+    assert m._conflict("a", np.array([[0.0, 0.0], [15.0, 0.0]]), P)
+    P["b"] = np.array([1.8, 0.0, 0.0])
+    m.tasks["b"] = _Task(np.array([20.0, 0.0]), np.array([[1.8, 0.0], [20.0, 0.0]]))
+    assert not m._conflict("a", np.array([[0.0, 0.0], [15.0, 0.0]]), P)
+
+
 def test_greedy_baseline_sends_robots_to_their_own_nearest_frontier() -> None:
     a = GoalAssigner()
     frontiers = [np.array([5.0, 0.0]), np.array([-20.0, 0.0])]
@@ -160,7 +182,7 @@ def _door_floor() -> GridMap:
 
 
 @pytest.mark.parametrize("b", ["leaving_the_door", "coming_through_the_door", "idle_in_the_door"])
-def test_a_robot_in_the_door_is_waited_for_not_flown_around(b: str) -> None:
+def test_a_robot_in_the_door_is_followed_or_waited_for_not_flown_around(b: str) -> None:
     g = _door_floor()
     m = ExplorationManager(planner=PathPlanner(0.35, 1.0, 0.2))
     goal = np.array([5.0, 8.0])
@@ -179,7 +201,11 @@ def test_a_robot_in_the_door_is_waited_for_not_flown_around(b: str) -> None:
         assert path is not None and path[:, 0].max() > 18.0
         assert m.detours_refused == 0
         return
-    # b moves on: the way round the wall's end is refused, a waits or goes elsewhere
+    if b == "leaving_the_door":  # b flies on ahead of a: a follows it through the door
+        assert path is not None and float(np.hypot(*np.diff(path, axis=0).T).sum()) < 9.0
+        assert m.detours_refused == 0 and not m._conflict("a", path, P)
+        return
+    # b comes head-on: the way round the wall's end is refused, a waits or goes elsewhere
     assert path is None
     assert m.detours_refused >= 1 and m.unreachable == 1
     assert not m._failures  # the map itself does not block the goal: not given up

@@ -220,11 +220,9 @@ class ExplorationManager:
         alone = self.planner.plan(grid, start, goal)
         if alone is None or not self._too_long(path, _length(alone)):
             return path  # the map itself makes the way that long
-        if not discs:  # nobody was planned around: RRT* had found a poor path first
-            return path if self._conflict(r, alone, P) else alone
         in_way = [o for o in P if o != r and not self.planner.clear_of(grid, alone, [P[o][:2]])]
-        if not in_way and not self._conflict(r, alone, P):
-            return alone  # the others were not in the way after all
+        if (not in_way or not discs) and not self._conflict(r, alone, P):
+            return alone  # the others were not in the way after all (or RRT* went round)
         if not all(o in self.tasks and not self.tasks[o].support for o in in_way):
             return path  # one in the way stays there (no goal of its own): go round
         self.detours_refused += 1

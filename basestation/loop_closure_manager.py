@@ -108,6 +108,8 @@ class LoopClosureManager:
             return T[0], C[0]
 
         consistent = group.pcm.add(m, odometry, batch)
+        if len(consistent) <= 1:  # no two agree: one alone only if it fits the estimate
+            consistent = self._lone(group, consistent)
         self._settle(group)
         log.debug(
             "match %d (%s) %s:%d -> %s:%d at %s: %d of %d consistent, in: %s",
@@ -159,6 +161,40 @@ class LoopClosureManager:
                 self.accepted.discard(mid)
                 self.changes[mid] = False
                 log.info("constraint %d (%s) no longer consistent: removed", mid, self.kinds[mid])
+
+    def _lone(self, group: _Group, consistent: set[int], last: int = 10) -> set[int]:
+        """The match to use when no two of the group agree (PCM's clique has one member,
+        any of them): PCM tests matches only against each other, so a lone one would enter
+        untested. Of PCM's pick and the group's `last` newest, the one that agrees best
+        with the current estimate (`_misfit` within `pcm_chi2`), or none: wait for a
+        second match consistent with one of them. Between robots on different maps the
+        merge rule decides instead."""
+        ids = sorted(group.pcm.ids)[-last:]
+        m0 = group.measurements[ids[-1]]
+        ra, rb = m0.robot_a, m0.robot_b
+        if ra != rb and not any(ra in c and rb in c for c in self.graph.components()):
+            return consistent
+        fits = {i: self._misfit(group.measurements[i]) for i in {*ids, *consistent}}
+        best = min(fits, key=lambda i: fits[i])
+        if fits[best] > self.cfg.pcm_chi2:
+            log.debug("group %s-%s: no lone match agrees with the estimate: none used", ra, rb)
+            return set()
+        return {best}
+
+    def _misfit(self, m: LoopMeasurement) -> float:
+        """Mahalanobis distance^2 of a match from the estimated relative pose of its nodes,
+        under the match's covariance plus the chain's (one robot) or both nodes'
+        marginals (two robots; correlations left out, which only makes it more lenient)."""
+        a, b = (m.robot_a, m.index_a), (m.robot_b, m.index_b)
+        T_est = se2_between(self.graph.pose(*a), self.graph.pose(*b))
+        if a[0] == b[0]:  # stored with index_a < index_b (add): T_a_b along the chain
+            cov = m.covariance + self.chain_covariance(a[0], np.array([a[1]]), np.array([b[1]]))[0]
+        else:
+            marginal_a = self.graph.marginal_covariance(*a)
+            _, cov_a = invert_with_covariance(se2_inverse(T_est), marginal_a)
+            cov = m.covariance + cov_a + self.graph.marginal_covariance(*b)
+        r = se2_between(T_est, m.T_a_b)
+        return float(r @ np.linalg.solve(cov, r))
 
     def _enough_to_merge(self, group: _Group, consistent: set[int]) -> bool:
         """`min_consistent_to_merge` agreeing matches, seen from places of robot b at

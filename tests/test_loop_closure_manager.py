@@ -86,18 +86,52 @@ def test_wrong_inter_robot_match_in_a_two_robot_square_is_rejected() -> None:
 def test_a_wrong_loop_closure_leaves_the_graph_when_right_ones_disagree() -> None:
     rng = np.random.default_rng(5)
     graph, manager, truth = _setup(rng)
-    wrong = se2_compose(_true_T(truth, ("a", 0), ("a", 20)), [2.0, 1.0, -0.5])
-    manager.add(("a", 0), ("a", 20), wrong, LC_COV, "loop")  # alone: accepted for now
+    # wrong by 0.36 m: within what 20 keyframes of odometry allow, so accepted alone
+    wrong = se2_compose(_true_T(truth, ("a", 0), ("a", 20)), [0.3, 0.2, -0.03])
+    manager.add(("a", 0), ("a", 20), wrong, LC_COV, "loop")
     graph.update(extra_iterations=5)
     assert manager.counts()["loop_closures"] == 1
     distorted = _max_error(graph, {"a": truth["a"]})
-    assert distorted > 0.3
     for i, j in [(1, 19), (2, 18), (3, 17)]:
         manager.add(("a", i), ("a", j), _true_T(truth, ("a", i), ("a", j)), LC_COV, "loop")
     graph.update(extra_iterations=5)
     counts = manager.counts()
     assert counts["loop_closures"] == 3 and counts["rejected_by_pcm"] == 1
     assert _max_error(graph, {"a": truth["a"]}) < 0.15 < distorted
+
+
+def test_a_lone_match_that_disagrees_with_the_estimate_waits_for_another() -> None:
+    """PCM tests matches against each other only: the first of a group would enter
+    untested. On one map it must agree with the estimate (here: a loop 2.2 m and 29 deg
+    off what 20 keyframes of odometry allow; an inter-robot match 22 m off)."""
+    rng = np.random.default_rng(5)
+    graph, manager, truth = _setup(rng)
+    wrong = se2_compose(_true_T(truth, ("a", 0), ("a", 20)), [2.0, 1.0, -0.5])
+    manager.add(("a", 0), ("a", 20), wrong, LC_COV, "loop")
+    graph.update(extra_iterations=5)
+    assert manager.counts()["loop_closures"] == 0
+    assert _max_error(graph, {"a": truth["a"]}) < 0.3  # odometry drift only
+    manager.add(("a", 1), ("a", 19), _true_T(truth, ("a", 1), ("a", 19)), LC_COV, "loop")
+    graph.update(extra_iterations=5)
+    assert manager.counts()["loop_closures"] == 1  # a right one agrees: in
+    for i, j in [(2, 18), (3, 17)]:
+        manager.add(("a", i), ("a", j), _true_T(truth, ("a", i), ("a", j)), LC_COV, "loop")
+    graph.update(extra_iterations=5)
+    assert manager.counts() == {
+        "loop_closures": 3,
+        "inter_robot_constraints": 0,
+        "rejected_by_pcm": 1,
+    }
+    # b joins a's map; then a far-off match between them arrives first of its kind
+    for i, j in [(5, 4), (12, 12), (17, 16)]:
+        manager.add(("a", i), ("b", j), _true_T(truth, ("a", i), ("b", j)), LC_COV, "inter")
+    graph.update(extra_iterations=5)
+    assert graph.is_anchored("b")
+    far = manager.counts()["inter_robot_constraints"]
+    manager.groups.pop(("a", "b"))  # as if those had left the PCM window long ago
+    manager.add(("a", 2), ("b", 18), np.array([0.5, 0.2, 0.3]), LC_COV, "inter")
+    graph.update(extra_iterations=5)
+    assert manager.counts()["inter_robot_constraints"] == far
 
 
 def test_orientation_of_a_match_is_normalized() -> None:

@@ -74,19 +74,26 @@ def build_summary(
         "map_accuracy": accuracy,
         "isam2_update_ms_p95": base.get("isam2_update_ms_p95"),
         "min_robot_separation_m": min_separation(gts) if len(gts) == len(robot_ids) else None,
-        **_coverage_over_time(out, world_yaml),
+        **_coverage_over_time(out, world_yaml, sim.get("sim_time_s")),
         "rejected_messages": base.get("rejected_messages", {}),
     }
 
 
-def _coverage_over_time(out: Path, world_yaml: Path) -> dict[str, Any]:
+def _coverage_over_time(out: Path, world_yaml: Path, sim_end_s: float | None) -> dict[str, Any]:
     """time_to_95_s and the coverage curve of the reachable free area, from the base
-    station's map history (lock-step exploration runs only)."""
+    station's map history (lock-step exploration runs only). The final map, which
+    holds every keyframe taken before the simulation stopped, is the curve's last
+    point at the end time: the snapshot before it lags the robots by the keyframes
+    still on their way (a run that ended at 43.5 s scored 94.9 % at 43 s and 96.3 %
+    in its final map)."""
     if not (out / "map_history.npz").is_file() or not (out / "scenario.json").is_file():
         return {}
     world = read_map(world_yaml)
     starts = [r.start_pose[:2] for r in read_scenario(out / "scenario.json").robots]
     history = read_map_history(out / "map_history.npz")
+    if sim_end_s is not None and (out / "map.yaml").is_file():
+        if not history or sim_end_s > history[-1][0]:
+            history.append((float(sim_end_s), read_map(out / "map.yaml")))
     t, c = coverage_curve(history, world, reachable_free(world, starts))
     return {
         "time_to_95_s": time_to_coverage(t, c, 0.95),

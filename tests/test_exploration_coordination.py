@@ -150,6 +150,30 @@ def test_map_history_round_trip_and_coverage_over_time(tmp_path) -> None:
         read_map_history(tmp_path / "missing.npz")
 
 
+def test_the_final_map_is_the_coverage_curves_last_point(tmp_path) -> None:
+    """The last snapshot lags the robots by the keyframes still on their way: the map
+    written at the end (every keyframe taken before the simulation stopped) counts at
+    the end time."""
+    from collabslam.summary import _coverage_over_time
+    from common.map_io import write_map
+    from common.scenario import RobotScenario, Scenario, write_scenario
+
+    world = _grid_with_wall()
+    write_map(world, tmp_path / "world.yaml")
+    start = np.array([1.0, 1.0, 0.0])
+    write_scenario(tmp_path / "scenario.json", Scenario("world.yaml", [RobotScenario("r0", start)]))
+    h = MapHistory()
+    for t, upto in ((1.0, 50), (2.0, 150)):
+        data = np.full((200, 200), -1, np.int8)
+        data[:upto] = world.data[:upto]
+        h.add(t, GridMap(data, 0.05, (0.0, 0.0, 0.0)))
+    h.write(tmp_path / "map_history.npz")
+    assert _coverage_over_time(tmp_path, tmp_path / "world.yaml", 2.4)["time_to_95_s"] is None
+    write_map(world, tmp_path / "map.yaml")  # everything seen by the end
+    cov = _coverage_over_time(tmp_path, tmp_path / "world.yaml", 2.4)
+    assert cov["time_to_95_s"] == 2.4 and cov["coverage_curve"][-1] == [2.4, 1.0]
+
+
 def test_min_separation_and_reachable_region_errors() -> None:
     t = np.arange(5.0)
     a = Trajectory.from_pose4(t, np.column_stack([t, 0 * t, 0 * t, 0 * t]))

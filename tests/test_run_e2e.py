@@ -129,7 +129,7 @@ def test_autonomous_exploration_finishes(tmp_path: Path) -> None:
     # exploration ran in sim time: the clock waited for every base-station step
     sim = json.loads((out / "simulator.json").read_text())
     assert base["clock_syncs"] >= 10 and sim["basestation_sync_timeouts"] == 0
-    assert summary["time_to_95_s"] is not None and summary["time_to_95_s"] < summary["sim_time_s"]
+    assert summary["time_to_95_s"] is not None and summary["time_to_95_s"] <= summary["sim_time_s"]
     assert all(r["collisions"] == 0 for r in summary["robots"]), summary["robots"]
     assert summary["min_robot_separation_m"] > 0.5  # the drones' discs never touched
 

@@ -95,7 +95,12 @@ class ExplorationManager:
             self.release(r)
         self.done = not self.frontiers and bool((grid.data == 0).any())  # not before a map
         if not self.frontiers:  # done: every robot stops (once); no map yet: wait
-            stop = [r for r in P if r not in self._stopped] if self.done else []
+            # ... a robot on its way first finishes the leg it is on: where its path ends
+            # was checked against the others, a point in the middle of it was not
+            stop = [
+                r for r in P
+                if r not in self._stopped and (r in blocked or not self._finishing(r, P))
+            ] if self.done else []  # fmt: skip
             self._stopped.update(stop)
             for r in stop:
                 self.tasks.pop(r, None)
@@ -227,6 +232,16 @@ class ExplorationManager:
             return path  # one in the way stays there (no goal of its own): go round
         self.detours_refused += 1
         return None
+
+    def _finishing(self, r: str, P: dict[str, NDArray[np.float64]]) -> bool:
+        """Whether robot r is still on its way to its goal, on a path that keeps clear of
+        the others."""
+        t = self.tasks.get(r)
+        return (
+            t is not None
+            and bool(np.hypot(*(P[r][:2] - t.goal)) >= self.goal_reached_m)
+            and not self._conflict(r, self._remaining(r, P[r]), P)
+        )
 
     def _discs(self, r: str, P: dict[str, NDArray[np.float64]]) -> list[NDArray[np.float64]]:
         """Where the other robots are, as discs to plan around: (coordinated) only those

@@ -112,6 +112,24 @@ def test_a_follower_keeps_its_distance_from_a_leader_running_late() -> None:
     assert not m._conflict("a", np.array([[0.0, 0.0], [15.0, 0.0]]), P)
 
 
+def test_when_no_frontier_is_left_a_robot_on_its_way_first_finishes_its_leg() -> None:
+    """Stopping everyone at once could leave a robot in the middle of another's path
+    (only path ends are checked against each other): one on its way flies on to the end
+    of its path, then stops."""
+    data = np.zeros((200, 200), np.int8)  # 10 x 10 m, all known: no frontier
+    data[[0, -1], :] = data[:, [0, -1]] = 100
+    g = GridMap(data, 0.05, (0.0, 0.0, 0.0))
+    m = ExplorationManager(planner=PathPlanner(0.35, 1.0, 0.2))
+    P = {"a": np.array([2.0, 2.0, 0.0]), "b": np.array([2.0, 5.0, 0.0])}
+    m.tasks["a"] = _Task(np.array([2.2, 2.0]), np.array([[1.0, 2.0], [2.2, 2.0]]))  # there
+    m.tasks["b"] = _Task(np.array([8.0, 5.0]), np.array([[2.0, 5.0], [8.0, 5.0]]))
+    out = m.step(g, P)
+    assert m.done and out == {"a": None}  # b flies on
+    P["b"] = np.array([7.9, 5.0, 0.0])
+    assert m.step(g, P) == {"b": None}  # arrived: stops
+    assert m.step(g, P) == {}  # once
+
+
 def test_greedy_baseline_sends_robots_to_their_own_nearest_frontier() -> None:
     a = GoalAssigner()
     frontiers = [np.array([5.0, 0.0]), np.array([-20.0, 0.0])]

@@ -62,7 +62,10 @@ class ExplorationManager:
     speed_mps: float = 1.0  # cruise speed the robots fly their paths at (conflict checks)
     horizon_s: float = 15.0  # s ahead that paths are checked against each other
     conflict_margin: float = 1.3  # times robot_clearance_m: slack for speed differences
-    lag_s: float = 0.5  # s, the others are also checked this far behind their schedule
+    # s, the others are also checked this far behind their schedule: a leader that stops
+    # (a new goal, a hold) is noticed at the next step, up to a period (1 s) later, and the
+    # follower needs ~0.5 m to stop: 1.3 m + 1.2 s x 1 m/s keeps 1 m
+    lag_s: float = 1.2
     support_min_m: float = 1.0  # m, shortest move worth sending an idle robot
     busy_radius_factor: float = 2.0  # frontiers within this x clearance of a busy goal: taken
     goal_shift_m: float = 1.0  # m a frontier goal may move to get out of the inflation
@@ -120,6 +123,12 @@ class ExplorationManager:
         if self.coordinated:  # robots left without a frontier move up behind the others
             for r in [r for r in need if out[r] is None]:
                 out[r] = self._support(r, grid, P)
+            # one that now holds, or took a new way, may be in the way of a robot that was
+            # planned around it earlier: that one is re-planned now, not a step later
+            for r in [r for r in P if r not in out and r in self.tasks]:
+                if self._conflict(r, self._remaining(r, P[r]), P):
+                    self.tasks.pop(r)
+                    out[r] = self._plan(r, self._goals({r: P[r]}, grid).get(r), grid, P)
         return out
 
     def _approachable(self, found: list[Frontier], grid: GridMap) -> list[Frontier]:

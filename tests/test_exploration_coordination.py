@@ -81,12 +81,12 @@ def test_head_on_paths_conflict_but_following_does_not() -> None:
     P = {"a": np.array([0.0, 0.0, 0.0]), "b": np.array([8.0, 0.0, np.pi])}
     m.tasks["b"] = _Task(np.array([0.0, 0.2]), np.array([[8.0, 0.0], [0.0, 0.2]]))
     assert m._conflict("a", np.array([[0.0, 0.0], [8.0, 0.0]]), P)  # they meet halfway
-    # b flies away along +x from x = 2; a follows 2 m behind on the same line
-    P["b"] = np.array([2.0, 0.0, 0.0])
-    m.tasks["b"] = _Task(np.array([20.0, 0.0]), np.array([[2.0, 0.0], [20.0, 0.0]]))
+    # b flies away along +x from x = 2.5; a follows 2.5 m behind on the same line
+    P["b"] = np.array([2.5, 0.0, 0.0])
+    m.tasks["b"] = _Task(np.array([20.0, 0.0]), np.array([[2.5, 0.0], [20.0, 0.0]]))
     assert not m._conflict("a", np.array([[0.0, 0.0], [15.0, 0.0]]), P)
     # ... but not into b's goal where b will hover
-    m.tasks["b"] = _Task(np.array([6.0, 0.0]), np.array([[2.0, 0.0], [6.0, 0.0]]))
+    m.tasks["b"] = _Task(np.array([6.0, 0.0]), np.array([[2.5, 0.0], [6.0, 0.0]]))
     assert m._conflict("a", np.array([[0.0, 0.0], [15.0, 0.0]]), P)
 
 
@@ -102,13 +102,13 @@ def test_a_short_hop_may_not_end_next_to_where_another_robot_will_hover() -> Non
 
 def test_a_follower_keeps_its_distance_from_a_leader_running_late() -> None:
     m = _mgr()
-    P = {"a": np.array([0.0, 0.0, 0.0]), "b": np.array([1.2, 0.0, 0.0])}
-    m.tasks["b"] = _Task(np.array([20.0, 0.0]), np.array([[1.2, 0.0], [20.0, 0.0]]))
-    # 1.2 m behind: on schedule it would keep 1.2 m (> the 1.0 m clearance), but
-    # b half a second late would be caught up to 0.7 m
-    assert m._conflict("a", np.array([[0.0, 0.0], [15.0, 0.0]]), P)
-    P["b"] = np.array([1.8, 0.0, 0.0])
+    P = {"a": np.array([0.0, 0.0, 0.0]), "b": np.array([1.8, 0.0, 0.0])}
     m.tasks["b"] = _Task(np.array([20.0, 0.0]), np.array([[1.8, 0.0], [20.0, 0.0]]))
+    # 1.8 m behind: on schedule it would keep 1.8 m (> the 1.0 m clearance), but b
+    # `lag_s` (1.2 s) late would be caught up to 0.6 m
+    assert m._conflict("a", np.array([[0.0, 0.0], [15.0, 0.0]]), P)
+    P["b"] = np.array([2.5, 0.0, 0.0])
+    m.tasks["b"] = _Task(np.array([20.0, 0.0]), np.array([[2.5, 0.0], [20.0, 0.0]]))
     assert not m._conflict("a", np.array([[0.0, 0.0], [15.0, 0.0]]), P)
 
 
@@ -228,7 +228,7 @@ def test_a_robot_in_the_door_is_followed_or_waited_for_not_flown_around(b: str) 
     g = _door_floor()
     m = ExplorationManager(planner=PathPlanner(0.35, 1.0, 0.2))
     goal = np.array([5.0, 8.0])
-    P = {"a": np.array([2.6, 2.5, np.pi / 2])}
+    P = {"a": np.array([2.6, 1.3, np.pi / 2])}
     if b == "coming_through_the_door":  # head-on: a's way is b's route (to 1.3 m short of a)
         P["b"] = np.array([2.6, 7.0, -np.pi / 2])
         m.tasks["b"] = _Task(np.array([2.6, 3.8]), np.array([[2.6, 7.0], [2.6, 3.8]]))

@@ -61,7 +61,10 @@ class ExplorationManager:
     spread_radius_m: float = 5.0  # m
     speed_mps: float = 1.0  # cruise speed the robots fly their paths at (conflict checks)
     horizon_s: float = 15.0  # s ahead that paths are checked against each other
-    conflict_margin: float = 1.3  # times robot_clearance_m: slack for speed differences
+    # times robot_clearance_m: paths keep 1.5 m, the 1 m target plus the ~0.5 m a drone at
+    # cruise speed needs to stop (v^2 / 2a) when a hold or a new path reaches it (1.3: two
+    # drones 0.73 m apart when one held at a junction another was crossing, random:1)
+    conflict_margin: float = 1.5
     # s, the others are also checked this far behind their schedule: a leader that stops
     # (a new goal, a hold) is noticed at the next step, up to a period (1 s) later, and the
     # follower needs ~0.5 m to stop: 1.3 m + 1.2 s x 1 m/s keeps 1 m

@@ -67,7 +67,7 @@ class ExplorationManager:
     conflict_margin: float = 1.5
     # s, the others are also checked this far behind their schedule: a leader that stops
     # (a new goal, a hold) is noticed at the next step, up to a period (1 s) later, and the
-    # follower needs ~0.5 m to stop: 1.3 m + 1.2 s x 1 m/s keeps 1 m
+    # follower needs ~0.5 m to stop (within the conflict margin)
     lag_s: float = 1.2
     support_min_m: float = 1.0  # m, shortest move worth sending an idle robot
     busy_radius_factor: float = 2.0  # frontiers within this x clearance of a busy goal: taken

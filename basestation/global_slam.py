@@ -30,12 +30,14 @@ from typing import Any
 import numpy as np
 
 from basestation.constraint_builder import ConstraintBuilder, Job, Verified, find_candidates
-from basestation.keyframe_store import KeyframeStore
+from basestation.false_matches import FalseMatches
+from basestation.keyframe_store import KeyframeScans, KeyframeStore
 from basestation.loop_closure_manager import LoopClosureManager
 from basestation.pcm import LoopMeasurement
 from basestation.persistence import Batch, Recovered, StoredConstraint
 from basestation.pose_graph import PoseGraph
 from basestation.scan_archive import ScanArchive, ScanReader
+from basestation.slam_stats import slam_stats
 from basestation.update_series import UpdateSeries
 from common.config import Config
 from common.errors import CollabSlamError
@@ -78,7 +80,7 @@ class GlobalSlam:
         self.update_series = UpdateSeries(b.update_series_period_s)  # latencies over time
         self._new_nodes: list[NodeKey] = []
         self._constraints_added = False  # verified matches handed over since the last update
-        self._false_rng = np.random.default_rng(self.cc.false_match_seed)
+        self.false_matches = FalseMatches(self.cc, self.graph, self.loops)  # evaluation only
         self._global_map: tuple[object, list[np.ndarray], list[np.ndarray]] | None = None
         self._last_candidate: dict[tuple[str, str], int] = {}  # (robot, target robot) -> index
         self._together: dict[str, frozenset[str]] = {}  # robot -> its map's robots, last search
@@ -403,35 +405,13 @@ class GlobalSlam:
             return 0
         results = self.builder.results()
         self._constraints_added |= bool(results)
-        f = self.cc.false_match_fraction
         for v in results:
             try:
                 self._integrate(v)
-                if f > 0 and self._false_rng.random() < f / (1.0 - f):
-                    self._inject_false_match(v)
+                self.false_matches.after(v)
             except CollabSlamError as e:  # a stale or degenerate match: drop it, keep going
                 log.error("verified %s match %s -> %s dropped: %s", v.job.kind, v.job.a, v.job.b, e)
         return len(results)
-
-    def _inject_false_match(self, v: Verified) -> None:
-        """Evaluation only: a wrong match like perceptual aliasing produces. The query
-        node is said to be within a metre of a random other node of the same kind
-        (same robot for a loop, another anchored robot otherwise), with the real
-        match's covariance."""
-        rng = self._false_rng
-        b = v.job.b
-        if v.job.kind == "loop":
-            n = max(0, b[1] - self.cc.loop_min_index_gap)
-            robot = b[0]
-        else:
-            others = [r for r in self.graph.robots() if r != b[0] and self.graph.is_anchored(r)]
-            robot = others[int(rng.integers(len(others)))] if others else b[0]
-            n = self.graph.num_nodes(robot) if robot != b[0] else 0
-        if n < 1:
-            return
-        a = (robot, int(rng.integers(n)))
-        T = np.array([rng.uniform(-1, 1), rng.uniform(-1, 1), rng.uniform(-np.pi / 4, np.pi / 4)])
-        self.loops.add(a, b, T, v.match.covariance, "false")
 
     def _integrate(self, v: Verified) -> None:
         job, m = v.job, v.match
@@ -504,51 +484,5 @@ class GlobalSlam:
         return out
 
     def stats(self) -> dict[str, Any]:
-        upd = np.array(self.update_ms) if self.update_ms else np.zeros(1)
-        out: dict[str, Any] = {
-            "robots": {
-                rid: {
-                    "keyframes_in_graph": self.graph.num_nodes(rid)
-                    if rid in self.graph.robots()
-                    else 0,
-                    "duplicates": r.duplicates,
-                    "held_out_of_order": len(r.held),
-                    "anchored": rid in self.graph.robots() and self.graph.is_anchored(rid),
-                }
-                for rid, r in self.store.robots.items()
-            },
-            "isam2_updates": len(self.update_ms),
-            "isam2_update_ms_p50": float(np.percentile(upd, 50)),
-            "isam2_update_ms_p95": float(np.percentile(upd, 95)),
-            "isam2_update_ms_series": self.update_series.to_json(),
-            **self.loops.counts(),
-            "pcm": self.loops.pcm_stats(),
-            "scans": self.store.scan_archive.stats(),
-        }
-        failed = 0
-        if self.builder is not None:
-            out["constraint_builder"] = dict(self.builder.stats)
-            failed = sum(v for k, v in self.builder.stats.items() if k.startswith("failed_"))
-        # candidates that failed scan-match verification or the consistency check
-        out["rejected_candidates"] = out["rejected_by_pcm"] + failed
-        if self.gps_enabled:
-            out["gps"] = {**self.graph.gps_stats(), "fixes_ignored": self.gps_fixes_ignored}
-        return out
-
-
-class KeyframeScans(Sequence[Scan2D]):
-    """The scans of `keys`, read from the keyframe store when indexed (not held here)."""
-
-    def __init__(self, store: KeyframeStore, keys: list[NodeKey]) -> None:
-        self._store = store
-        self._keys = keys
-
-    def __len__(self) -> int:
-        return len(self._keys)
-
-    def __getitem__(self, i):  # noqa: ANN001, ANN204 (int or slice)
-        if isinstance(i, slice):
-            return self._store.scans(self._keys[i])
-        scan = self._store.scan(*self._keys[i])
-        assert scan is not None  # map_keyframes lists keyframes with a scan only
-        return scan
+        """Counts and latencies for basestation.json (`slam_stats`)."""
+        return slam_stats(self)

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import logging
 from collections import OrderedDict
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -193,3 +194,21 @@ class KeyframeStore:
     def acked_seq(self, robot_id: str) -> int:
         """Highest seq such that every keyframe up to it is admitted (-1 if none)."""
         return self.robot(robot_id).next_seq - 1
+
+
+class KeyframeScans(Sequence[Scan2D]):
+    """The scans of `keys`, read from the keyframe store when indexed (not held here)."""
+
+    def __init__(self, store: KeyframeStore, keys: list[NodeKey]) -> None:
+        self._store = store
+        self._keys = keys
+
+    def __len__(self) -> int:
+        return len(self._keys)
+
+    def __getitem__(self, i):  # noqa: ANN001, ANN204 (int or slice)
+        if isinstance(i, slice):
+            return self._store.scans(self._keys[i])
+        scan = self._store.scan(*self._keys[i])
+        assert scan is not None  # map_keyframes lists keyframes with a scan only
+        return scan

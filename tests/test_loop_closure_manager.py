@@ -83,13 +83,18 @@ def test_wrong_inter_robot_match_in_a_two_robot_square_is_rejected() -> None:
     assert _max_error(graph, truth) < 0.3  # both chains drift by ~0.15 m
 
 
-def test_a_wrong_loop_closure_leaves_the_graph_when_right_ones_disagree() -> None:
-    rng = np.random.default_rng(5)
-    graph, manager, truth = _setup(rng)
-    # wrong by 0.36 m: within what 20 keyframes of odometry allow, so accepted alone
-    wrong = se2_compose(_true_T(truth, ("a", 0), ("a", 20)), [0.3, 0.2, -0.03])
+def _one_wrong_loop(error: list[float]):
+    """Two robots' chains (`_setup`) and robot a's loop 0 -> 20 offered with `error`."""
+    graph, manager, truth = _setup(np.random.default_rng(5))
+    wrong = se2_compose(_true_T(truth, ("a", 0), ("a", 20)), error)
     manager.add(("a", 0), ("a", 20), wrong, LC_COV, "loop")
     graph.update(extra_iterations=5)
+    return graph, manager, truth
+
+
+def test_a_wrong_loop_closure_leaves_the_graph_when_right_ones_disagree() -> None:
+    # wrong by 0.36 m: within what 20 keyframes of odometry allow, so accepted alone
+    graph, manager, truth = _one_wrong_loop([0.3, 0.2, -0.03])
     assert manager.counts()["loop_closures"] == 1
     distorted = _max_error(graph, {"a": truth["a"]})
     for i, j in [(1, 19), (2, 18), (3, 17)]:
@@ -104,11 +109,7 @@ def test_a_lone_match_that_disagrees_with_the_estimate_waits_for_another() -> No
     """PCM tests matches against each other only: the first of a group would enter
     untested. On one map it must agree with the estimate (here: a loop 2.2 m and 29 deg
     off what 20 keyframes of odometry allow; an inter-robot match 22 m off)."""
-    rng = np.random.default_rng(5)
-    graph, manager, truth = _setup(rng)
-    wrong = se2_compose(_true_T(truth, ("a", 0), ("a", 20)), [2.0, 1.0, -0.5])
-    manager.add(("a", 0), ("a", 20), wrong, LC_COV, "loop")
-    graph.update(extra_iterations=5)
+    graph, manager, truth = _one_wrong_loop([2.0, 1.0, -0.5])
     assert manager.counts()["loop_closures"] == 0
     assert _max_error(graph, {"a": truth["a"]}) < 0.3  # odometry drift only
     manager.add(("a", 1), ("a", 19), _true_T(truth, ("a", 1), ("a", 19)), LC_COV, "loop")

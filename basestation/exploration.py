@@ -28,7 +28,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from basestation.frontiers import Box, Frontier, FrontierDetector
 from basestation.goal_assigner import AssignmentWeights, GoalAssigner
-from basestation.path_planner import PathPlanner, PlanningMap
+from basestation.path_planner import PathPlanner, PlanningMap, path_length
 from basestation.travel_distance import travel_distances
 from common.config import Config
 from common.map_io import GridMap
@@ -165,7 +165,7 @@ class ExplorationManager:
             path = self.planner.plan(grid, P[r][:2], goals[j], discs)
             if path is None or (len(P) > 1 and self._too_long(path, dist[j])):
                 continue  # none, or only the long way round another robot
-            length = _length(path)
+            length = path_length(path)
             for cut in np.arange(length - keep, self.support_min_m - 1e-9, -0.5):
                 prefix = _along(path, np.linspace(0.0, cut, max(2, int(cut / 0.25) + 1)))
                 end = prefix[-1]
@@ -228,14 +228,14 @@ class ExplorationManager:
         if self._conflict(r, path, P):
             routes = [self._remaining(o, P[o]) for o in self.tasks if o != r and o in P]
             around = self.planner.plan(grid, start, goal, discs + routes) if routes else None
-            if around is not None and self._too_long(around, _length(path)):
+            if around is not None and self._too_long(around, path_length(path)):
                 self.detours_refused += 1
                 return None
             return around
         if not self._too_long(path, float(np.hypot(*(goal - start)))):
             return path  # no detour at all: no need to know the way without the others
         alone = self.planner.plan(grid, start, goal)
-        if alone is None or not self._too_long(path, _length(alone)):
+        if alone is None or not self._too_long(path, path_length(alone)):
             return path  # the map itself makes the way that long
         in_way = [o for o in P if o != r and not self.planner.clear_of(grid, alone, [P[o][:2]])]
         if (not in_way or not discs) and not self._conflict(r, alone, P):
@@ -266,7 +266,7 @@ class ExplorationManager:
 
     def _too_long(self, path: NDArray[np.float64], reference_m: float) -> bool:
         """Longer than `detour_factor` x `reference_m` + `detour_slack_m`."""
-        return _length(path) > self.detour_factor * reference_m + self.detour_slack_m
+        return path_length(path) > self.detour_factor * reference_m + self.detour_slack_m
 
     def _conflict(
         self, r: str, path: NDArray[np.float64], P: dict[str, NDArray[np.float64]]
@@ -281,7 +281,7 @@ class ExplorationManager:
         t = np.arange(0.0, self.horizon_s, 0.1)
         mine = _along(path, self.speed_mps * t)
         near_start = np.hypot(*(mine - P[r][:2]).T) <= self.planner.robot_clearance_m
-        near_start &= self.speed_mps * t < _length(path)  # where it will hover is judged
+        near_start &= self.speed_mps * t < path_length(path)  # where it will hover is judged
         keep = self.planner.robot_clearance_m * self.conflict_margin
         for o, q in P.items():
             if o == r:
@@ -381,10 +381,6 @@ def make_explorer(cfg: Config) -> ExplorationManager:
         speed_mps=cfg.agent.cruise_speed_mps,
         spread_radius_m=e.spread_radius_m,
     )
-
-
-def _length(path: NDArray[np.float64]) -> float:
-    return float(np.sum(np.hypot(*np.diff(path, axis=0).T)))
 
 
 def _along(path: NDArray[np.float64], s: NDArray[np.float64]) -> NDArray[np.float64]:

@@ -414,6 +414,7 @@ class BaseStationNode:
                 "paths_sent": self._path_id,
                 "unreachable": self.explorer.unreachable,
                 "planner_grid_fallbacks": self.explorer.planner.fallbacks,
+                "planner_detours_shortened": self.explorer.planner.detours_shortened,
                 "detours_refused": self.explorer.detours_refused,
             },
             "clock_syncs": self.syncs,

@@ -11,7 +11,11 @@ planning map, so a returned path never crosses a blocked cell. When RRT* finds n
 path within its budget (long detours through doors on a big map, a loaded CPU),
 the shortest 8-connected cell path on the same planning map (Dijkstra, cropped to
 the known part of the map plus `fallback_margin_m`), shortcut greedily, is used
-instead; so a goal is called unreachable only when no path exists. A start
+instead; so a goal is called unreachable only when no path exists. RRT*'s first
+solution within a wall-time budget depends on the CPU's load: on a loaded machine it
+can be the long way round a wall when a door is near. So an RRT* path longer than
+`detour_ratio` times the straight line is compared with that grid path (Dijkstra
+searching no farther than the RRT* path's length), and the shorter one is used. A start
 inside the inflated zone (a robot close to a wall) is allowed: the inflation (not
 the wall) is cleared in a disc of `start_escape_m` around it.
 
@@ -133,6 +137,7 @@ class PathPlanner:
         attempts: int = 3,
         robot_radius_m: float = 0.2,
         fallback_margin_m: float = 2.0,
+        detour_ratio: float = 1.25,
     ) -> None:
         if not time_budget_s > 0:
             raise ConfigError(f"planning time budget must be > 0 s, got {time_budget_s}")
@@ -143,7 +148,9 @@ class PathPlanner:
         self.attempts = max(1, int(attempts))
         self.robot_radius_m = float(robot_radius_m)
         self.fallback_margin_m = float(fallback_margin_m)
+        self.detour_ratio = float(detour_ratio)
         self.fallbacks = 0  # plans that came from the grid path, not RRT*
+        self.detours_shortened = 0  # of those, RRT* had a path but a longer one
         _seed_ompl_once(seed)
 
     def plan(
@@ -172,9 +179,21 @@ class PathPlanner:
         if pm.segment_free(np.array([s, g])):
             return np.array([s, g])
         path = self._rrt_star(pm, check, s, g)
-        if path is None:
-            path = self._grid_fallback(grid, pm, check, s, g)
-        return path
+        limit = np.inf
+        if path is not None:
+            limit = path_length(path)
+            if limit <= self.detour_ratio * float(np.hypot(*(g - s))):
+                return path
+        cells = self._grid_fallback(grid, pm, check, s, g, limit)
+        if cells is None or (path is not None and path_length(cells) >= limit):
+            return path
+        self.fallbacks += 1
+        if path is not None:
+            self.detours_shortened += 1
+            log.debug("RRT* path %.1f m, grid path %.1f m: grid path used", limit, path_length(cells))
+        else:
+            log.debug("RRT* found no path in its budget: grid path of %d points used", len(cells))
+        return cells
 
     def clear_of(self, grid: GridMap, path: ArrayLike, others: list[ArrayLike]) -> bool:
         """Whether `path` ((N, 2), from the robot's position) keeps out of the inflation
@@ -224,8 +243,10 @@ class PathPlanner:
         check: PlanningMap,
         s: NDArray[np.float64],
         g: NDArray[np.float64],
+        limit_m: float = np.inf,
     ) -> NDArray[np.float64] | None:
-        """The shortest cell path on `pm` (module doc), shortcut, checked on `check`."""
+        """The shortest cell path on `pm` (module doc), shortcut, checked on `check`;
+        None when there is none of at most `limit_m`."""
         known_y, known_x = np.nonzero(grid.data >= 0)
         iy, ix = pm.cells(np.array([s, g]))
         m = int(math.ceil(self.fallback_margin_m / pm.resolution))
@@ -234,8 +255,13 @@ class PathPlanner:
         y0 = max(int(min(known_y.min(initial=iy.min()), iy.min())) - m, 0)
         x1 = min(int(max(known_x.max(initial=ix.max()), ix.max())) + m + 1, w)
         y1 = min(int(max(known_y.max(initial=iy.max()), iy.max())) + m + 1, h)
+        if np.isfinite(limit_m):  # a path of at most limit_m stays this close to s and g
+            c = pm.cells(0.5 * (s + g)[None])
+            r = int(math.ceil(0.5 * limit_m / pm.resolution)) + 1
+            cy, cx = int(c[0][0]), int(c[1][0])
+            x0, x1, y0, y1 = max(x0, cx - r), min(x1, cx + r + 1), max(y0, cy - r), min(y1, cy + r + 1)
         origin = pm.origin + np.array([x0, y0]) * pm.resolution
-        cells = grid_path(~pm.blocked[y0:y1, x0:x1], origin, pm.resolution, s, g)
+        cells = grid_path(~pm.blocked[y0:y1, x0:x1], origin, pm.resolution, s, g, limit_m)
         if cells is None:
             return None
         path = [cells[0]]
@@ -247,11 +273,7 @@ class PathPlanner:
             path.append(cells[j])
             i = j
         out = np.array(path)
-        if not check.segment_free(out):
-            return None
-        self.fallbacks += 1
-        log.debug("RRT* found no path in its budget: grid path of %d points used", len(out))
-        return out
+        return out if check.segment_free(out) else None
 
     def _map(
         self, grid: GridMap, s: NDArray[np.float64], others: list[ArrayLike] | None, margin: float
@@ -311,6 +333,11 @@ class PathPlanner:
         path = np.array([[p.getState(i)[0], p.getState(i)[1]] for i in range(p.getStateCount())])
         path[0], path[-1] = s, g
         return path
+
+
+def path_length(path: NDArray[np.float64]) -> float:
+    """Length (m) of an (N, 2) polyline."""
+    return float(np.hypot(*np.diff(path, axis=0).T).sum())
 
 
 def densify(path: NDArray[np.float64], spacing_m: float) -> NDArray[np.float64]:

@@ -72,12 +72,13 @@ def travel_distances(
 
 def grid_path(
     passable: NDArray[np.bool_], origin: ArrayLike, resolution: float, start: ArrayLike,
-    goal: ArrayLike,
+    goal: ArrayLike, limit_m: float = np.inf,
 ) -> NDArray[np.float64] | None:  # fmt: skip
     """Shortest 8-connected path (N, 2) of cell centres (m, map frame) from the cell of
     `start` to the cell of `goal` over `passable` (data[iy, ix], cell (0, 0) with its
     corner at `origin`); its ends are `start` and `goal` themselves. None when either
-    cell is outside or not passable, or they are not connected."""
+    cell is outside or not passable, or they are not connected by a path of at most
+    `limit_m` (the search stops there)."""
     h, w = passable.shape
     o = np.asarray(origin, dtype=np.float64)[:2]
     ends = np.array([np.asarray(start, float)[:2], np.asarray(goal, float)[:2]])
@@ -89,7 +90,7 @@ def grid_path(
     src, dst = (int(i[1] * w + i[0]) for i in ij)
     d, pred = dijkstra(
         _graph(passable, resolution).tocsr(), directed=False, indices=src,
-        return_predecessors=True,
+        return_predecessors=True, limit=float(limit_m),
     )  # fmt: skip
     if not np.isfinite(d[dst]):
         return None

@@ -124,3 +124,26 @@ def test_no_path_into_a_sealed_room_even_with_the_fallback() -> None:
     planner = PathPlanner(inflation_m=0.3, time_budget_s=1e-3, attempts=1, seed=5)
     assert planner.plan(_grid(d), [1.0, 1.0], [1.0, 9.0]) is None
     assert planner.fallbacks == 0
+
+
+class _LongWayRound(PathPlanner):
+    """RRT* as on a loaded CPU: its first solution, the long way round a wall."""
+
+    def _rrt_star(self, pm, check, s, g):  # type: ignore[no-untyped-def]
+        path = np.array([s, [s[0], 2.0], [9.0, 2.0], [9.0, 5.0], g])
+        return path if check.segment_free(path) else None
+
+
+def test_a_long_way_round_from_rrt_star_is_replaced_by_the_shorter_grid_path() -> None:
+    d = np.zeros((100, 100), dtype=np.int8)
+    d[:, 0] = d[:, -1] = d[0, :] = d[-1, :] = 100
+    d[40:42, :80] = 100  # a wall at y = 4 m up to x = 8 m ...
+    d[40:42, 10:22] = 0  # ... with a door at x = 1-2.2 m
+    planner = _LongWayRound(inflation_m=0.3, time_budget_s=0.05, seed=6)
+    path = planner.plan(_grid(d), [1.6, 1.0], [3.0, 7.0])
+    assert path is not None and planner.detours_shortened == 1 and planner.fallbacks == 1
+    assert path[:, 0].max() < 4.0 and np.sum(np.hypot(*np.diff(path, axis=0).T)) < 8.0
+    assert PlanningMap(_grid(d), 0.3).segment_free(path)
+    d[40:42, 10:22] = 100  # no door: the long way is the way
+    path = planner.plan(_grid(d), [1.6, 1.0], [3.0, 7.0])
+    assert path is not None and path[:, 0].max() > 8.0 and PlanningMap(_grid(d), 0.3).segment_free(path)

@@ -4,18 +4,17 @@ The planning map: unknown cells count as free (seed 002: the robot discovers the
 the way), occupied cells are grown by `inflation_m` (the no-collision zone, plus two
 cells so that the dense final check is conservative), and a
 disc of `robot_clearance_m` around every other robot and along its current path is
-blocked too. RRT* (`og.SimpleSetup`, path-length objective) runs for
-`time_budget_s`, up to `attempts` times while it has no exact solution; the
-solution is simplified (shortcutting) and then checked densely against the
-planning map, so a returned path never crosses a blocked cell. When RRT* finds no
-path within its budget (long detours through doors on a big map, a loaded CPU),
-the shortest 8-connected cell path on the same planning map (Dijkstra, cropped to
-the known part of the map plus `fallback_margin_m`), shortcut greedily, is used
-instead; so a goal is called unreachable only when no path exists. RRT*'s first
-solution within a wall-time budget depends on the CPU's load: on a loaded machine it
-can be the long way round a wall when a door is near. So an RRT* path longer than
-`detour_ratio` times the straight line is compared with that grid path (Dijkstra
-searching no farther than the RRT* path's length), and the shorter one is used. A start
+blocked too. First the shortest 8-connected cell path on that planning map
+(Dijkstra, cropped to the known part of the map plus `fallback_margin_m`, shortcut
+greedily): if there is none, the goal is unreachable and RRT* is not run (it
+would spend its whole budget, up to `attempts` times, finding nothing). Then RRT*
+(`og.SimpleSetup`, path-length objective) runs for at most `time_budget_s`,
+stopping as soon as its path is within `rrt_good_enough` of the grid path's
+length; its solution is simplified (shortcutting) and checked densely against the
+planning map, so a returned path never crosses a blocked cell. The shorter of the
+two is returned: RRT*'s first solution within a wall-time budget depends on the
+CPU's load, and on a loaded machine it can be the long way round a wall when a
+door is near (or nothing at all: long detours through doors on a big map). A start
 inside the inflated zone (a robot close to a wall) is allowed: the inflation (not
 the wall) is cleared in a disc of `start_escape_m` around it.
 
@@ -137,7 +136,7 @@ class PathPlanner:
         attempts: int = 3,
         robot_radius_m: float = 0.2,
         fallback_margin_m: float = 2.0,
-        detour_ratio: float = 1.25,
+        rrt_good_enough: float = 1.2,
     ) -> None:
         if not time_budget_s > 0:
             raise ConfigError(f"planning time budget must be > 0 s, got {time_budget_s}")
@@ -148,7 +147,7 @@ class PathPlanner:
         self.attempts = max(1, int(attempts))
         self.robot_radius_m = float(robot_radius_m)
         self.fallback_margin_m = float(fallback_margin_m)
-        self.detour_ratio = float(detour_ratio)
+        self.rrt_good_enough = float(rrt_good_enough)
         self.fallbacks = 0  # plans that came from the grid path, not RRT*
         self.detours_shortened = 0  # of those, RRT* had a path but a longer one
         _seed_ompl_once(seed)
@@ -178,19 +177,21 @@ class PathPlanner:
             return None
         if pm.segment_free(np.array([s, g])):
             return np.array([s, g])
-        path = self._rrt_star(pm, check, s, g)
-        limit = np.inf
-        if path is not None:
-            limit = path_length(path)
-            if limit <= self.detour_ratio * float(np.hypot(*(g - s))):
-                return path
-        cells = self._grid_fallback(grid, pm, check, s, g, limit)
-        if cells is None or (path is not None and path_length(cells) >= limit):
+        cells = self._grid_path(grid, pm, s, g)
+        if cells is None:
+            log.debug("no path from %s to %s on the planning map", s, g)
+            return None
+        usable = check.segment_free(cells)
+        reference = path_length(cells)
+        path = self._rrt_star(pm, check, s, g, self.rrt_good_enough * reference, usable)
+        if path is not None and (not usable or path_length(path) <= reference):
             return path
+        if not usable:
+            return None
         self.fallbacks += 1
         if path is not None:
             self.detours_shortened += 1
-            log.debug("RRT* path %.1f m, grid path %.1f m: grid path used", limit, path_length(cells))
+            log.debug("RRT* %.1f m, grid path %.1f m: grid path used", path_length(path), reference)
         else:
             log.debug("RRT* found no path in its budget: grid path of %d points used", len(cells))
         return cells
@@ -236,17 +237,10 @@ class PathPlanner:
             out[k] = c if np.hypot(*(c - g[k])) <= max_shift_m and not crosses else np.nan
         return out
 
-    def _grid_fallback(
-        self,
-        grid: GridMap,
-        pm: PlanningMap,
-        check: PlanningMap,
-        s: NDArray[np.float64],
-        g: NDArray[np.float64],
-        limit_m: float = np.inf,
+    def _grid_path(
+        self, grid: GridMap, pm: PlanningMap, s: NDArray[np.float64], g: NDArray[np.float64]
     ) -> NDArray[np.float64] | None:
-        """The shortest cell path on `pm` (module doc), shortcut, checked on `check`;
-        None when there is none of at most `limit_m`."""
+        """The shortest cell path on `pm` (module doc), shortcut; None if there is none."""
         known_y, known_x = np.nonzero(grid.data >= 0)
         iy, ix = pm.cells(np.array([s, g]))
         m = int(math.ceil(self.fallback_margin_m / pm.resolution))
@@ -255,13 +249,8 @@ class PathPlanner:
         y0 = max(int(min(known_y.min(initial=iy.min()), iy.min())) - m, 0)
         x1 = min(int(max(known_x.max(initial=ix.max()), ix.max())) + m + 1, w)
         y1 = min(int(max(known_y.max(initial=iy.max()), iy.max())) + m + 1, h)
-        if np.isfinite(limit_m):  # a path of at most limit_m stays this close to s and g
-            c = pm.cells(0.5 * (s + g)[None])
-            r = int(math.ceil(0.5 * limit_m / pm.resolution)) + 1
-            cy, cx = int(c[0][0]), int(c[1][0])
-            x0, x1, y0, y1 = max(x0, cx - r), min(x1, cx + r + 1), max(y0, cy - r), min(y1, cy + r + 1)
         origin = pm.origin + np.array([x0, y0]) * pm.resolution
-        cells = grid_path(~pm.blocked[y0:y1, x0:x1], origin, pm.resolution, s, g, limit_m)
+        cells = grid_path(~pm.blocked[y0:y1, x0:x1], origin, pm.resolution, s, g)
         if cells is None:
             return None
         path = [cells[0]]
@@ -272,8 +261,7 @@ class PathPlanner:
                 j += 1
             path.append(cells[j])
             i = j
-        out = np.array(path)
-        return out if check.segment_free(out) else None
+        return np.array(path)
 
     def _map(
         self, grid: GridMap, s: NDArray[np.float64], others: list[ArrayLike] | None, margin: float
@@ -286,8 +274,16 @@ class PathPlanner:
         return pm
 
     def _rrt_star(
-        self, pm: PlanningMap, check: PlanningMap, s: NDArray[np.float64], g: NDArray[np.float64]
+        self,
+        pm: PlanningMap,
+        check: PlanningMap,
+        s: NDArray[np.float64],
+        g: NDArray[np.float64],
+        good_enough_m: float,
+        have_fallback: bool,
     ) -> NDArray[np.float64] | None:
+        """RRT*'s simplified path, or None. It stops as soon as its path is at most
+        `good_enough_m` long; with a usable fallback it gets one budget, not `attempts`."""
         space = ob.RealVectorStateSpace(2)
         bounds = ob.RealVectorBounds(2)
         for k in range(2):
@@ -309,9 +305,11 @@ class PathPlanner:
         a, b = space.allocState(), space.allocState()
         a[0], a[1], b[0], b[1] = float(s[0]), float(s[1]), float(g[0]), float(g[1])
         ss.setStartAndGoalStates(a, b, 0.5 * res)
-        ss.getProblemDefinition().setOptimizationObjective(ob.PathLengthOptimizationObjective(si))
+        objective = ob.PathLengthOptimizationObjective(si)
+        objective.setCostThreshold(ob.Cost(float(good_enough_m)))
+        ss.getProblemDefinition().setOptimizationObjective(objective)
         ss.setPlanner(og.RRTstar(si))
-        for _ in range(self.attempts):  # a further solve() grows the same tree
+        for _ in range(1 if have_fallback else self.attempts):  # solve() grows the same tree
             ss.solve(self.time_budget_s)
             if ss.haveExactSolutionPath():
                 break

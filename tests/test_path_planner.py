@@ -118,18 +118,29 @@ def test_grid_path_when_rrt_star_runs_out_of_time() -> None:
     assert 30.0 < length < 45.0  # through every gap, shortcut (not a staircase of cells)
 
 
+class _CountingRrtStar(PathPlanner):
+    rrt_runs = 0
+
+    def _rrt_star(self, *args):  # type: ignore[no-untyped-def]
+        self.rrt_runs += 1
+        return super()._rrt_star(*args)
+
+
 def test_no_path_into_a_sealed_room_even_with_the_fallback() -> None:
     d = _serpentine()
     d[80:82, :] = 100  # the top row of rooms is sealed off
-    planner = PathPlanner(inflation_m=0.3, time_budget_s=1e-3, attempts=1, seed=5)
+    planner = _CountingRrtStar(inflation_m=0.3, time_budget_s=1e-3, attempts=1, seed=5)
     assert planner.plan(_grid(d), [1.0, 1.0], [1.0, 9.0]) is None
     assert planner.fallbacks == 0
+    assert planner.rrt_runs == 0  # no cell path: RRT* is not run (its budget is saved)
+    assert planner.plan(_grid(_serpentine()), [1.0, 1.0], [1.0, 9.0]) is not None
+    assert planner.rrt_runs == 1
 
 
 class _LongWayRound(PathPlanner):
     """RRT* as on a loaded CPU: its first solution, the long way round a wall."""
 
-    def _rrt_star(self, pm, check, s, g):  # type: ignore[no-untyped-def]
+    def _rrt_star(self, pm, check, s, g, good_enough_m, have_fallback):  # type: ignore[no-untyped-def]
         path = np.array([s, [s[0], 2.0], [9.0, 2.0], [9.0, 5.0], g])
         return path if check.segment_free(path) else None
 

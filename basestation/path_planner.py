@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import logging
 import math
+import zlib
 
 import numpy as np
 import ompl.base as ob
@@ -40,6 +41,23 @@ from common.map_io import GridMap
 
 log = logging.getLogger(__name__)
 ou.setLogLevel(ou.LOG_WARN)
+
+
+_last_wall_distance: tuple[tuple[tuple[int, ...], float, int], NDArray[np.float64]] | None = None
+
+
+def _wall_distance(occupied: NDArray[np.bool_], resolution: float) -> NDArray[np.float64]:
+    """Distance (m) from every cell to the nearest occupied one (read-only). One
+    exploration step plans many paths on the same grid: the last result is reused
+    while the occupied cells are the same (a CRC of the mask, ~0.1 ms, against
+    10-20 ms for the transform of a 30 x 25 m map)."""
+    global _last_wall_distance
+    key = (occupied.shape, float(resolution), zlib.crc32(np.ascontiguousarray(occupied)))
+    if _last_wall_distance is None or _last_wall_distance[0] != key:
+        dist = ndimage.distance_transform_edt(~occupied) * resolution
+        dist.flags.writeable = False
+        _last_wall_distance = (key, dist)
+    return _last_wall_distance[1]
 
 
 class PlanningMap:
@@ -58,8 +76,7 @@ class PlanningMap:
         self.origin = np.array(grid.origin[:2], dtype=np.float64)
         occupied = grid.data > 0
         self.occupied = occupied
-        dist = ndimage.distance_transform_edt(~occupied) * grid.resolution
-        self.blocked = dist <= inflation_m
+        self.blocked = _wall_distance(occupied, grid.resolution) <= inflation_m
         self.blocked |= occupied
         # other robots: positions and paths, (N, 2) each; a path is blocked along its
         # segments, not only at its vertices (discs a quarter clearance apart: the

@@ -35,6 +35,7 @@ from common.errors import FileFormatError
 from common.geodesy import GeoOrigin, geodetic_to_enu
 from common.geometry import pose4_to_pose7, pose7_to_pose4
 from common.map_io import read_wgs84_origin, write_map
+from common.metrics import percentiles
 from common.picture import render_map_picture
 from common.scenario import Scenario
 from common.trajectory_io import write_tum
@@ -87,6 +88,7 @@ class BaseStationNode:
         self.explorer = make_explorer(cfg) if cfg.exploration.enabled else None
         self._last_explore = 0.0
         self._path_id = 0
+        self._explore_ms: list[float] = []  # wall time of each exploration step
         self.inbox: queue.Queue[Keyframe] = queue.Queue()
         self.gnss_inbox: queue.Queue[GnssFix] = queue.Queue()  # basestation.gps.enabled
         self.states: dict[str, RobotState] = {}
@@ -264,7 +266,10 @@ class BaseStationNode:
         z = self.cfg.agent.cruise_altitude_m
         out: list[tuple[str, bytes]] = []
         batch = Batch()
-        for rid, path in self.explorer.step(grid, poses, blocked=blocked).items():
+        t0 = time.perf_counter()
+        paths = self.explorer.step(grid, poses, blocked=blocked)
+        self._explore_ms.append((time.perf_counter() - t0) * 1e3)
+        for rid, path in paths.items():
             self._path_id += 1
             over = path is None and self.explorer.done  # path_id 0: the mission is over
             p = np.zeros((0, 2)) if path is None else densify(path, 0.25)
@@ -416,6 +421,7 @@ class BaseStationNode:
                 "planner_grid_fallbacks": self.explorer.planner.fallbacks,
                 "planner_detours_shortened": self.explorer.planner.detours_shortened,
                 "detours_refused": self.explorer.detours_refused,
+                **percentiles("step_ms", self._explore_ms),
             },
             "clock_syncs": self.syncs,
             "map_rerenders": self.map.rerenders,  # tiles redrawn

@@ -66,6 +66,7 @@ from common.config import Config
 from common.errors import CollabSlamError
 from common.g2o_io import G2oGraph, read_g2o
 from common.geometry import se2_between, se2_compose, wrap_angle
+from common.metrics import percentiles
 
 log = logging.getLogger(__name__)
 
@@ -236,14 +237,6 @@ def batch_from_odometry(cfg: Config, feed: Feed) -> BatchResult:
     return batch_optimize(graph, start="guess")
 
 
-def _percentiles(prefix: str, ms: FloatArray) -> dict[str, float]:
-    return {
-        f"{prefix}_p50": float(np.percentile(ms, 50)),
-        f"{prefix}_p95": float(np.percentile(ms, 95)),
-        f"{prefix}_max": float(ms.max()),
-    }
-
-
 def _ate_rms(poses: dict[str, FloatArray], truth: dict[str, FloatArray]) -> float:
     err = np.concatenate([poses[r][:, :2] - truth[r][:, :2] for r in truth])
     return float(np.sqrt((err**2).sum(axis=1).mean()))
@@ -277,13 +270,13 @@ def bench_feed(
     result: dict[str, Any] = {
         "nodes": len(feed.nodes),
         "constraints": sum(len(n.constraints) for n in feed.nodes),
-        **_percentiles("isam2_update_ms", fed.update_ms),
+        **percentiles("isam2_update_ms", fed.update_ms),
         "batch_ms": batch.wall_ms,
         "ratio_batch_over_isam2": batch.wall_ms / p50,
-        **_percentiles("isam2_update_cpu_ms", fed.update_cpu_ms),
+        **percentiles("isam2_update_cpu_ms", fed.update_cpu_ms),
         "batch_cpu_ms": batch_cpu_ms,
         "ratio_batch_over_isam2_cpu": batch_cpu_ms / cpu_p50,
-        **_percentiles("isam2_solve_ms", fed.solve_ms),
+        **percentiles("isam2_solve_ms", fed.solve_ms),
         "batch_reorders": fed.batch_reorders,
         "isam2_total_s": float(fed.update_ms.sum() / 1e3),
         "batch_iterations": batch.iterations,
@@ -295,7 +288,7 @@ def bench_feed(
     }
     if tracked:
         tracked_fed = feed_pose_graph(cfg, feed, track_changes=True)
-        result.update(_percentiles("tracked_update_ms", tracked_fed.update_ms))
+        result.update(percentiles("tracked_update_ms", tracked_fed.update_ms))
     if truth is not None:
         estimate = {r: fed.graph.poses(r) for r in truth}
         result["ate_rms_m"] = {

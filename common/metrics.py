@@ -240,3 +240,15 @@ def min_separation(trajectories: list[Trajectory]) -> float | None:
         for j in range(i + 1, len(xy)):
             best = min(best, float(np.min(np.hypot(*(xy[i] - xy[j]).T))))
     return best
+
+
+def percentiles(prefix: str, values: ArrayLike) -> dict[str, float | None]:
+    """{prefix_p50, prefix_p95, prefix_max} of a list of timings (None when empty)."""
+    v = np.asarray(values, dtype=np.float64).ravel()
+    if not len(v):
+        return {f"{prefix}_p50": None, f"{prefix}_p95": None, f"{prefix}_max": None}
+    return {
+        f"{prefix}_p50": float(np.percentile(v, 50)),
+        f"{prefix}_p95": float(np.percentile(v, 95)),
+        f"{prefix}_max": float(v.max()),
+    }

@@ -157,4 +157,8 @@ def test_a_long_way_round_from_rrt_star_is_replaced_by_the_shorter_grid_path() -
     assert PlanningMap(_grid(d), 0.3).segment_free(path)
     d[40:42, 10:22] = 100  # no door: the long way is the way
     path = planner.plan(_grid(d), [1.6, 1.0], [3.0, 7.0])
-    assert path is not None and path[:, 0].max() > 8.0 and PlanningMap(_grid(d), 0.3).segment_free(path)
+    assert (
+        path is not None
+        and path[:, 0].max() > 8.0
+        and PlanningMap(_grid(d), 0.3).segment_free(path)
+    )

@@ -125,6 +125,7 @@ def test_autonomous_exploration_finishes(tmp_path: Path) -> None:
     assert summary["sim_end_reason"] == "robots_done", summary
     base = json.loads((out / "basestation.json").read_text())
     assert base["exploration"]["done"] and base["exploration"]["frontiers"] == 0
+    assert 0 < base["exploration"]["step_ms_p50"] <= base["exploration"]["step_ms_max"]
     assert summary["map_coverage"] >= 0.9 and summary["map_accuracy"] >= 0.95
     # exploration ran in sim time: the clock waited for every base-station step
     sim = json.loads((out / "simulator.json").read_text())

@@ -8,7 +8,11 @@ to the group's centroid, so the goal is itself a free frontier cell (Fig. 5b).
 Groups smaller than `min_group_cells` are dropped (noise between two scans).
 
 Incremental: `FrontierDetector.update` re-examines only the boxes the last map update
-touched, grown by the radius; the rest of the frontier mask is kept. The grouping is
+touched, grown by the radius; the rest of the frontier mask is kept. Without boxes
+from the caller it finds them itself: the cells that changed since the previous grid,
+as the bounding boxes of connected groups of changed `TILE`-cell tiles. The
+neighbourhood counts are FFT convolutions (a 0.5 m disc at 5 cm is 21 x 21 cells:
+~7x faster than a direct convolution), rounded to whole cells. The grouping is
 redone over the whole mask (a labelling pass, cheap next to the neighbourhood counts).
 
 Grids use the map_server convention of `common.map_io.GridMap`: -1 unknown, 0 free,
@@ -22,12 +26,13 @@ from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy import ndimage
+from scipy import ndimage, signal
 
 from common.errors import ConfigError
 from common.map_io import GridMap
 
 Box = tuple[tuple[float, float], tuple[float, float]]  # ((min x, min y), (max x, max y)), m
+TILE = 32  # cells: changes found by diffing grids are grouped in tiles of this size
 
 
 @dataclass(frozen=True)
@@ -56,8 +61,8 @@ def frontier_mask(
     total = k.sum()
     free = (data == 0).astype(np.float64)
     occupied = (data > 0).astype(np.float64)
-    n_free = ndimage.convolve(free, k, mode="constant", cval=0.0)
-    n_occ = ndimage.convolve(occupied, k, mode="constant", cval=0.0)
+    n_free = np.rint(signal.fftconvolve(free, k, mode="same"))  # the disc is symmetric:
+    n_occ = np.rint(signal.fftconvolve(occupied, k, mode="same"))  # convolution = counts
     share = n_free / total  # with no occupied cell, the rest is unknown
     return (data == 0) & (n_occ < 0.5) & (np.abs(share - 0.5) <= balance_tolerance)
 
@@ -79,8 +84,8 @@ class FrontierDetector:
 
     def update(self, grid: GridMap, touched: list[Box] | None = None) -> list[Frontier]:
         """Frontiers of `grid`; `touched`: boxes the map changed in since the previous
-        call (None: everything). A grid with another extent or resolution is examined
-        whole."""
+        call (None: found by comparing the grids). A grid with another extent or
+        resolution is examined whole."""
         r = max(1, int(round(self.radius_m / grid.resolution)))
         same = (
             self._grid is not None
@@ -89,28 +94,63 @@ class FrontierDetector:
             and self._grid.origin == grid.origin
             and self._grid.resolution == grid.resolution
         )
-        if not same or touched is None:
+        if not same:
             self._mask = frontier_mask(grid.data, r, self.balance_tolerance)
             self.cells_examined += grid.data.size
         else:
-            assert self._mask is not None
-            h, w = grid.data.shape
-            for lo, hi in touched:
-                c0 = int(math.floor((lo[0] - grid.origin[0]) / grid.resolution)) - 2 * r
-                r0 = int(math.floor((lo[1] - grid.origin[1]) / grid.resolution)) - 2 * r
-                c1 = int(math.ceil((hi[0] - grid.origin[0]) / grid.resolution)) + 2 * r
-                r1 = int(math.ceil((hi[1] - grid.origin[1]) / grid.resolution)) + 2 * r
-                c0, r0, c1, r1 = max(c0, 0), max(r0, 0), min(c1, w), min(r1, h)
-                if c0 >= c1 or r0 >= r1:
-                    continue
-                # examine a window padded by r so that the neighbourhood counts are exact
-                pr0, pc0 = max(r0 - r, 0), max(c0 - r, 0)
-                pr1, pc1 = min(r1 + r, h), min(c1 + r, w)
-                sub = frontier_mask(grid.data[pr0:pr1, pc0:pc1], r, self.balance_tolerance)
-                self._mask[r0:r1, c0:c1] = sub[r0 - pr0 : r1 - pr0, c0 - pc0 : c1 - pc0]
-                self.cells_examined += (pr1 - pr0) * (pc1 - pc0)
+            windows = (
+                self._changed_windows(grid) if touched is None
+                else [self._cells_of(box, grid) for box in touched]
+            )  # fmt: skip
+            for window in windows:
+                self._examine(grid, r, *window)
         self._grid = grid
         return self.groups()
+
+    @staticmethod
+    def _cells_of(box: Box, grid: GridMap) -> tuple[int, int, int, int]:
+        """A box in metres as cell bounds (row0, row1, col0, col1), outward."""
+        (x0, y0), (x1, y1) = box
+        ox, oy, res = grid.origin[0], grid.origin[1], grid.resolution
+        return (
+            int(math.floor((y0 - oy) / res)), int(math.ceil((y1 - oy) / res)),
+            int(math.floor((x0 - ox) / res)), int(math.ceil((x1 - ox) / res)),
+        )  # fmt: skip
+
+    def _changed_windows(self, grid: GridMap) -> list[tuple[int, int, int, int]]:
+        """Cell bounds of the groups of tiles in which `grid` differs from the last one."""
+        assert self._grid is not None
+        changed = grid.data != self._grid.data
+        h, w = changed.shape
+        th, tw = -(-h // TILE), -(-w // TILE)
+        padded = np.zeros((th * TILE, tw * TILE), dtype=bool)
+        padded[:h, :w] = changed
+        tiles = padded.reshape(th, TILE, tw, TILE).any(axis=(1, 3))
+        labels, _ = ndimage.label(tiles, structure=np.ones((3, 3)))
+        return [
+            (sl[0].start * TILE, sl[0].stop * TILE, sl[1].start * TILE, sl[1].stop * TILE)
+            for sl in ndimage.find_objects(labels)
+            if sl is not None
+        ]
+
+    def _examine(self, grid: GridMap, r: int, r0: int, r1: int, c0: int, c1: int) -> None:
+        """Recompute the mask within 2r of the cell window (rows r0:r1, cols c0:c1)."""
+        assert self._mask is not None
+        h, w = grid.data.shape
+        r0, c0, r1, c1 = (
+            max(r0 - 2 * r, 0),
+            max(c0 - 2 * r, 0),
+            min(r1 + 2 * r, h),
+            min(c1 + 2 * r, w),
+        )
+        if r0 >= r1 or c0 >= c1:
+            return
+        # examine a window padded by r so that the neighbourhood counts are exact
+        pr0, pc0 = max(r0 - r, 0), max(c0 - r, 0)
+        pr1, pc1 = min(r1 + r, h), min(c1 + r, w)
+        sub = frontier_mask(grid.data[pr0:pr1, pc0:pc1], r, self.balance_tolerance)
+        self._mask[r0:r1, c0:c1] = sub[r0 - pr0 : r1 - pr0, c0 - pc0 : c1 - pc0]
+        self.cells_examined += (pr1 - pr0) * (pc1 - pc0)
 
     def groups(self) -> list[Frontier]:
         """The current mask grouped into frontiers, largest first."""

@@ -236,17 +236,18 @@ class PathPlanner:
         free = pm.is_free(g)
         if free.all():
             return out
-        if pm.blocked.all():
-            out[~free] = np.nan
-            return out
-        _, (ny, nx) = ndimage.distance_transform_edt(pm.blocked, return_indices=True)
         h, w = pm.blocked.shape
-        for k in np.flatnonzero(~free):
+        reach = int(math.ceil(max_shift_m / pm.resolution)) + 1  # cells: a window this wide
+        for k in np.flatnonzero(~free):  # ... around the goal holds every cell it may move to
             iy, ix = (int(v[0]) for v in pm.cells(g[k]))
-            if not (0 <= ix < w and 0 <= iy < h):
+            y0, x0 = max(iy - reach, 0), max(ix - reach, 0)
+            window = pm.blocked[y0 : iy + reach + 1, x0 : ix + reach + 1]
+            if not (0 <= ix < w and 0 <= iy < h) or window.all():
                 out[k] = np.nan
                 continue
-            c = pm.origin + (np.array([nx[iy, ix], ny[iy, ix]]) + 0.5) * pm.resolution
+            _, (ny, nx) = ndimage.distance_transform_edt(window, return_indices=True)
+            cell = np.array([x0 + nx[iy - y0, ix - x0], y0 + ny[iy - y0, ix - x0]])
+            c = pm.origin + (cell + 0.5) * pm.resolution
             n = max(2, int(math.ceil(np.hypot(*(c - g[k])) / (0.25 * pm.resolution))) + 1)
             line = g[k] + np.linspace(0.0, 1.0, n)[:, None] * (c - g[k])
             ly, lx = pm.cells(line)

@@ -10,7 +10,12 @@ out of it is removed from the graph again. Each group keeps only its last
 its record is dropped here (an accepted one keeps its factor). Two robots whose maps are not yet
 connected are joined only when `min_consistent_to_merge` mutually consistent
 matches from places at least `merge_min_spread_m` apart agree, so one lucky
-match (and the matches it leads to nearby) cannot fuse two maps.
+match (and the matches it leads to nearby) cannot fuse two maps. The matches a
+robot has with other robots of the same map count too when they put it in the
+same place (within `merge_agree_m` / `merge_agree_rad` at their own nodes): a
+robot turning on one spot may see robot A from there and robot B, on A's map,
+from a few metres on (ACES: 9 agreeing matches with one robot from within 1.9 m
+and 2 with another from 5 m away; the third robot never joined).
 """
 
 from __future__ import annotations
@@ -25,7 +30,7 @@ from basestation.pcm import IncrementalPcm, LoopMeasurement
 from basestation.pose_graph import PoseGraph
 from common.config import ConstraintConfig
 from common.errors import CollabSlamError
-from common.geometry import se2_between, se2_inverse
+from common.geometry import se2_between, se2_compose, se2_inverse, wrap_angle
 
 log = logging.getLogger(__name__)
 
@@ -161,6 +166,20 @@ class LoopClosureManager:
                 self.accepted.discard(mid)
                 self.changes[mid] = False
                 log.info("constraint %d (%s) no longer consistent: removed", mid, self.kinds[mid])
+        if separate:  # other pairs the join put on one map use their agreeing matches now
+            comps = self.graph.components()
+            for other in list(self.groups.values()):
+                m1 = next(iter(other.measurements.values()), None)
+                if other is group or m1 is None or m1.robot_a == m1.robot_b:
+                    continue
+                same = any(m1.robot_a in c and m1.robot_b in c for c in comps)
+                if not same and not all(map(self.graph.is_anchored, (m1.robot_a, m1.robot_b))):
+                    continue
+                accepted = other.pcm.accepted
+                if accepted - other.in_graph.keys():
+                    self._reconcile(
+                        other, accepted if len(accepted) > 1 else self._lone(other, accepted)
+                    )
 
     def _lone(self, group: _Group, consistent: set[int], last: int = 10) -> set[int]:
         """The match to use when no two of the group agree (PCM's clique has one member,
@@ -197,16 +216,66 @@ class LoopClosureManager:
         return float(r @ np.linalg.solve(cov, r))
 
     def _enough_to_merge(self, group: _Group, consistent: set[int]) -> bool:
-        """`min_consistent_to_merge` agreeing matches, seen from places of robot b at
+        """`min_consistent_to_merge` agreeing matches, seen from places of one robot at
         least `merge_min_spread_m` apart: in look-alike rooms one wrong match and the
         matches searched near where it put the robot can agree; a few metres on, the
-        likeness usually breaks."""
-        if len(consistent) < self.cfg.min_consistent_to_merge:
+        likeness usually breaks. The robot's accepted matches with other robots of the
+        other map count too if they put it where this group's do (module doc)."""
+        ms = [group.measurements[i] for i in sorted(consistent)]
+        if not ms:
             return False
-        ms = [group.measurements[i] for i in consistent]
-        P = self.graph.poses(ms[0].robot_b)[[m.index_b for m in ms], :2]
-        spread = float(np.max(np.hypot(*(P[:, None] - P[None]).transpose(2, 0, 1))))
-        return spread >= self.cfg.merge_min_spread_m
+        for x, y in ((ms[0].robot_b, ms[0].robot_a), (ms[0].robot_a, ms[0].robot_b)):
+            nodes = [m.index_b if x == m.robot_b else m.index_a for m in ms]
+            nodes += self._agreeing_elsewhere(x, y, ms)
+            if len(nodes) < self.cfg.min_consistent_to_merge:
+                continue
+            P = self.graph.poses(x)[nodes, :2]
+            spread = float(np.max(np.hypot(*(P[:, None] - P[None]).transpose(2, 0, 1))))
+            if spread >= self.cfg.merge_min_spread_m:
+                return True
+        return False
+
+    def _agreeing_elsewhere(self, x: str, y: str, ms: list[LoopMeasurement]) -> list[int]:
+        """Nodes of robot `x` in its accepted matches with robots sharing `y`'s frame
+        (other than `y`) that put them where `ms` (matches of x with y) puts them."""
+        comps = self.graph.components()
+        frame = next((c for c in comps if y in c), [y])
+        anchored = self.graph.is_anchored(y)
+        others = {
+            r for r in self.graph.robots()
+            if r not in (x, y) and (r in frame or (anchored and self.graph.is_anchored(r)))
+        }  # fmt: skip
+        if not others:
+            return []
+        X = self.graph.poses(x)
+        # x's frame into y's, from this group's matches: mean of their alignments
+        A = np.array([self._align(m, x, X) for m in ms])
+        yaw = float(np.arctan2(np.sin(A[:, 2]).mean(), np.cos(A[:, 2]).mean()))
+        ref = np.array([*A[:, :2].mean(axis=0), yaw])
+        out = []
+        for (ra, rb), g in self.groups.items():
+            if {ra, rb} & others and x in (ra, rb) and ra != rb:
+                for mid in g.pcm.accepted:
+                    m = g.measurements.get(mid)
+                    if m is None:
+                        continue
+                    i = m.index_b if x == m.robot_b else m.index_a
+                    here = se2_compose(self._align(m, x, X), X[i])
+                    there = se2_compose(ref, X[i])
+                    if (
+                        np.hypot(*(here[:2] - there[:2])) <= self.cfg.merge_agree_m
+                        and abs(wrap_angle(here[2] - there[2])) <= self.cfg.merge_agree_rad
+                    ):
+                        out.append(i)
+        return out
+
+    def _align(self, m: LoopMeasurement, x: str, X: np.ndarray) -> np.ndarray:
+        """The transform from robot `x`'s frame into its partner's that match `m` implies."""
+        if x == m.robot_b:
+            at = se2_compose(self.graph.pose(m.robot_a, m.index_a), m.T_a_b)
+            return se2_compose(at, se2_inverse(X[m.index_b]))
+        at = se2_compose(self.graph.pose(m.robot_b, m.index_b), se2_inverse(m.T_a_b))
+        return se2_compose(at, se2_inverse(X[m.index_a]))
 
     def take_journal(self) -> tuple[list[tuple[LoopMeasurement, str]], dict[int, bool]]:
         """New measurements (with kind) and in-graph changes since the last call."""

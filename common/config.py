@@ -268,6 +268,10 @@ class ConstraintConfig:
     pcm_window: int = 100
     min_consistent_to_merge: int = 3  # consistent matches needed to join two robots' maps
     merge_min_spread_m: float = 2.0  # m between the places those matches were seen from
+    # A robot's matches with other robots of the same map count toward the merge when they
+    # put it where the pair's matches do, within this (at the matched node; m, rad).
+    merge_agree_m: float = 1.0
+    merge_agree_rad: float = 0.2
     global_search_every: int = 5  # keyframes of an unanchored robot between global searches
     global_min_score: float = 0.65  # stricter score for a whole-map search
     # Evaluation only (robustness benchmarks): after each verified match, inject a wrong

@@ -33,11 +33,17 @@ def _truth(start: np.ndarray, deltas: list[np.ndarray]) -> np.ndarray:
     return np.array(P)
 
 
-def _setup(rng: np.random.Generator, cfg: ConstraintConfig | None = None):
+def _setup(rng: np.random.Generator, cfg: ConstraintConfig | None = None, third: bool = False):
+    """Robots a (known start) and b (floating); with `third`, c too (known start: on
+    a's map), flying the square from 1 m to the side of b's start."""
     deltas = _square()
     truth = {"a": _truth(np.zeros(3), deltas), "b": _truth(START_B, deltas)}
+    starts = [("a", np.zeros(3)), ("b", None)]
+    if third:
+        truth["c"] = _truth(START_B + [1.0, 0.0, 0.0], deltas)
+        starts.append(("c", truth["c"][0]))
     graph = PoseGraph()
-    for rid, start in (("a", np.zeros(3)), ("b", None)):
+    for rid, start in starts:
         graph.add_robot(rid, start)
         graph.add_node(rid, 0, None, None)
         for k, d in enumerate(deltas, start=1):
@@ -171,6 +177,27 @@ def test_agreeing_matches_from_one_spot_do_not_join_two_maps() -> None:
     graph.update()
     assert not graph.is_anchored("b")
     assert manager.counts()["inter_robot_constraints"] == 0
+
+
+@pytest.mark.parametrize("c_right", [True, False])
+def test_matches_with_two_robots_of_one_map_count_together_when_they_agree(c_right: bool) -> None:
+    """b sees a three times from within a metre (not enough alone: look-alike places),
+    then c, on a's map, twice from 5 m on. If c's matches put b where a's do, together
+    they are spread enough to join b's map; if they put it 1.5 m elsewhere, not."""
+    rng = np.random.default_rng(5)
+    graph, manager, truth = _setup(rng, third=True)
+    for j in (8, 9, 9):
+        manager.add(("a", j), ("b", j), _true_T(truth, ("a", j), ("b", j)), LC_COV, "inter")
+    graph.update()
+    assert not graph.is_anchored("b")
+    for j in (13, 14):
+        T = _true_T(truth, ("c", j), ("b", j))
+        manager.add(("c", j), ("b", j), T if c_right else T + [1.5, 0.0, 0.0], LC_COV, "inter")
+        graph.update(extra_iterations=5)
+    assert graph.is_anchored("b") == c_right
+    if c_right:  # joined by the a-b matches (c's enter with the group's next match)
+        assert manager.counts()["inter_robot_constraints"] >= 3
+        assert _max_error(graph, truth) < 0.3
 
 
 def test_matches_leaving_the_pcm_window_keep_their_state() -> None:

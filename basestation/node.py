@@ -418,6 +418,7 @@ class BaseStationNode:
                 "frontiers": len(self.explorer.frontiers),
                 "paths_sent": self._path_id,
                 "unreachable": self.explorer.unreachable,
+                "planner_searches": self.explorer.planner.plans,
                 "planner_grid_fallbacks": self.explorer.planner.fallbacks,
                 "planner_detours_shortened": self.explorer.planner.detours_shortened,
                 "detours_refused": self.explorer.detours_refused,

@@ -8,13 +8,17 @@ blocked too. First the shortest 8-connected cell path on that planning map
 (Dijkstra, cropped to the known part of the map plus `fallback_margin_m`, shortcut
 greedily): if there is none, the goal is unreachable and RRT* is not run (it
 would spend its whole budget, up to `attempts` times, finding nothing). Then RRT*
-(`og.SimpleSetup`, path-length objective) runs for at most `time_budget_s`,
-stopping as soon as its path is within `rrt_good_enough` of the grid path's
+(`og.SimpleSetup`, path-length objective) runs for at most `budget_with_fallback`
+x `time_budget_s` (the whole budget, up to `attempts` times, if the cell path
+fails the final check), stopping as soon as its path is within `rrt_good_enough`
+of the grid path's
 length; its solution is simplified (shortcutting) and checked densely against the
 planning map, so a returned path never crosses a blocked cell. The shorter of the
 two is returned: RRT*'s first solution within a wall-time budget depends on the
 CPU's load, and on a loaded machine it can be the long way round a wall when a
-door is near (or nothing at all: long detours through doors on a big map). A start
+door is near (or nothing at all: long detours through doors on a big map). The
+same question (start, goal, other robots) on the same grid is answered from memory:
+an exploration step asks some several times. A start
 inside the inflated zone (a robot close to a wall) is allowed: the inflation (not
 the wall) is cleared in a disc of `start_escape_m` around it.
 
@@ -42,6 +46,8 @@ from common.map_io import GridMap
 log = logging.getLogger(__name__)
 ou.setLogLevel(ou.LOG_WARN)
 
+
+MEMO_SIZE = 512  # plans remembered for one grid
 
 _last_wall_distance: tuple[tuple[tuple[int, ...], float, int], NDArray[np.float64]] | None = None
 
@@ -154,6 +160,7 @@ class PathPlanner:
         robot_radius_m: float = 0.2,
         fallback_margin_m: float = 2.0,
         rrt_good_enough: float = 1.2,
+        budget_with_fallback: float = 0.25,
     ) -> None:
         if not time_budget_s > 0:
             raise ConfigError(f"planning time budget must be > 0 s, got {time_budget_s}")
@@ -165,7 +172,13 @@ class PathPlanner:
         self.robot_radius_m = float(robot_radius_m)
         self.fallback_margin_m = float(fallback_margin_m)
         self.rrt_good_enough = float(rrt_good_enough)
+        self.budget_with_fallback = float(budget_with_fallback)
+        self.plans = 0  # paths searched for (not answered from memory)
         self.fallbacks = 0  # plans that came from the grid path, not RRT*
+        # the same question on the same grid gets the same answer (an exploration step
+        # asks some several times: a robot that must wait tries every way it has)
+        self._memo: dict[tuple[bytes, bytes, tuple[bytes, ...]], NDArray[np.float64] | None] = {}
+        self._memo_grid: tuple[object, ...] | None = None
         self.detours_shortened = 0  # of those, RRT* had a path but a longer one
         _seed_ompl_once(seed)
 
@@ -181,6 +194,26 @@ class PathPlanner:
         positions / current paths, (M, 2) arrays, kept `robot_clearance_m` away from."""
         s = np.asarray(start, dtype=np.float64)[:2]
         g = np.asarray(goal, dtype=np.float64)[:2]
+        key = (
+            s.tobytes(), g.tobytes(),
+            tuple(np.asarray(o, dtype=np.float64).tobytes() for o in others or []),
+        )  # fmt: skip
+        grid_key = (grid.data.shape, grid.origin, zlib.crc32(np.ascontiguousarray(grid.data)))
+        if grid_key != self._memo_grid or len(self._memo) >= MEMO_SIZE:
+            self._memo_grid, self._memo = grid_key, {}
+        if key not in self._memo:
+            self.plans += 1
+            self._memo[key] = self._plan(grid, s, g, others)
+        path = self._memo[key]
+        return None if path is None else path.copy()
+
+    def _plan(
+        self,
+        grid: GridMap,
+        s: NDArray[np.float64],
+        g: NDArray[np.float64],
+        others: list[ArrayLike] | None,
+    ) -> NDArray[np.float64] | None:
         # RRT* searches with two more cells of margin than asked, so that the final
         # check on the asked map, at a quarter cell, does not catch a clipped corner
         margin = 2.0 * grid.resolution
@@ -319,7 +352,7 @@ class PathPlanner:
 
         ss.setStateValidityChecker(valid)
         si = ss.getSpaceInformation()
-        si.setStateValidityCheckingResolution(0.2 * res / float(pm.extent.max()))
+        si.setStateValidityCheckingResolution(0.5 * res / float(pm.extent.max()))
         a, b = space.allocState(), space.allocState()
         a[0], a[1], b[0], b[1] = float(s[0]), float(s[1]), float(g[0]), float(g[1])
         ss.setStartAndGoalStates(a, b, 0.5 * res)
@@ -328,7 +361,7 @@ class PathPlanner:
         ss.getProblemDefinition().setOptimizationObjective(objective)
         ss.setPlanner(og.RRTstar(si))
         for _ in range(1 if have_fallback else self.attempts):  # solve() grows the same tree
-            ss.solve(self.time_budget_s)
+            ss.solve(self.time_budget_s * (self.budget_with_fallback if have_fallback else 1.0))
             if ss.haveExactSolutionPath():
                 break
         else:

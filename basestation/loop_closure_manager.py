@@ -224,16 +224,23 @@ class LoopClosureManager:
         ms = [group.measurements[i] for i in sorted(consistent)]
         if not ms:
             return False
+        if self._spread_enough(ms[0].robot_b, [m.index_b for m in ms]):
+            return True
         for x, y in ((ms[0].robot_b, ms[0].robot_a), (ms[0].robot_a, ms[0].robot_b)):
-            nodes = [m.index_b if x == m.robot_b else m.index_a for m in ms]
-            nodes += self._agreeing_elsewhere(x, y, ms)
-            if len(nodes) < self.cfg.min_consistent_to_merge:
-                continue
-            P = self.graph.poses(x)[nodes, :2]
-            spread = float(np.max(np.hypot(*(P[:, None] - P[None]).transpose(2, 0, 1))))
-            if spread >= self.cfg.merge_min_spread_m:
+            extra = self._agreeing_elsewhere(x, y, ms)  # seen from more places of x?
+            own = [m.index_b if x == m.robot_b else m.index_a for m in ms]
+            if extra and self._spread_enough(x, own + extra):
                 return True
         return False
+
+    def _spread_enough(self, robot: str, nodes: list[int]) -> bool:
+        """At least `min_consistent_to_merge` nodes of `robot`, the farthest two at least
+        `merge_min_spread_m` apart."""
+        if len(nodes) < self.cfg.min_consistent_to_merge:
+            return False
+        P = self.graph.poses(robot)[nodes, :2]
+        spread = float(np.max(np.hypot(*(P[:, None] - P[None]).transpose(2, 0, 1))))
+        return spread >= self.cfg.merge_min_spread_m
 
     def _agreeing_elsewhere(self, x: str, y: str, ms: list[LoopMeasurement]) -> list[int]:
         """Nodes of robot `x` in its accepted matches with robots sharing `y`'s frame

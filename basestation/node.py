@@ -104,6 +104,7 @@ class BaseStationNode:
         self.syncs = 0
         self.map_history = MapHistory(max_snapshots=cfg.basestation.map_history_max_snapshots)
         self.links: dict[str, dict[str, int]] = {}  # agent -> {"joins": n, "losses": n}
+        self._alive: set[str] = set()  # agents whose liveliness token is up
         self._lost: list[str] = []  # agents whose token went away, for run()'s thread
         self._epoch_reserved = 0
         self.recovered: dict[str, Any] = {}
@@ -183,6 +184,7 @@ class BaseStationNode:
         with self._lock:
             ev = self.links.setdefault(name, {"joins": 0, "losses": 0})
             ev["joins" if alive else "losses"] += 1
+            (self._alive.add if alive else self._alive.discard)(name)
             if not alive:
                 self.states.pop(name, None)
                 self._lost.append(name)
@@ -234,6 +236,8 @@ class BaseStationNode:
     def sync(self, stamp: float) -> None:
         """Answer the simulator's clock at sim time `stamp`: take every keyframe received,
         integrate verified constraints, refresh the map, explore, then release the clock."""
+        if self.syncs == 0:
+            self._await_first_keyframes(self.cfg.sim.first_sync_wait_s)
         while not self.inbox.empty():
             self._take_batch(0.0)
         if self.slam.integrate_constraints():
@@ -250,18 +254,46 @@ class BaseStationNode:
         self.syncs += 1
         self.bus.publish(self.keys.clock("basestation"), ClockSync("basestation", stamp))
 
+    def _await_first_keyframes(self, timeout_s: float) -> None:
+        """Before the first answer to the simulator (t = 0): take keyframes until every
+        agent that is up has its first one in, or `timeout_s` (wall) has passed. They
+        race the clock over Zenoh (the outbox resends one that was published before
+        the route to us existed); a robot missing from the first exploration step would
+        wait a period for its first path."""
+        deadline = time.monotonic() + timeout_s
+        while True:
+            with self._lock:
+                alive = set(self._alive)
+            missing = alive - set(self.slam.graph.robots())
+            if self.roster is not None:
+                missing &= self.roster
+            if not missing:
+                return
+            if time.monotonic() > deadline:
+                log.warning(
+                    "first clock: no keyframe yet from %s after %.0f s; going on",
+                    ", ".join(sorted(missing)),
+                    timeout_s,
+                )
+                return
+            self._take_batch(0.05)
+
     def explore(self) -> None:
         """One exploration step: new paths (map frame) for the robots that need one."""
         grid = self.map.gridmap(free_thresh=0.49)
         if grid is None or self.explorer is None:
             return
         with self._lock:
-            states = dict(self.states)
-        poses = {
-            rid: pose7_to_pose4(st.pose_map)[[0, 1, 3]]
-            for rid, st in states.items()
-            if rid in self.slam.graph.robots() and self.slam.graph.is_anchored(rid)
-        }
+            states, alive = dict(self.states), set(self._alive)
+        graph = self.slam.graph
+        poses: dict[str, np.ndarray] = {}
+        for rid in graph.robots():
+            if not graph.is_anchored(rid):
+                continue
+            if rid in states:
+                poses[rid] = pose7_to_pose4(states[rid].pose_map)[[0, 1, 3]]
+            elif rid in alive:  # no state yet (it may be lost at the start): its newest keyframe
+                poses[rid] = graph.pose(rid, graph.latest_index(rid))
         blocked = {rid for rid, st in states.items() if st.status == "blocked"}
         z = self.cfg.agent.cruise_altitude_m
         out: list[tuple[str, bytes]] = []

@@ -71,7 +71,13 @@ def validate(cfg: Config) -> None:
 def _validate_sim(cfg: Config) -> None:
     sim, las = cfg.sim, cfg.sim.laser
     _positive_fields(
-        "sim", sim, ("rate", "lockstep_timeout_s", "basestation_timeout_s", "ground_truth_rate_hz")
+        "sim", sim, (
+            "rate",
+            "lockstep_timeout_s",
+            "basestation_timeout_s",
+            "first_sync_wait_s",
+            "ground_truth_rate_hz",
+        ),
     )
     _positive_fields("sim.laser", las, ("beams", "fov_deg", "range_max_m", "rate_hz"))
     quad = sim.quadrotor

@@ -183,7 +183,7 @@ class Simulator:
         t_wall0 = time.monotonic()
         gt_period = 1.0 / self.cfg.sim.ground_truth_rate_hz
         next_gt = 0.0
-        next_sync = self.sync_period
+        next_sync = 0.0  # the first handshake at t = 0: every robot's first path then
         self._publish_tick(0.0)
         for r in self.robots.values():
             self._record(r, 0.0)

@@ -12,6 +12,7 @@ import sys
 import time
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from common.map_io import GridMap, read_map, write_map
@@ -130,6 +131,12 @@ def test_autonomous_exploration_finishes(tmp_path: Path) -> None:
     # exploration ran in sim time: the clock waited for every base-station step
     sim = json.loads((out / "simulator.json").read_text())
     assert base["clock_syncs"] >= 10 and sim["basestation_sync_timeouts"] == 0
+    # the first handshake is at t = 0 and waits for the first keyframes: the drones have
+    # their first paths then, and one is on its way within the first second
+    assert summary["coverage_curve"][0][0] == 0.0
+    gt = [np.loadtxt(out / "ground_truth" / f"r{i}.tum") for i in range(2)]
+    moved = [np.hypot(*(g[g[:, 0] <= 1.0][-1, 1:3] - g[0, 1:3])) for g in gt]
+    assert max(moved) > 0.2, moved
     assert summary["time_to_95_s"] is not None and summary["time_to_95_s"] <= summary["sim_time_s"]
     assert all(r["collisions"] == 0 for r in summary["robots"]), summary["robots"]
     assert summary["min_robot_separation_m"] > 0.5  # the drones' discs never touched

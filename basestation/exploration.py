@@ -117,6 +117,7 @@ class ExplorationManager:
         for r in need:
             self.tasks.pop(r, None)
         goals = self._goals({r: P[r] for r in need}, grid)
+        need = self._planning_order(need, goals, grid, P)
         out = {r: self._plan(r, goals.get(r), grid, P) for r in need}
         if self.coordinated and any(p is not None for p in out.values()):
             # robots planned before another got its path saw that one as standing still:
@@ -133,6 +134,26 @@ class ExplorationManager:
                     self.tasks.pop(r)
                     out[r] = self._plan(r, self._goals({r: P[r]}, grid).get(r), grid, P)
         return out
+
+    def _planning_order(
+        self,
+        need: list[str],
+        goals: dict[str, NDArray[np.float64] | None],
+        grid: GridMap,
+        P: dict[str, NDArray[np.float64]],
+    ) -> list[str]:
+        """Robots in the order their paths are planned (each around those before it):
+        the shortest way to its goal first, so that of robots queueing for one door the
+        one that clears it soonest goes first and the others follow. Ties (and robots
+        without a goal, last) by id: the order does not depend on message arrival."""
+        with_goal = sorted(r for r in need if goals.get(r) is not None)
+        if len(with_goal) < 2 or not self.coordinated:
+            return with_goal + sorted(set(need) - set(with_goal))
+        starts = np.array([P[r][:2] for r in with_goal])
+        ends = np.array([goals[r] for r in with_goal])
+        D = travel_distances(grid, starts, ends, self.planner.robot_radius_m).diagonal()
+        order = sorted(range(len(with_goal)), key=lambda k: (D[k], with_goal[k]))
+        return [with_goal[k] for k in order] + sorted(set(need) - set(with_goal))
 
     def _approachable(self, found: list[Frontier], grid: GridMap) -> list[Frontier]:
         """Frontiers with their goal moved out of the no-collision zone (up to

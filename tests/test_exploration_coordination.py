@@ -255,3 +255,24 @@ def test_a_robot_in_the_door_is_followed_or_waited_for_not_flown_around(b: str) 
     m.tasks.pop("b", None)
     path = m._plan("a", goal, g, P)
     assert path is not None and float(np.hypot(*np.diff(path, axis=0).T).sum()) < 9.0
+
+
+def test_paths_are_planned_shortest_way_first_then_by_id() -> None:
+    """Each robot's path is planned around those planned before it: the one with the
+    shortest way (round walls, not the straight line) to its goal goes first, ties by
+    id, robots without a goal last; message arrival order plays no part."""
+    g = _grid_with_wall()
+    ex = ExplorationManager()
+    P = {r: np.array([*xy, 0.0]) for r, xy in
+         {"r2": (1.0, 1.0), "r0": (1.0, 4.0), "r1": (9.0, 1.0), "r3": (5.0, 1.0)}.items()}  # fmt: skip
+    goals = {
+        "r0": np.array([1.0, 6.0]),  # 2 m across the wall: ~16 m round its end
+        "r1": np.array([9.0, 6.0]),  # 5 m, past the wall's end
+        "r2": np.array([4.0, 1.0]),  # 3 m
+        "r3": None,
+    }
+    order = ex._planning_order(list(P), goals, g, P)
+    assert order == ["r2", "r1", "r0", "r3"]
+    tie = {"r0": np.array([4.0, 4.0]), "r1": np.array([4.0, 1.0])}
+    P_tie = {"r1": np.array([1.0, 1.0, 0.0]), "r0": np.array([1.0, 4.0, 0.0])}
+    assert ex._planning_order(["r1", "r0"], tie, g, P_tie) == ["r0", "r1"]

@@ -39,6 +39,7 @@ def test_round_trip(tmp_path: Path) -> None:
         ({"basestation.isam2_factorization": "LU"}, "basestation.isam2_factorization"),
         ({"basestation.adaptive_reorder_threshold": 0.5}, "basestation.adaptive_reorder"),
         ({"basestation.relinearize_skip": 0}, "basestation.relinearize_skip"),
+        ({"sim.first_sync_wait_s": 0.0}, "sim.first_sync_wait_s"),
     ],
 )
 def test_bad_values_name_the_key(overrides: dict, key: str) -> None:

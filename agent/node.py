@@ -213,10 +213,14 @@ class AgentNode:
         self._publish_control_pose(scan.stamp, result.pose)
         if self.selector.is_due(result.pose) and self.outbox.has_room():
             self._send_keyframe(scan, result)
-        self._command(scan.stamp)
+        # the state before the command: in lock-step the command releases the clock, and
+        # the base station's exploration step at this stamp must see where the drone is
+        # now, not half a second ago (0.5 m at cruise speed)
         if scan.stamp - self.last_state_stamp >= self.cfg.agent.state_period_s:
             self.last_state_stamp = scan.stamp
+            self._take_path()  # the state's status reflects a path that just came
             self.publish_state(scan.stamp)
+        self._command(scan.stamp)
 
     def _send_keyframe(self, scan: LaserScan, result: LocalSlamResult) -> None:
         pose = result.pose
@@ -266,13 +270,17 @@ class AgentNode:
             reliable=False,  # a controller wants the newest pose, never a queue
         )
 
-    def _command(self, stamp: float) -> None:
+    def _take_path(self) -> None:
+        """Hand the follower a new path, or its path re-placed by a new correction."""
         with self._corr_lock:
             if self._new_correction or self._new_path:
                 pts = np.column_stack([self.tour_map, np.zeros((len(self.tour_map), 2))])
                 tour_odom = map_to_odom(self.T_map_odom, pts) if len(pts) else pts
                 self.follower.set_path(tour_odom[:, :2], keep_progress=not self._new_path)
                 self._new_correction = self._new_path = False
+
+    def _command(self, stamp: float) -> None:
+        self._take_path()
         vx, vy, vz, yaw_rate = self.follower.command(self.frontend.pose)
         vx, vy = self.guard.limit(stamp, vx, vy)
         self.vehicle.command(stamp, vx, vy, vz, yaw_rate)

@@ -100,6 +100,22 @@ def test_a_short_hop_may_not_end_next_to_where_another_robot_will_hover() -> Non
     assert not m._conflict("a", np.array([[0.0, 0.0], [-0.9, 0.0]]), P)  # moving away
 
 
+def test_a_robot_arriving_next_to_where_another_starts_is_judged() -> None:
+    """a comes through a door into a corridor and turns down it, across where b, flying
+    along the corridor, is about to stop: a conflict, though it is within the clearance
+    of a's start (not judged there only so that robots already close can move apart)."""
+    m = ExplorationManager(speed_mps=1.0, horizon_s=15.0)  # 1.5 m kept, as shipped
+    P = {"a": np.array([7.58, 8.5, -1.6]), "b": np.array([5.91, 7.32, 0.0])}
+    m.tasks["b"] = _Task(np.array([7.34, 7.05]), np.array([[5.91, 7.32], [7.34, 7.05]]))
+    a_path = np.array([[7.58, 8.5], [8.12, 7.7], [8.3, 6.4]])
+    assert m._conflict("a", a_path, P)
+    # b already close to a's start (1.2 m): a may still move away from it
+    P["b"] = np.array([7.58, 9.7, 0.0])
+    m.tasks["b"] = _Task(np.array([7.58, 9.7]), np.array([[7.58, 9.7], [7.58, 9.7]]))
+    assert not m._conflict("a", np.array([[7.58, 8.5], [7.58, 5.0]]), P)
+    assert m._conflict("a", np.array([[7.58, 8.5], [7.58, 9.0]]), P)  # not closer
+
+
 def test_a_follower_keeps_its_distance_from_a_leader_running_late() -> None:
     m = _mgr()
     P = {"a": np.array([0.0, 0.0, 0.0]), "b": np.array([1.8, 0.0, 0.0])}

@@ -21,16 +21,12 @@ class PathFollower:
         yaw_gain: float,
         max_accel: float,
         altitude_m: float,
-        full_speed_off_nose: float = np.pi / 4,
-        max_off_nose: float = np.pi / 2,
     ) -> None:
         self.cruise_speed = cruise_speed
         self.tolerance = tolerance
         self.yaw_gain = yaw_gain
         self.max_accel = max_accel
         self.altitude_m = altitude_m
-        self.full_speed_off_nose = full_speed_off_nose  # rad
-        self.max_off_nose = max_off_nose  # rad
         self.waypoints = np.zeros((0, 2))
         self.index = 0
 
@@ -63,9 +59,8 @@ class PathFollower:
         )
         heading_err = float(wrap_angle(np.arctan2(d[1], d[0]) - yaw))
         speed = min(self.cruise_speed, np.sqrt(2.0 * self.max_accel * 0.5 * remaining))
-        # Turn and fly: slower the farther the target is off the nose, none beyond max
-        slack = self.max_off_nose - self.full_speed_off_nose
-        speed *= float(np.clip((self.max_off_nose - abs(heading_err)) / slack, 0.0, 1.0))
+        # Turn first when the target is well off the nose, then fly.
+        speed *= max(0.0, np.cos(heading_err)) ** 2
         c, s = np.cos(yaw), np.sin(yaw)
         v_odom = speed * d / max(dist, 1e-9)
         vx = c * v_odom[0] + s * v_odom[1]

@@ -155,23 +155,3 @@ def test_path_follower_reaches_waypoints() -> None:
     assert f.done
     assert np.hypot(pose[0] - 2.0, pose[1] - 2.0) < 0.3
     assert f.command(pose)[:2] == (0.0, 0.0)
-
-
-@pytest.mark.parametrize(
-    ("target_deg", "moves"), [(0.0, True), (40.0, True), (70.0, True), (100.0, False), (180.0, False)]
-)
-def test_path_follower_turns_and_flies_unless_the_path_is_behind(
-    target_deg: float, moves: bool
-) -> None:
-    """A waypoint up to 90 degrees off the nose: the drone flies toward it (full speed
-    within 45 degrees) while it turns; farther round, it turns on the spot first."""
-    f = PathFollower(cruise_speed=1.0, tolerance=0.3, yaw_gain=1.5, max_accel=1.0, altitude_m=1.0)
-    a = np.radians(target_deg)
-    f.set_path(np.array([[5.0 * np.cos(a), 5.0 * np.sin(a)]]))
-    vx, vy, _, wz = f.command(np.array([0.0, 0.0, 1.0, 0.0]))
-    speed = float(np.hypot(vx, vy))
-    assert (speed > 0.1) == moves, speed
-    if moves:  # straight at the waypoint, in the body frame
-        assert np.isclose(np.arctan2(vy, vx), a)
-    assert (speed == pytest.approx(1.0)) == (target_deg <= 45.0)
-    assert wz == pytest.approx(1.5 * a) if target_deg < 180.0 else abs(wz) > 1.0

@@ -9,6 +9,7 @@ whether the data comes from the simulator or a live driver over Zenoh
 
 from __future__ import annotations
 
+import bisect
 import heapq
 import logging
 import queue
@@ -19,9 +20,9 @@ from typing import Any, Protocol
 
 import numpy as np
 
-from agent.carmen_log import CarmenLaser, read_carmen
+from agent.carmen_log import CarmenLaser, CarmenOdometry, odometry_stamps_regular, read_carmen
 from common.bus import Bus
-from common.geometry import pose4_to_pose7
+from common.geometry import pose4_to_pose7, wrap_angle
 from protocol import Altimeter, Imu, LaserScan, Odometry
 
 log = logging.getLogger(__name__)
@@ -54,13 +55,54 @@ class ZenohSensors:
                 yield None
 
 
+class OdometryTrack:
+    """A log's ODOM records, for the odometry pose at a laser's own stamp.
+
+    A FLASER record carries the newest odometry pose at logging time, which can be
+    from up to a scan period before or after the scan (ACES: a scan 0.12 s after the
+    previous one carried 0.31 s of odometry, 0.22 m, while turning); the ODOM
+    records have their own stamps, so the pose at the scan's stamp is interpolated
+    between the two around it (linear in x, y and the shorter way in yaw).
+    """
+
+    def __init__(self, max_gap_s: float = 1.0) -> None:
+        self.max_gap_s = max_gap_s  # s: farther-apart neighbours are not interpolated
+        self._stamps: list[float] = []
+        self._poses: list[np.ndarray] = []
+
+    def add(self, stamp: float, pose: np.ndarray) -> None:
+        k = bisect.bisect_right(self._stamps, stamp)  # logs step back in time now and then
+        self._stamps.insert(k, stamp)
+        self._poses.insert(k, np.asarray(pose, dtype=np.float64))
+
+    def forget_before(self, stamp: float) -> None:
+        k = max(bisect.bisect_left(self._stamps, stamp) - 1, 0)  # keep one older record
+        del self._stamps[:k], self._poses[:k]
+
+    def at(self, stamp: float, fallback: np.ndarray) -> np.ndarray:
+        """[x, y, theta] at ``stamp``; ``fallback`` without records around it."""
+        k = bisect.bisect_left(self._stamps, stamp)
+        if k < len(self._stamps) and self._stamps[k] == stamp:
+            return self._poses[k].copy()
+        if k == 0 or k == len(self._stamps):
+            return np.asarray(fallback, dtype=np.float64)
+        t0, t1 = self._stamps[k - 1], self._stamps[k]
+        if t1 - t0 > self.max_gap_s:
+            return np.asarray(fallback, dtype=np.float64)
+        a = (stamp - t0) / (t1 - t0)
+        p0, p1 = self._poses[k - 1], self._poses[k]
+        xy = p0[:2] + a * (p1[:2] - p0[:2])
+        return np.array([xy[0], xy[1], float(wrap_angle(p0[2] + a * wrap_angle(p1[2] - p0[2])))])
+
+
 class CarmenReplay:
     """A CARMEN log (`.clf` / `.clf.bz2`) as a drone's sensors.
 
-    Each laser record becomes an `Odometry` (the log's odometry pose at the scan)
-    followed by a `LaserScan`. Records are re-sorted by timestamp within
-    `reorder_window_s` (some classic logs, Intel among them, step back in time by
-    up to ~0.9 s in file order). `segment` = (start, end) ipc times, either None.
+    Each laser record becomes an `Odometry` (the odometry pose at the scan's stamp,
+    see `OdometryTrack` and `odometry_stamps_regular`) followed by a `LaserScan`.
+    Records are re-sorted by timestamp within `reorder_window_s` (some classic logs,
+    Intel among them, step back in time by up to ~0.9 s in file order). `segment` =
+    (start, end) ipc times, either None.
     """
 
     def __init__(
@@ -75,26 +117,49 @@ class CarmenReplay:
         self.segment = segment
         self.reorder_window_s = reorder_window_s
         self.scans = 0
+        # the odometry at each scan: interpolated from the ODOM records at the scan's stamp
+        # where their stamps are regular, else the pose logged with the scan (OdometryTrack)
+        self.odometry_at_stamps = odometry_stamps_regular(self.path)
+        log.info(
+            "%s: odometry at each scan %s",
+            self.path.name,
+            "interpolated from the ODOM records' stamps"
+            if self.odometry_at_stamps
+            else "as logged with the scan (ODOM stamps irregular or missing)",
+        )
 
-    def _lasers(self) -> Iterator[CarmenLaser]:
+    def _lasers(self) -> Iterator[tuple[CarmenLaser, np.ndarray]]:
+        """Lasers in stamp order, each with the odometry pose at its stamp."""
         heap: list[tuple[float, int, CarmenLaser]] = []
+        odometry = OdometryTrack() if self.odometry_at_stamps else None
         n = 0
         for rec in read_carmen(self.path, *self.segment):
-            if not isinstance(rec, CarmenLaser):
+            if isinstance(rec, CarmenOdometry):
+                if odometry is not None:
+                    odometry.add(rec.stamp, rec.pose)
                 continue
             heapq.heappush(heap, (rec.stamp, n, rec))
             n += 1
             while heap and heap[0][0] < rec.stamp - self.reorder_window_s:
-                yield heapq.heappop(heap)[2]
+                laser = heapq.heappop(heap)[2]
+                if odometry is None:
+                    yield laser, laser.odom_pose
+                    continue
+                yield laser, odometry.at(laser.stamp, laser.odom_pose)
+                odometry.forget_before(laser.stamp - self.reorder_window_s)
         while heap:
-            yield heapq.heappop(heap)[2]
+            laser = heapq.heappop(heap)[2]
+            yield (
+                laser,
+                laser.odom_pose if odometry is None else odometry.at(laser.stamp, laser.odom_pose),
+            )
 
     def messages(self, stop: threading.Event) -> Iterator[Any | None]:
         rid = self.robot_id
-        for rec in self._lasers():
+        for rec, odom_pose in self._lasers():
             if stop.is_set():
                 return
-            x, y, th = rec.odom_pose
+            x, y, th = odom_pose
             yield Odometry(rid, rec.stamp, pose4_to_pose7([x, y, 0.0, th]), np.zeros(4))
             yield LaserScan(
                 rid, rec.stamp, rec.angle_min, rec.angle_increment, 0.0, rec.range_max, rec.ranges

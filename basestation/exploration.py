@@ -133,6 +133,16 @@ class ExplorationManager:
                 if self._conflict(r, self._remaining(r, P[r]), P):
                     self.tasks.pop(r)
                     out[r] = self._plan(r, self._goals({r: P[r]}, grid).get(r), grid, P)
+        for r, path in out.items():
+            task = self.tasks.get(r)
+            log.debug(
+                "robot %s at %s: %s",
+                r,
+                np.round(P[r][:2], 2),
+                "stop" if path is None or task is None
+                else f"{path_length(path):.1f} m to {np.round(task.goal, 2)}"
+                + (" (support)" if task.support else ""),
+            )  # fmt: skip
         return out
 
     def _planning_order(

@@ -279,8 +279,8 @@ def test_paths_are_planned_shortest_way_first_then_by_id() -> None:
     id, robots without a goal last; message arrival order plays no part."""
     g = _grid_with_wall()
     ex = ExplorationManager()
-    P = {r: np.array([*xy, 0.0]) for r, xy in
-         {"r2": (1.0, 1.0), "r0": (1.0, 4.0), "r1": (9.0, 1.0), "r3": (5.0, 1.0)}.items()}  # fmt: skip
+    starts = {"r2": (1.0, 1.0), "r0": (1.0, 4.0), "r1": (9.0, 1.0), "r3": (5.0, 1.0)}
+    P = {r: np.array([*xy, 0.0]) for r, xy in starts.items()}
     goals = {
         "r0": np.array([1.0, 6.0]),  # 2 m across the wall: ~16 m round its end
         "r1": np.array([9.0, 6.0]),  # 5 m, past the wall's end

@@ -406,7 +406,9 @@ def make_explorer(cfg: Config) -> ExplorationManager:
     return ExplorationManager(
         detector=FrontierDetector(e.frontier_radius_m, min_group_cells=e.min_frontier_cells),
         assigner=GoalAssigner(AssignmentWeights(e.w_distance, e.w_heading, e.w_previous)),
-        planner=PathPlanner(e.inflation_m, e.robot_clearance_m, e.planning_time_s),
+        planner=PathPlanner(
+            e.inflation_m, e.robot_clearance_m, e.planning_time_s, check_budget=e.planning_checks
+        ),
         coordinated=e.strategy == "coordinated",
         w_spread=e.w_spread,
         speed_mps=cfg.agent.cruise_speed_mps,

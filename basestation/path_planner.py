@@ -9,14 +9,17 @@ blocked too. First the shortest 8-connected cell path on that planning map
 greedily): if there is none, the goal is unreachable and RRT* is not run (it
 would spend its whole budget, up to `attempts` times, finding nothing). Then RRT*
 (`og.SimpleSetup`, path-length objective) runs for at most `budget_with_fallback`
-x `time_budget_s` (the whole budget, up to `attempts` times, if the cell path
-fails the final check), stopping as soon as its path is within `rrt_good_enough`
-of the grid path's
-length; its solution is simplified (shortcutting) and checked densely against the
-planning map, so a returned path never crosses a blocked cell. The shorter of the
-two is returned: RRT*'s first solution within a wall-time budget depends on the
-CPU's load, and on a loaded machine it can be the long way round a wall when a
-door is near (or nothing at all: long detours through doors on a big map). The
+x its budget (the whole budget, up to `attempts` times, if the cell path fails
+the final check), stopping as soon as its path is within `rrt_good_enough` of
+the grid path's length; its solution is simplified (shortcutting) and checked
+densely against the planning map, so a returned path never crosses a blocked
+cell. The shorter of the two is returned: RRT*'s first solution within its budget
+can be the long way round a wall when a door is near (or nothing at all: long
+detours through doors on a big map). The budget is `check_budget` state validity
+checks, the same work on any machine however loaded (with the seeded generator,
+the same questions in the same order get the same paths), capped at
+`time_budget_s` of wall time; without `check_budget` only the wall time counts
+(then the paths depend on the CPU's load). The
 same question (start, goal, other robots) on the same grid is answered from memory:
 an exploration step asks some several times. A start
 inside the inflated zone (a robot close to a wall) is allowed: the inflation (not
@@ -30,6 +33,7 @@ from __future__ import annotations
 
 import logging
 import math
+import time
 import zlib
 
 import numpy as np
@@ -161,6 +165,7 @@ class PathPlanner:
         fallback_margin_m: float = 2.0,
         rrt_good_enough: float = 1.2,
         budget_with_fallback: float = 0.25,
+        check_budget: int | None = None,
     ) -> None:
         if not time_budget_s > 0:
             raise ConfigError(f"planning time budget must be > 0 s, got {time_budget_s}")
@@ -173,6 +178,10 @@ class PathPlanner:
         self.fallback_margin_m = float(fallback_margin_m)
         self.rrt_good_enough = float(rrt_good_enough)
         self.budget_with_fallback = float(budget_with_fallback)
+        if check_budget is not None and check_budget < 1:
+            raise ConfigError(f"planning check budget must be >= 1, got {check_budget}")
+        self.check_budget = check_budget
+        self.validity_checks = 0  # states RRT* checked, all plans
         self.plans = 0  # paths searched for (not answered from memory)
         self.fallbacks = 0  # plans that came from the grid path, not RRT*
         # the same question on the same grid gets the same answer (an exploration step
@@ -346,6 +355,7 @@ class PathPlanner:
         h, w = blocked.shape
 
         def valid(state: ob.State) -> bool:
+            self.validity_checks += 1
             ix = int((state[0] - origin[0]) / res)
             iy = int((state[1] - origin[1]) / res)
             return 0 <= ix < w and 0 <= iy < h and not blocked[iy, ix]
@@ -360,19 +370,33 @@ class PathPlanner:
         objective.setCostThreshold(ob.Cost(float(good_enough_m)))
         ss.getProblemDefinition().setOptimizationObjective(objective)
         ss.setPlanner(og.RRTstar(si))
+        share = self.budget_with_fallback if have_fallback else 1.0
         for _ in range(1 if have_fallback else self.attempts):  # solve() grows the same tree
-            ss.solve(self.time_budget_s * (self.budget_with_fallback if have_fallback else 1.0))
+            ss.solve(self._termination(share))
             if ss.haveExactSolutionPath():
                 break
         else:
             return None
         raw = self._path(ss, s, g)
-        ss.simplifySolution(0.05)
+        # shortcutting to the end (simplifyMax) is repeatable; a time limit is not
+        ss.simplifySolution(0.0 if self.check_budget is not None else 0.05)
         for path in (self._path(ss, s, g), raw):  # shortcutting may clip a corner
             if check.segment_free(path):
                 return path
         log.debug("RRT* path touches a blocked cell: rejected")
         return None
+
+    def _termination(self, share: float) -> ob.PlannerTerminationCondition:
+        """When one solve() stops: after `share` x `check_budget` more validity checks
+        (the same work, and so the same path, however loaded the machine is), or at
+        `share` x `time_budget_s` of wall time, whichever comes first."""
+        deadline = time.perf_counter() + share * self.time_budget_s
+        if self.check_budget is None:
+            return ob.timedPlannerTerminationCondition(share * self.time_budget_s)
+        last = self.validity_checks + max(1, int(share * self.check_budget))
+        return ob.PlannerTerminationCondition(
+            lambda: self.validity_checks >= last or time.perf_counter() >= deadline
+        )
 
     @staticmethod
     def _path(

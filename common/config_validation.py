@@ -58,7 +58,9 @@ def validate(cfg: Config) -> None:
     _validate_backend(cfg.basestation)
     _positive_fields("protocol", cfg.protocol, ("max_message_bytes",))
     _positive_fields(
-        "exploration", cfg.exploration, ("period_s", "frontier_radius_m", "planning_time_s")
+        "exploration",
+        cfg.exploration,
+        ("period_s", "frontier_radius_m", "planning_time_s", "planning_checks"),
     )
     if cfg.exploration.strategy not in ("coordinated", "greedy"):
         raise ConfigError(

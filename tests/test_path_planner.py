@@ -2,6 +2,12 @@
 
 from __future__ import annotations
 
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
 import numpy as np
 from hypothesis import given, settings
 from hypothesis import strategies as st
@@ -162,3 +168,57 @@ def test_a_long_way_round_from_rrt_star_is_replaced_by_the_shorter_grid_path() -
         and path[:, 0].max() > 8.0
         and PlanningMap(_grid(d), 0.3).segment_free(path)
     )
+
+
+_PLAN_SCRIPT = """
+import sys, threading, time, json
+import numpy as np
+from basestation.path_planner import PathPlanner
+from common.map_io import GridMap
+d = np.zeros((100, 100), dtype=np.int8)
+d[:, 0] = d[:, -1] = d[0, :] = d[-1, :] = 100
+d[:80, 48:52] = 100
+d[20:, 25:27] = 100  # a second wall
+grid = GridMap(d, 0.1, (0.0, 0.0, 0.0))
+stop = []
+def hog():  # holds the GIL in turns with the planner's validity checks
+    while not stop:
+        sum(range(2000))
+if sys.argv[1] == "loaded":
+    for _ in range(3):
+        threading.Thread(target=hog, daemon=True).start()
+planner = PathPlanner(inflation_m=0.3, time_budget_s=60.0, seed=7, check_budget=4000,
+                      rrt_good_enough=0.0)  # RRT* never stops early: the budget decides
+# the cell path reported as the straight line (through the walls): it fails the final
+# check, so RRT* gets its whole budget on every question
+planner._grid_path = lambda grid, pm, s, g: np.array([s, g])
+t0 = time.perf_counter()
+paths = []
+for s, g in [([1.0, 1.0], [9.0, 1.0]), ([1.5, 8.5], [8.5, 2.0]), ([3.5, 2.0], [9.0, 5.0])]:
+    p = planner.plan(grid, s, g)
+    paths.append(None if p is None else np.round(p, 9).tolist())
+stop.append(1)
+print(json.dumps({"paths": paths, "checks": planner.validity_checks,
+                  "wall_s": time.perf_counter() - t0}))
+"""
+
+
+def test_plans_are_the_same_however_loaded_the_machine_is(tmp_path) -> None:
+    """With a validity-check budget, two fresh processes asked the same questions get
+    the same RRT* paths, one of them slowed down by threads competing for the CPU."""
+    root = Path(__file__).resolve().parents[1]
+    script = tmp_path / "plan.py"
+    script.write_text(_PLAN_SCRIPT)
+    out = {}
+    for mode in ("idle", "loaded"):
+        done = subprocess.run(
+            [sys.executable, str(script), mode],
+            capture_output=True, text=True, cwd=root, timeout=120, check=True,
+            env={**os.environ, "PYTHONPATH": str(root)},
+        )  # fmt: skip
+        out[mode] = json.loads(done.stdout.strip().splitlines()[-1])
+    assert out["idle"]["checks"] >= 3 * 4000 * 0.25  # RRT* ran on every question
+    assert all(p is not None for p in out["idle"]["paths"])
+    assert out["loaded"]["paths"] == out["idle"]["paths"]
+    assert out["loaded"]["checks"] == out["idle"]["checks"]
+    assert out["loaded"]["wall_s"] > 1.5 * out["idle"]["wall_s"]  # the load did slow it

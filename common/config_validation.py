@@ -73,7 +73,9 @@ def validate(cfg: Config) -> None:
 def _validate_sim(cfg: Config) -> None:
     sim, las = cfg.sim, cfg.sim.laser
     _positive_fields(
-        "sim", sim, (
+        "sim",
+        sim,
+        (
             "rate",
             "lockstep_timeout_s",
             "basestation_timeout_s",

@@ -61,6 +61,8 @@ class PoseGraphOptions(TypedDict):
     max_pending_gps_fixes: int
     gps_batch_period_s: float
     factorization: str
+    reduce_distance_m: float
+    reduce_lag: int
 
 
 def pose_graph_options(b: BaseStationConfig, track_changes: bool | None = None) -> PoseGraphOptions:
@@ -79,4 +81,6 @@ def pose_graph_options(b: BaseStationConfig, track_changes: bool | None = None) 
         gps_batch_period_s=b.gps.batch_period_s,
         # QR with GPS's loose start priors (Cholesky calls them indeterminate)
         factorization="QR" if b.gps.enabled else b.isam2_factorization,
+        reduce_distance_m=b.reduce_distance_m,
+        reduce_lag=b.reduce_lag,
     )

@@ -34,6 +34,7 @@ from basestation.gps_factor import GpsWeighting
 from basestation.isam2_params import make_isam2_params, pose_graph_options
 from basestation.pose_graph_gauge import GaugeMixin
 from basestation.pose_graph_gps import GpsMixin
+from basestation.pose_graph_reduction import CHAR_SHIFT, ReductionMixin
 from basestation.pose_graph_state import (
     Chain,
     FloatArray,
@@ -45,7 +46,7 @@ from basestation.pose_graph_state import (
 )
 from common.config import BaseStationConfig
 from common.errors import CollabSlamError
-from common.geometry import se2_compose, wrap_angle
+from common.geometry import se2_compose, se2_inverse, wrap_angle
 
 logger = logging.getLogger(__name__)
 
@@ -53,7 +54,7 @@ ROBOT_KEY_ALPHABET = "abcdefghijklmnopqrstuvwxyz"
 ROBUST_KERNELS = ("huber", "cauchy")
 
 
-class PoseGraph(GaugeMixin, GpsMixin):
+class PoseGraph(GaugeMixin, GpsMixin, ReductionMixin):
     """Pose chains of several robots plus constraints between any two nodes, on iSAM2.
 
     Not thread-safe: build, update and query it from one thread. Changes (nodes,
@@ -79,6 +80,8 @@ class PoseGraph(GaugeMixin, GpsMixin):
         cache_linearized_factors: bool = True,
         adaptive_reorder_threshold: float = 0.0,  # fill-in growth factor; 0: off
         heads_last: bool = False,  # True: each chain's newest node is ordered last (root)
+        reduce_distance_m: float = 0.0,  # > 0: reduced pose graph (pose_graph_reduction)
+        reduce_lag: int = 20,  # nodes behind a chain's newest before one may be aliased
     ) -> None:
         params = make_isam2_params(
             factorization=factorization,
@@ -104,6 +107,7 @@ class PoseGraph(GaugeMixin, GpsMixin):
         self._estimate = np.zeros((0, 3))  # committed poses, rows in key order
         self._estimate_valid = True  # False: recompute on the next full-estimate query
         self._init_gps(gps_weighting, max_pending_gps_fixes, gps_batch_period_s)
+        self._init_reduction(reduce_distance_m, reduce_lag)
 
     @classmethod
     def from_config(cls, b: BaseStationConfig, track_changes: bool | None = None) -> PoseGraph:
@@ -180,8 +184,8 @@ class PoseGraph(GaugeMixin, GpsMixin):
             noise = gaussian_noise(covariance)
             if guess is None:
                 guess = se2_compose(self.pose(robot_id, index - 1), d)
-            prev = gtsam.symbol(chain.char, index - 1)
-            self._add_factor(gtsam.BetweenFactorPose2(prev, key, pose2(d), noise), "odometry")
+            factor = self._between(chain, index - 1, chain, index, d, noise)
+            self._add_factor(factor, "odometry")
         chain.pending.append(guess)
         if stamp is None:
             chain.stamps = None
@@ -203,8 +207,8 @@ class PoseGraph(GaugeMixin, GpsMixin):
         ``robust`` is "huber", "cauchy" or None; ``robust_k`` is the kernel width in
         units of the whitened (Mahalanobis) residual.
         """
-        ka, kb = self._key(*key_a), self._key(*key_b)
-        if ka == kb:
+        chain_a, chain_b = self._node_chain(*key_a), self._node_chain(*key_b)
+        if key_a == key_b:
             raise CollabSlamError(f"constraint from node {key_a} to itself")
         noise = gaussian_noise(covariance)
         if robust is not None:
@@ -212,7 +216,8 @@ class PoseGraph(GaugeMixin, GpsMixin):
                 raise CollabSlamError(f"robust must be one of {ROBUST_KERNELS} with k > 0")
             kernel_cls = getattr(gtsam.noiseModel.mEstimator, robust.capitalize())
             noise = gtsam.noiseModel.Robust.Create(kernel_cls.Create(robust_k), noise)
-        factor = gtsam.BetweenFactorPose2(ka, kb, pose2(vec3(T_a_b, "T_a_b")), noise)
+        T = vec3(T_a_b, "T_a_b")
+        factor = self._between(chain_a, key_a[1], chain_b, key_b[1], T, noise)
         robots = None
         if key_a[0] != key_b[0]:
             robots = (min(key_a[0], key_b[0]), max(key_a[0], key_b[0]))
@@ -239,7 +244,11 @@ class PoseGraph(GaugeMixin, GpsMixin):
         """
         t_start = time.perf_counter()
         merged = self._reconcile_gauges() if self._topology_dirty else False
-        new_ids = [fid for fid in self._pending_ids if fid in self._factors]
+        new_ids = [
+            fid
+            for fid in dict.fromkeys(self._pending_ids)  # a moved factor may come twice
+            if fid in self._factors and self._factors[fid].factor is not None
+        ]
         removals = self._pending_removals
         if not new_ids and not removals and extra_iterations == 0:
             return UpdateStats(0.0, 0.0, 0, 0, 0, 0, frozenset(), frozenset())
@@ -297,6 +306,7 @@ class PoseGraph(GaugeMixin, GpsMixin):
         changed = None
         if self._track_changes:  # then the previous estimate is always valid
             changed = self._changed_robots(old_estimate, self._full_estimate(), old_counts)
+        self._reduce()  # its moved factors go to iSAM2 with the next update
         stats = UpdateStats(
             wall_ms=(time.perf_counter() - t_start) * 1e3,
             solve_ms=solve_ms,
@@ -327,8 +337,10 @@ class PoseGraph(GaugeMixin, GpsMixin):
             return chain.pending[index - chain.num_committed].copy()
         if self._estimate_valid:
             return self._estimate[self._offset(robot_id) + index].copy()
-        p = self._isam.calculateEstimatePose2(gtsam.symbol(chain.char, index))  # O(1)-ish
-        return np.array([p.x(), p.y(), p.theta()])
+        key, offset = self._resolve(chain, index)
+        p = self._isam.calculateEstimatePose2(key)  # O(1)-ish
+        pose = np.array([p.x(), p.y(), p.theta()])
+        return pose if offset is None else se2_compose(pose, offset)
 
     def poses(self, robot_id: str) -> FloatArray:
         """(N, 3) poses of a chain in index order (pending nodes: their initial guess)."""
@@ -351,10 +363,15 @@ class PoseGraph(GaugeMixin, GpsMixin):
 
     def marginal_covariance(self, robot_id: str, index: int) -> FloatArray:
         """3x3 marginal covariance of a node (body frame, [x, y, yaw]); needs ``update``."""
-        key = self._key(robot_id, index)
-        if index >= self._chains[robot_id].num_committed:
+        chain = self._node_chain(robot_id, index)
+        if index >= chain.num_committed:
             raise CollabSlamError(f"node ({robot_id!r}, {index}) is not optimized yet")
-        return np.asarray(self._isam.marginalCovariance(key))
+        key, offset = self._resolve(chain, index)
+        cov = np.asarray(self._isam.marginalCovariance(key))
+        if offset is None:
+            return cov
+        ad = np.asarray(pose2(se2_inverse(offset)).AdjointMap())  # node = anchor * offset
+        return ad @ cov @ ad.T
 
     def chi2(self) -> float:
         """Sum of squared whitened residuals of the current estimate (2x gtsam's error).
@@ -368,7 +385,7 @@ class PoseGraph(GaugeMixin, GpsMixin):
         """Active committed factors with the initial guesses ("guess") or estimate ("current")."""
         graph = gtsam.NonlinearFactorGraph()
         for record in self._factors.values():
-            if record.isam_index is not None:
+            if record.isam_index is not None and record.factor is not None:
                 graph.add(record.factor)
         if start == "current":
             return GtsamProblem(graph, self._isam.calculateEstimate())
@@ -392,9 +409,6 @@ class PoseGraph(GaugeMixin, GpsMixin):
             raise CollabSlamError(f"robot {robot_id!r} has no node {index}")
         return chain
 
-    def _key(self, robot_id: str, index: int) -> int:
-        return gtsam.symbol(self._node_chain(robot_id, index).char, index)
-
     def _offset(self, robot_id: str) -> int:
         offset = 0
         for rid, chain in self._chains.items():
@@ -411,12 +425,30 @@ class PoseGraph(GaugeMixin, GpsMixin):
         return self._estimate
 
     def _extract(self, values: gtsam.Values) -> FloatArray:
+        """Every committed node's pose, chain after chain in index order."""
         # Keys sort by (character, index), so rows come chain after chain in index order.
         rows = np.asarray(gtsam.utilities.extractPose2(values), dtype=np.float64).reshape(-1, 3)
         expected = sum(c.num_committed for c in self._chains.values())
-        if rows.shape[0] != expected:
-            raise CollabSlamError(f"estimate has {rows.shape[0]} poses, expected {expected}")
-        return rows
+        if not self.reducing:
+            if rows.shape[0] != expected:
+                raise CollabSlamError(f"estimate has {rows.shape[0]} poses, expected {expected}")
+            return rows
+        keys = np.fromiter(values.keys(), dtype=np.int64, count=values.size())
+        out = []
+        for chain in self._chains.values():
+            n = chain.num_committed
+            chain.grow_aliases(n)
+            aliases = chain.alias_key[:n]
+            own = (ord(chain.char) << CHAR_SHIFT) + np.arange(n, dtype=np.int64)
+            src = np.where(aliases >= 0, aliases, own)
+            at = np.minimum(np.searchsorted(keys, src), max(len(keys) - 1, 0))
+            if n and (len(keys) == 0 or np.any(keys[at] != src)):
+                raise CollabSlamError(f"estimate misses nodes of chain {chain.char!r}")
+            poses = rows[at] if n else np.zeros((0, 3))
+            mask = aliases >= 0
+            poses[mask] = se2_compose(poses[mask], chain.alias_offset[:n][mask])
+            out.append(poses)
+        return np.vstack(out) if out else np.zeros((0, 3))
 
     def _changed_robots(
         self, old: FloatArray, new: FloatArray, old_counts: list[int]

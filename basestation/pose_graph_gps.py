@@ -30,6 +30,7 @@ class GpsMixin(PoseGraphState):
         self._gps_weighting = weighting or GpsWeighting()
         self._gps = GpsFixQueue(max_pending_fixes, batch_period_s)
         self.num_gps_factors = 0
+        self._gps_robots: set[str] = set()  # robots with fixes (their nodes are not reduced)
 
     def add_gps_fix(
         self, robot_id: str, stamp: float, enu_xy: ArrayLike, sigmas_enu: ArrayLike
@@ -46,6 +47,7 @@ class GpsMixin(PoseGraphState):
             raise CollabSlamError("a GPS fix needs a finite stamp, [east, north] and 3 sigmas")
         if np.any(sig <= 0):
             raise CollabSlamError(f"GPS sigmas must be > 0, got {sigmas_enu!r}")
+        self._gps_robots.add(robot_id)
         self._gps.add(robot_id, GpsFix(float(stamp), xy, sig))
         return self._attach_gps(robot_id)
 

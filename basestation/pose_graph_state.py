@@ -58,20 +58,35 @@ class Chain:
     gauge_factor: int | None = None  # factor id of this chain's gauge prior, if any
     start_sigmas: FloatArray | None = None  # loose start prior (GPS: virtual ENU origin)
     stamps: list[float] | None = field(default_factory=list)  # node stamps; None: unstamped
+    # reduced pose graph (pose_graph_reduction): node i is an alias of variable
+    # alias_key[i] (-1: its own variable) at T_anchor_node = alias_offset[i]
+    alias_key: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
+    alias_offset: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+    reduce_next: int = 1  # first node the reduction pass has not looked at
 
     @property
     def size(self) -> int:
         return self.num_committed + len(self.pending)
+
+    def grow_aliases(self, n: int) -> None:
+        """Room for ``n`` nodes in the alias arrays (capacity doubles; new: no alias)."""
+        old = len(self.alias_key)
+        if n <= old:
+            return
+        cap = max(n, 2 * old, 64)
+        self.alias_key = np.concatenate([self.alias_key, np.full(cap - old, -1, np.int64)])
+        self.alias_offset = np.concatenate([self.alias_offset, np.zeros((cap - old, 3))])
 
 
 @dataclass
 class FactorRecord:
     """An active factor (committed to iSAM2 or pending)."""
 
-    factor: gtsam.NonlinearFactor
+    factor: gtsam.NonlinearFactor | None  # None: a constraint inside one rigid cluster
     kind: FactorKind
     robots: tuple[str, str] | None = None  # the two robots of an inter-robot constraint
     isam_index: int | None = None  # slot inside iSAM2 once committed
+    keys: tuple[int, ...] = ()  # the factor's variables (kept only by a reducing graph)
 
 
 def vec3(value: ArrayLike, name: str) -> FloatArray:
@@ -115,6 +130,10 @@ class PoseGraphState:
     _pending_removals: list[int]  # iSAM2 slots
     _next_id: int
     _prior_noise: gtsam.noiseModel.Base  # firm prior: known starts and gauge priors
+    # reducing graphs only (else None): variable -> ids of its factors, and the odometry
+    # factor between two variables (sorted keys), for pose_graph_reduction
+    _adjacency: dict[int, set[int]] | None = None
+    _odometry_pair: dict[tuple[int, int], int] | None = None
 
     def _chain(self, robot_id: str) -> Chain:
         try:
@@ -123,15 +142,54 @@ class PoseGraphState:
             raise CollabSlamError(f"unknown robot {robot_id!r}") from None
 
     def _add_factor(
-        self, factor: gtsam.NonlinearFactor, kind: FactorKind, robots: tuple[str, str] | None = None
+        self,
+        factor: gtsam.NonlinearFactor | None,
+        kind: FactorKind,
+        robots: tuple[str, str] | None = None,
     ) -> int:
         fid = self._next_id
         self._next_id += 1
-        self._factors[fid] = FactorRecord(factor, kind, robots)
+        record = FactorRecord(factor, kind, robots)
+        self._factors[fid] = record
         self._pending_ids.append(fid)
+        self._link(fid, record)
         return fid
 
     def _drop_factor(self, factor_id: int) -> None:
         record = self._factors.pop(factor_id)
+        self._unlink(factor_id, record)
         if record.isam_index is not None:
             self._pending_removals.append(record.isam_index)
+
+    def _replace_factor(self, factor_id: int, factor: gtsam.NonlinearFactor | None) -> None:
+        """Swap an active factor for another (same id, same kind) at the next update."""
+        record = self._factors[factor_id]
+        self._unlink(factor_id, record)
+        if record.isam_index is not None:
+            self._pending_removals.append(record.isam_index)
+            record.isam_index = None
+            self._pending_ids.append(factor_id)
+        record.factor = factor
+        self._link(factor_id, record)
+
+    def _link(self, factor_id: int, record: FactorRecord) -> None:
+        if self._adjacency is None or record.factor is None:
+            return
+        record.keys = tuple(record.factor.keys())
+        for key in record.keys:
+            self._adjacency.setdefault(key, set()).add(factor_id)
+        if record.kind == "odometry" and self._odometry_pair is not None:
+            self._odometry_pair[(min(record.keys), max(record.keys))] = factor_id
+
+    def _unlink(self, factor_id: int, record: FactorRecord) -> None:
+        if self._adjacency is None or not record.keys:
+            return
+        for key in record.keys:
+            fids = self._adjacency.get(key)
+            if fids is not None:
+                fids.discard(factor_id)
+        if record.kind == "odometry" and self._odometry_pair is not None:
+            pair = (min(record.keys), max(record.keys))
+            if self._odometry_pair.get(pair) == factor_id:
+                del self._odometry_pair[pair]
+        record.keys = ()

@@ -50,6 +50,7 @@ Result keys:
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import time
 from collections.abc import Sequence
@@ -175,8 +176,10 @@ def split_g2o(
 
 def new_pose_graph(cfg: Config, track_changes: bool | None = None) -> PoseGraph:
     """A PoseGraph set up as BaseStationNode sets up its own (``track_changes`` None: the
-    base station's setting)."""
-    return PoseGraph.from_config(cfg.basestation, track_changes)
+    base station's setting), except that every node stays a variable
+    (``reduce_distance_m`` 0): batch and iSAM2 are compared on the file's whole graph."""
+    b = dataclasses.replace(cfg.basestation, reduce_distance_m=0.0)
+    return PoseGraph.from_config(b, track_changes)
 
 
 def feed_pose_graph(cfg: Config, feed: Feed, track_changes: bool | None = None) -> FeedResult:

@@ -329,14 +329,16 @@ class BaseStationConfig:
     # any robot then re-eliminates the root only. M3500[:500]: -40% CPU per update (p50);
     # city10000 (a loop closure at almost every node): -15% p50, same p95.
     heads_last: bool = True
-    # Re-order the whole Bayes tree (one batch elimination, 0.3 s of CPU at 10,000 nodes) once
-    # its fill-in exceeds this multiple of the last fresh ordering's; 0: never (gtsam
-    # default). 1.5 on city10000: p95 -10%, p50 +25%, total +8% CPU: off.
+    # Re-order the whole Bayes tree (a batch elimination, 0.3 s at 10,000 nodes) once its fill-in
+    # exceeds this multiple of the last ordering's; 0: never. city10000 at 1.5: +8% CPU: off.
     adaptive_reorder_threshold: float = 0.0
-    # Compare every node's estimate before and after each update (UpdateStats.changed_robots,
-    # O(n) per update). Nothing in the base station needs it: off, corrections then read
-    # single poses and the full estimate is extracted only when all poses are asked for.
+    # Compare all estimates before and after each update (UpdateStats.changed_robots, O(n)
+    # per update). Not needed by the base station: corrections read single poses.
     track_changes: bool = False
+    # Reduced pose graph (basestation/pose_graph_reduction.py): a node reduce_lag keyframes
+    # old becomes an alias of a variable node within this distance two factors away. 0: off.
+    reduce_distance_m: float = 0.5
+    reduce_lag: int = 20
     prior_sigma_xy_m: float = 0.01  # m, known start pose
     prior_sigma_yaw_rad: float = 0.001  # rad
     map_update_period_s: float = 2.0  # s wall between global map refreshes

@@ -1,0 +1,246 @@
+"""Reduced pose graph: keyframes that add no new place become aliases of an old node.
+
+A robot that flies over mapped ground keeps sending keyframes; if every keyframe were
+a variable, iSAM2 would grow by ~4 kB per keyframe forever (Johannsson et al. 2013,
+"Temporally scalable visual SLAM using a reduced pose graph"). Here, once a committed
+node is ``lag`` keyframes behind its chain's newest one (its loop closures have had
+time to arrive), it is *aliased* onto the nearest variable node within
+``max_distance_m`` (x-y, by the current estimate) that is at most two factors away in
+the graph: the node's variable is removed from iSAM2, its pose becomes
+``T_map_anchor * offset`` with the offset frozen from the current estimate, and every
+factor on it is moved onto the anchor (measurement and covariance transformed). The
+two-factor rule ties a node only to places the graph already links it to (its chain
+neighbours, or nodes a loop closure joined it to): a robot revisiting ground before any
+loop closure links it there is not tied to it by proximity alone. Odometry factors that
+end up between the same two variables are fused into one (information-weighted in the
+tangent space), so revisits add no factors either: the variables and factors grow with
+the area flown, not with the time flown.
+
+Keyframes keep their indices; ``PoseGraph.pose``, ``poses``, ``add_node`` and
+``add_constraint`` resolve aliases, so callers do not see the reduction. Not reduced:
+a chain's first node, anchors, nodes with priors or GPS factors, robots with GPS fixes.
+
+Package-internal: a mixin of ``basestation.pose_graph.PoseGraph``.
+"""
+
+from __future__ import annotations
+
+import logging
+from typing import TYPE_CHECKING
+
+import gtsam
+import numpy as np
+
+from basestation.pose_graph_state import Chain, FloatArray, PoseGraphState, pose2
+from common.geometry import se2_between, se2_compose, se2_inverse
+
+logger = logging.getLogger(__name__)
+
+CHAR_SHIFT = 56  # gtsam.symbol(c, i) == ord(c) << 56 | i
+INDEX_MASK = (1 << CHAR_SHIFT) - 1
+REDUCIBLE_KINDS = ("odometry", "constraint")
+
+
+def _arr(p: gtsam.Pose2) -> FloatArray:
+    return np.array([p.x(), p.y(), p.theta()])
+
+
+def _adjoint(T: FloatArray) -> FloatArray:
+    return np.asarray(pose2(T).AdjointMap())
+
+
+def _noise_with(noise: gtsam.noiseModel.Base, cov: FloatArray) -> gtsam.noiseModel.Base:
+    """``noise`` with its Gaussian part replaced by ``cov`` (robust kernels kept)."""
+    gauss = gtsam.noiseModel.Gaussian.Covariance(0.5 * (cov + cov.T))
+    if isinstance(noise, gtsam.noiseModel.Robust):
+        return gtsam.noiseModel.Robust.Create(noise.robust(), gauss)
+    return gauss
+
+
+def _covariance(noise: gtsam.noiseModel.Base) -> FloatArray:
+    if isinstance(noise, gtsam.noiseModel.Robust):
+        noise = noise.noise()
+    return np.asarray(noise.covariance())
+
+
+def moved_measurement(
+    z: FloatArray, cov: FloatArray, side: int, offset: FloatArray
+) -> tuple[FloatArray, FloatArray]:
+    """A between-factor measurement T_a_b (covariance at b) once end ``side`` (0: a,
+    1: b) is expressed through its anchor, node = anchor * offset."""
+    if side == 0:  # T_anchor_b = offset * z, error unchanged
+        return se2_compose(offset, z), cov
+    ad = _adjoint(offset)  # T_a_anchor = z * offset^-1; error rotates by Ad(offset)
+    return se2_compose(z, se2_inverse(offset)), ad @ cov @ ad.T
+
+
+def fuse(
+    z1: FloatArray, cov1: FloatArray, z2: FloatArray, cov2: FloatArray
+) -> tuple[FloatArray, FloatArray]:
+    """Two Gaussian measurements of the same T_a_b as one (tangent space at z1)."""
+    info1, info2 = np.linalg.inv(cov1), np.linalg.inv(cov2)
+    cov = np.linalg.inv(info1 + info2)
+    xi = np.asarray(gtsam.Pose2.Logmap(pose2(se2_between(z1, z2))))
+    step = cov @ info2 @ xi
+    return se2_compose(z1, _arr(gtsam.Pose2.Expmap(step))), 0.5 * (cov + cov.T)
+
+
+class ReductionMixin(PoseGraphState):
+    """Aliases per chain, factor adjacency, and the reduction pass after each update."""
+
+    if TYPE_CHECKING:  # provided by PoseGraph
+
+        _guesses: gtsam.Values
+        _isam: gtsam.ISAM2
+        _gps_robots: set[str]
+
+    def _init_reduction(self, max_distance_m: float, lag: int) -> None:
+        self._reduce_distance = float(max_distance_m)
+        self._reduce_lag = max(int(lag), 1)
+        self._anchors: set[int] = set()  # variables other nodes are aliased onto
+        self.num_aliased = 0
+        if self._reduce_distance > 0.0:
+            self._adjacency = {}
+            self._odometry_pair = {}
+
+    @property
+    def reducing(self) -> bool:
+        return self._adjacency is not None
+
+    def _variable_pose(self, key: int) -> FloatArray:
+        """Current estimate of one committed variable."""
+        return _arr(self._isam.calculateEstimatePose2(key))
+
+    # ----- resolving keyframes to variables -------------------------------------------
+    def _resolve(self, chain: Chain, index: int) -> tuple[int, FloatArray | None]:
+        """(variable key, offset T_anchor_node or None) of node ``index`` of ``chain``."""
+        if index < len(chain.alias_key) and chain.alias_key[index] >= 0:
+            return int(chain.alias_key[index]), chain.alias_offset[index]
+        return gtsam.symbol(chain.char, index), None
+
+    def _between(
+        self,
+        chain_a: Chain,
+        index_a: int,
+        chain_b: Chain,
+        index_b: int,
+        T_a_b: FloatArray,
+        noise: gtsam.noiseModel.Base,
+    ) -> gtsam.BetweenFactorPose2 | None:
+        """A between factor of two nodes, moved onto their variables; None if both are
+        aliases of one variable (a relation inside a rigid cluster carries nothing)."""
+        ka, off_a = self._resolve(chain_a, index_a)
+        kb, off_b = self._resolve(chain_b, index_b)
+        if ka == kb:
+            return None
+        if off_a is not None or off_b is not None:
+            z, cov = T_a_b, _covariance(noise)
+            if off_a is not None:
+                z, cov = moved_measurement(z, cov, 0, off_a)
+            if off_b is not None:
+                z, cov = moved_measurement(z, cov, 1, off_b)
+            T_a_b, noise = z, _noise_with(noise, cov)
+        return gtsam.BetweenFactorPose2(ka, kb, pose2(T_a_b), noise)
+
+    def _alias_poses(self, chain: Chain, rows: FloatArray, anchor_pose) -> FloatArray:
+        """``rows`` (committed poses of ``chain``, variables filled) with its aliases
+        composed from ``anchor_pose(keys) -> (n, 3)``."""
+        n = min(len(chain.alias_key), len(rows))
+        aliased = np.flatnonzero(chain.alias_key[:n] >= 0)
+        if len(aliased):
+            base = anchor_pose(chain.alias_key[aliased])
+            rows[aliased] = se2_compose(base, chain.alias_offset[aliased])
+        return rows
+
+    # ----- the reduction pass ---------------------------------------------------------
+    def _reduce(self) -> int:
+        """Alias every settled node that has a variable close by; returns how many."""
+        if not self.reducing:
+            return 0
+        count = 0
+        settled = {c.char: c for c in self._chains.values()}
+        for robot_id, chain in self._chains.items():
+            stop = chain.num_committed - self._reduce_lag
+            if robot_id in self._gps_robots or stop <= chain.reduce_next:
+                continue
+            chain.grow_aliases(chain.num_committed)
+            for index in range(max(chain.reduce_next, 1), stop):
+                chain.reduce_next = index  # anchors: variables the pass has gone past
+                key = gtsam.symbol(chain.char, index)
+                if chain.alias_key[index] >= 0 or key in self._anchors:
+                    continue
+                fids = self._adjacency.get(key)
+                if not fids or any(self._factors[f].kind not in REDUCIBLE_KINDS for f in fids):
+                    continue
+                near = [
+                    k
+                    for k in self._two_hops(key, fids)
+                    if (k & INDEX_MASK) < settled[chr(k >> CHAR_SHIFT)].reduce_next
+                ]
+                if not near:
+                    continue
+                here = self._variable_pose(key)
+                poses = np.array([self._variable_pose(k) for k in near])
+                d2 = ((poses[:, :2] - here[:2]) ** 2).sum(axis=1)
+                best = int(np.argmin(d2))
+                if d2[best] > self._reduce_distance**2:
+                    continue
+                self._alias(chain, index, key, near[best], se2_between(poses[best], here))
+                count += 1
+            chain.reduce_next = stop
+        self.num_aliased += count
+        return count
+
+    def _two_hops(self, key: int, fids: set[int]) -> set[int]:
+        near: set[int] = set()
+        for fid in fids:
+            near.update(self._factors[fid].keys)
+        first = list(near)
+        for k in first:
+            for fid in self._adjacency.get(k, ()):
+                near.update(self._factors[fid].keys)
+        near.discard(key)
+        return near
+
+    def _alias(self, chain: Chain, index: int, key: int, anchor: int, offset: FloatArray) -> None:
+        """Make node ``index`` an alias of variable ``anchor``; move its factors there."""
+        chain.alias_key[index] = anchor
+        chain.alias_offset[index] = offset
+        self._anchors.add(anchor)
+        for fid in list(self._adjacency.get(key, ())):
+            record = self._factors[fid]
+            factor = record.factor
+            ka, kb = record.keys
+            z = _arr(factor.measured())
+            noise = factor.noiseModel()
+            side = 0 if ka == key else 1
+            z, cov = moved_measurement(z, _covariance(noise), side, offset)
+            ka, kb = (anchor, kb) if side == 0 else (ka, anchor)
+            if ka == kb:
+                moved = None
+            else:
+                moved = gtsam.BetweenFactorPose2(ka, kb, pose2(z), _noise_with(noise, cov))
+            if moved is None and record.kind == "odometry":
+                self._drop_factor(fid)
+                continue
+            if record.kind == "odometry" and moved is not None:
+                other = self._odometry_pair.get((min(ka, kb), max(ka, kb)))
+                if other is not None and other != fid:
+                    moved = self._fused(other, ka, kb, z, cov)
+                    self._drop_factor(other)
+            self._replace_factor(fid, moved)
+        self._adjacency.pop(key, None)
+        if self._guesses.exists(key):
+            self._guesses.erase(key)
+
+    def _fused(
+        self, other: int, ka: int, kb: int, z: FloatArray, cov: FloatArray
+    ) -> gtsam.BetweenFactorPose2:
+        """Odometry factor ``other`` (between the same two variables) fused with z."""
+        factor = self._factors[other].factor
+        z1, cov1 = _arr(factor.measured()), _covariance(factor.noiseModel())
+        if self._factors[other].keys[0] != ka:  # stored the other way round: turn it
+            ad = _adjoint(z1)
+            z1, cov1 = se2_inverse(z1), ad @ cov1 @ ad.T
+        zf, covf = fuse(z1, cov1, z, cov)
+        return gtsam.BetweenFactorPose2(ka, kb, pose2(zf), _noise_with(factor.noiseModel(), covf))

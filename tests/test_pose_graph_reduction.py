@@ -1,0 +1,180 @@
+"""Reduced pose graph: keyframes over mapped ground become aliases of old variables."""
+
+from __future__ import annotations
+
+import gtsam
+import numpy as np
+import pytest
+
+from basestation.pose_graph import PoseGraph
+from basestation.pose_graph_reduction import fuse, moved_measurement
+from basestation.pose_graph_state import pose2
+from common.geometry import se2_between, se2_compose
+
+ODOM_COV = np.diag([1e-4, 1e-4, 1e-5])
+LOOP_COV = np.diag([1e-3, 1e-3, 1e-4])
+RADIUS, STEP = 5.0, 0.2
+LAP = int(2 * np.pi * RADIUS / STEP)  # nodes per lap of the circle
+
+
+def circle(i: int) -> np.ndarray:
+    th = 2 * np.pi * i / LAP
+    return np.array([RADIUS * np.sin(th), RADIUS - RADIUS * np.cos(th), th])
+
+
+def fly_laps(graph: PoseGraph, laps: int, seed: int = 0, robot: str = "a") -> np.ndarray:
+    """Laps of a circle with noisy odometry and a loop closure to lap 0 every 5 nodes
+    (from lap 1 on), one update per node; returns the true poses."""
+    rng = np.random.default_rng(seed)
+    truth = [circle(i) for i in range(laps * LAP)]
+    for i, p in enumerate(truth):
+        if i == 0:
+            graph.add_node(robot, 0, None, None)
+        else:
+            d = se2_between(truth[i - 1], p) + rng.normal(0, [0.01, 0.01, 0.001])
+            graph.add_node(robot, i, d, ODOM_COV)
+        if i >= LAP and i % 5 == 0:
+            j = i % LAP
+            T = se2_between(truth[j], p) + rng.normal(0, [0.01, 0.01, 0.001])
+            graph.add_constraint((robot, j), (robot, i), T, LOOP_COV)
+        graph.update()
+    return np.array(truth)
+
+
+def variables(graph: PoseGraph) -> int:
+    return graph._isam.calculateEstimate().size()
+
+
+def odometry_factors(graph: PoseGraph) -> int:
+    return sum(r.kind == "odometry" for r in graph._factors.values())
+
+
+def test_revisits_add_no_variables_and_poses_stay_accurate():
+    full = PoseGraph(heads_last=True)
+    full.add_robot("a", [0, 0, 0])
+    truth = fly_laps(full, 6)
+    reduced = PoseGraph(heads_last=True, reduce_distance_m=0.5, reduce_lag=10)
+    reduced.add_robot("a", [0, 0, 0])
+    assert np.array_equal(fly_laps(reduced, 6), truth)
+    # 6 laps of 157 nodes: all iSAM2 holds is about half a lap's worth of variables
+    assert variables(full) == 6 * LAP
+    assert variables(reduced) < 0.6 * LAP and odometry_factors(reduced) < 0.6 * LAP
+    assert reduced.num_nodes("a") == 6 * LAP
+    poses = reduced.poses("a")
+    assert poses.shape == (6 * LAP, 3)
+    err_full = np.linalg.norm(full.poses("a")[:, :2] - truth[:, :2], axis=1)
+    err_red = np.linalg.norm(poses[:, :2] - truth[:, :2], axis=1)
+    assert err_red.max() < 0.15
+    assert err_red.mean() < 1.5 * err_full.mean()
+    # single-pose queries agree with the full extraction, aliases included
+    for i in (0, 3, LAP + 7, 5 * LAP + 11, 6 * LAP - 1):
+        np.testing.assert_allclose(reduced.pose("a", i), poses[i], atol=1e-9)
+
+
+def test_variables_stop_growing_once_the_ground_is_mapped():
+    graph = PoseGraph(heads_last=True, reduce_distance_m=0.5, reduce_lag=10)
+    graph.add_robot("a", [0, 0, 0])
+    fly_laps(graph, 3)
+    after_3 = (variables(graph), odometry_factors(graph))
+    more = PoseGraph(heads_last=True, reduce_distance_m=0.5, reduce_lag=10)
+    more.add_robot("a", [0, 0, 0])
+    fly_laps(more, 8)
+    after_8 = (variables(more), odometry_factors(more))
+    assert after_8[0] <= after_3[0] + 2 and after_8[1] <= after_3[1] + 2
+    assert more.num_aliased > 7 * LAP
+
+
+def test_newest_nodes_first_node_and_gps_robots_stay_variables():
+    graph = PoseGraph(reduce_distance_m=5.0, reduce_lag=10)
+    graph.add_robot("a", [0, 0, 0])
+    graph.add_robot("g", [0, 0, 0], start_sigmas=[10.0, 10.0, 1.0])
+    graph.add_gps_fix("g", 100.0, [0.0, 0.0], [1.0, 1.0, 1.0])  # waits after the nodes
+    for i in range(40):
+        for rid in ("a", "g"):
+            d = None if i == 0 else np.array([0.05, 0.0, 0.0])
+            graph.add_node(rid, i, d, None if i == 0 else ODOM_COV, stamp=float(i))
+        graph.update()
+    a, g = graph._chains["a"], graph._chains["g"]
+    assert a.alias_key[0] < 0 and np.all(a.alias_key[40 - 10 : 40] < 0)
+    assert np.count_nonzero(a.alias_key[:40] >= 0) > 20
+    assert len(g.alias_key) == 0 or np.all(g.alias_key < 0)
+
+
+def test_constraints_on_aliased_nodes_are_moved_onto_their_variables():
+    graph = PoseGraph(reduce_distance_m=0.5, reduce_lag=5)
+    graph.add_robot("a", [0, 0, 0])
+    truth = [np.array([0.1 * i, 0.0, 0.0]) for i in range(60)]
+    bias = np.array([0.1, 0.0, 0.0])  # odometry overshoots: the chain drifts forward
+    for i in range(60):
+        d = None if i == 0 else se2_between(truth[i - 1], truth[i]) + 0.01 * bias
+        graph.add_node("a", i, d, None if i == 0 else ODOM_COV)
+        graph.update()
+    aliased = [i for i in range(1, 50) if graph._chains["a"].alias_key[i] >= 0]
+    assert len(aliased) > 30
+    k = aliased[-1]
+    before = graph.pose("a", 59)
+    # a loop closure from the newest node back to an aliased one pulls the head back
+    fid = graph.add_constraint(("a", k), ("a", 59), se2_between(truth[k], truth[59]), LOOP_COV)
+    graph.update()
+    graph.update(extra_iterations=3)
+    after = graph.pose("a", 59)
+    measured = se2_between(graph.pose("a", k), after)
+    np.testing.assert_allclose(measured[:2], se2_between(truth[k], truth[59])[:2], atol=0.02)
+    assert not np.allclose(before, after)
+    graph.remove_constraint(fid)
+    graph.update(extra_iterations=3)
+    cov = graph.marginal_covariance("a", k)
+    assert cov.shape == (3, 3) and np.all(np.linalg.eigvalsh(cov) > 0)
+
+
+def test_a_constraint_inside_one_cluster_is_kept_but_inert():
+    graph = PoseGraph(reduce_distance_m=1.0, reduce_lag=3)
+    graph.add_robot("a", [0, 0, 0])
+    for i in range(12):
+        graph.add_node("a", i, None if i == 0 else [0.05, 0, 0], None if i == 0 else ODOM_COV)
+        graph.update()
+    chain = graph._chains["a"]
+    pair = [i for i in range(1, 9) if chain.alias_key[i] >= 0][:2]
+    assert len(pair) == 2 and chain.alias_key[pair[0]] == chain.alias_key[pair[1]]
+    fid = graph.add_constraint(("a", pair[0]), ("a", pair[1]), [0.05, 0, 0], LOOP_COV)
+    assert graph._factors[fid].factor is None
+    graph.update()
+    graph.remove_constraint(fid)
+    graph.update()
+    with pytest.raises(Exception, match="no active constraint"):
+        graph.remove_constraint(fid)
+
+
+@pytest.mark.parametrize("side", [0, 1])
+def test_moving_a_factor_end_keeps_its_error(side):
+    rng = np.random.default_rng(side)
+    for _ in range(20):
+        anchor, other, offset, z = (rng.normal(0, [2, 2, 1.5]) for _ in range(4))
+        node = se2_compose(anchor, offset)
+        cov = np.diag(rng.uniform(0.01, 0.1, 3))
+        noise = gtsam.noiseModel.Gaussian.Covariance(cov)
+        K_a, K_b, K_n = 1, 2, 3
+        values = gtsam.Values()
+        for key, p in ((K_a, node), (K_b, other), (K_n, anchor)):
+            values.insert(key, pose2(p))
+        keys = (K_a, K_b) if side == 0 else (K_b, K_a)
+        original = gtsam.BetweenFactorPose2(*keys, pose2(z), noise)
+        z2, cov2 = moved_measurement(z, cov, side, offset)
+        moved_keys = (K_n, K_b) if side == 0 else (K_b, K_n)
+        moved = gtsam.BetweenFactorPose2(
+            *moved_keys, pose2(z2), gtsam.noiseModel.Gaussian.Covariance(cov2)
+        )
+        assert moved.error(values) == pytest.approx(original.error(values), rel=1e-6, abs=1e-9)
+
+
+def test_fusing_two_measurements():
+    z = np.array([1.0, 0.5, 0.3])
+    cov = np.diag([0.01, 0.02, 0.001])
+    zf, covf = fuse(z, cov, z, cov)
+    np.testing.assert_allclose(zf, z, atol=1e-12)
+    np.testing.assert_allclose(covf, cov / 2, atol=1e-12)
+    z2 = z + np.array([0.1, 0.0, 0.0])
+    zf, _ = fuse(z, cov, z2, 1e6 * cov)  # a vague second one barely moves it
+    np.testing.assert_allclose(zf, z, atol=1e-6)
+    zf, _ = fuse(z, 1e6 * cov, z2, cov)  # a vague first one: the second wins
+    np.testing.assert_allclose(zf[:2], z2[:2], atol=1e-4)

@@ -63,6 +63,7 @@ class PoseGraphOptions(TypedDict):
     factorization: str
     reduce_distance_m: float
     reduce_lag: int
+    reduce_after_nodes: int
 
 
 def pose_graph_options(b: BaseStationConfig, track_changes: bool | None = None) -> PoseGraphOptions:
@@ -83,4 +84,5 @@ def pose_graph_options(b: BaseStationConfig, track_changes: bool | None = None) 
         factorization="QR" if b.gps.enabled else b.isam2_factorization,
         reduce_distance_m=b.reduce_distance_m,
         reduce_lag=b.reduce_lag,
+        reduce_after_nodes=b.reduce_after_nodes,
     )

@@ -82,6 +82,7 @@ class PoseGraph(GaugeMixin, GpsMixin, ReductionMixin):
         heads_last: bool = False,  # True: each chain's newest node is ordered last (root)
         reduce_distance_m: float = 0.0,  # > 0: reduced pose graph (pose_graph_reduction)
         reduce_lag: int = 20,  # nodes behind a chain's newest before one may be aliased
+        reduce_after_nodes: int = 0,  # the reduction starts once the graph has this many
     ) -> None:
         params = make_isam2_params(
             factorization=factorization,
@@ -107,7 +108,7 @@ class PoseGraph(GaugeMixin, GpsMixin, ReductionMixin):
         self._estimate = np.zeros((0, 3))  # committed poses, rows in key order
         self._estimate_valid = True  # False: recompute on the next full-estimate query
         self._init_gps(gps_weighting, max_pending_gps_fixes, gps_batch_period_s)
-        self._init_reduction(reduce_distance_m, reduce_lag)
+        self._init_reduction(reduce_distance_m, reduce_lag, reduce_after_nodes)
 
     @classmethod
     def from_config(cls, b: BaseStationConfig, track_changes: bool | None = None) -> PoseGraph:

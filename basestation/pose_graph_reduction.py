@@ -89,14 +89,15 @@ class ReductionMixin(PoseGraphState):
     """Aliases per chain, factor adjacency, and the reduction pass after each update."""
 
     if TYPE_CHECKING:  # provided by PoseGraph
-
         _guesses: gtsam.Values
         _isam: gtsam.ISAM2
         _gps_robots: set[str]
 
-    def _init_reduction(self, max_distance_m: float, lag: int) -> None:
+    def _init_reduction(self, max_distance_m: float, lag: int, after_nodes: int) -> None:
         self._reduce_distance = float(max_distance_m)
         self._reduce_lag = max(int(lag), 1)
+        self._reduce_after = max(int(after_nodes), 0)
+        self.reduction_started = False
         self._anchors: set[int] = set()  # variables other nodes are aliased onto
         self.num_aliased = 0
         if self._reduce_distance > 0.0:
@@ -110,6 +111,17 @@ class ReductionMixin(PoseGraphState):
     def _variable_pose(self, key: int) -> FloatArray:
         """Current estimate of one committed variable."""
         return _arr(self._isam.calculateEstimatePose2(key))
+
+    def reduction_stats(self) -> dict[str, int | bool]:
+        """Nodes (keyframes), the variables iSAM2 holds for them, aliases, factors."""
+        nodes = sum(c.size for c in self._chains.values())
+        return {
+            "reducing": self.reduction_started,
+            "nodes": nodes,
+            "variables": nodes - self.num_aliased,
+            "aliased": self.num_aliased,
+            "factors": sum(r.factor is not None for r in self._factors.values()),
+        }
 
     # ----- resolving keyframes to variables -------------------------------------------
     def _resolve(self, chain: Chain, index: int) -> tuple[int, FloatArray | None]:
@@ -142,23 +154,18 @@ class ReductionMixin(PoseGraphState):
             T_a_b, noise = z, _noise_with(noise, cov)
         return gtsam.BetweenFactorPose2(ka, kb, pose2(T_a_b), noise)
 
-    def _alias_poses(self, chain: Chain, rows: FloatArray, anchor_pose) -> FloatArray:
-        """``rows`` (committed poses of ``chain``, variables filled) with its aliases
-        composed from ``anchor_pose(keys) -> (n, 3)``."""
-        n = min(len(chain.alias_key), len(rows))
-        aliased = np.flatnonzero(chain.alias_key[:n] >= 0)
-        if len(aliased):
-            base = anchor_pose(chain.alias_key[aliased])
-            rows[aliased] = se2_compose(base, chain.alias_offset[aliased])
-        return rows
-
     # ----- the reduction pass ---------------------------------------------------------
     def _reduce(self) -> int:
         """Alias every settled node that has a variable close by; returns how many."""
         if not self.reducing:
             return 0
+        if not self.reduction_started:
+            nodes = sum(c.num_committed for c in self._chains.values())
+            if nodes < self._reduce_after:
+                return 0
+            self.reduction_started = True
+            logger.info("pose graph: %d nodes, reducing from now on", nodes)
         count = 0
-        settled = {c.char: c for c in self._chains.values()}
         for robot_id, chain in self._chains.items():
             stop = chain.num_committed - self._reduce_lag
             if robot_id in self._gps_robots or stop <= chain.reduce_next:
@@ -172,10 +179,11 @@ class ReductionMixin(PoseGraphState):
                 fids = self._adjacency.get(key)
                 if not fids or any(self._factors[f].kind not in REDUCIBLE_KINDS for f in fids):
                     continue
-                near = [
+                own = ord(chain.char)
+                near = [  # this robot's variables the pass has gone past (they stay)
                     k
                     for k in self._two_hops(key, fids)
-                    if (k & INDEX_MASK) < settled[chr(k >> CHAR_SHIFT)].reduce_next
+                    if k >> CHAR_SHIFT == own and (k & INDEX_MASK) < chain.reduce_next
                 ]
                 if not near:
                     continue

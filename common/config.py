@@ -332,13 +332,13 @@ class BaseStationConfig:
     # Re-order the whole Bayes tree (a batch elimination, 0.3 s at 10,000 nodes) once its fill-in
     # exceeds this multiple of the last ordering's; 0: never. city10000 at 1.5: +8% CPU: off.
     adaptive_reorder_threshold: float = 0.0
-    # Compare all estimates before and after each update (UpdateStats.changed_robots, O(n)
-    # per update). Not needed by the base station: corrections read single poses.
-    track_changes: bool = False
-    # Reduced pose graph (basestation/pose_graph_reduction.py): a node reduce_lag keyframes
-    # old becomes an alias of a variable node within this distance two factors away. 0: off.
+    track_changes: bool = False  # O(n) UpdateStats.changed_robots per update (not needed)
+    # Reduced pose graph (basestation/pose_graph_reduction.py): once the graph has
+    # reduce_after_nodes nodes, a node reduce_lag keyframes old becomes an alias of a variable
+    # of its robot within reduce_distance_m (0: never), two factors away: memory stays flat.
     reduce_distance_m: float = 0.5
     reduce_lag: int = 20
+    reduce_after_nodes: int = 10000
     prior_sigma_xy_m: float = 0.01  # m, known start pose
     prior_sigma_yaw_rad: float = 0.001  # rad
     map_update_period_s: float = 2.0  # s wall between global map refreshes

@@ -64,8 +64,9 @@ def test_revisits_add_no_variables_and_poses_stay_accurate():
     assert poses.shape == (6 * LAP, 3)
     err_full = np.linalg.norm(full.poses("a")[:, :2] - truth[:, :2], axis=1)
     err_red = np.linalg.norm(poses[:, :2] - truth[:, :2], axis=1)
+    # rigid 0.5 m clusters cost some accuracy (1.47x the mean error here, 0.3 m: 1.09x)
     assert err_red.max() < 0.15
-    assert err_red.mean() < 1.5 * err_full.mean()
+    assert err_red.mean() < 1.6 * err_full.mean()
     # single-pose queries agree with the full extraction, aliases included
     for i in (0, 3, LAP + 7, 5 * LAP + 11, 6 * LAP - 1):
         np.testing.assert_allclose(reduced.pose("a", i), poses[i], atol=1e-9)
@@ -82,6 +83,41 @@ def test_variables_stop_growing_once_the_ground_is_mapped():
     after_8 = (variables(more), odometry_factors(more))
     assert after_8[0] <= after_3[0] + 2 and after_8[1] <= after_3[1] + 2
     assert more.num_aliased > 7 * LAP
+
+
+def test_the_reduction_waits_for_its_node_count():
+    graph = PoseGraph(
+        heads_last=True, reduce_distance_m=0.5, reduce_lag=10, reduce_after_nodes=2 * LAP
+    )
+    graph.add_robot("a", [0, 0, 0])
+    rng = np.random.default_rng(3)
+    for i in range(3 * LAP):
+        d = None if i == 0 else se2_between(circle(i - 1), circle(i)) + rng.normal(0, 0.005, 3)
+        graph.add_node("a", i, d, None if i == 0 else ODOM_COV)
+        graph.update()
+        if i == 2 * LAP - 2:
+            assert graph.num_aliased == 0 and not graph.reduction_stats()["reducing"]
+    # then every settled node is looked at, the oldest ones too
+    assert graph.reduction_stats()["reducing"]
+    assert np.count_nonzero(graph._chains["a"].alias_key[:LAP] >= 0) > LAP // 2
+
+
+def test_nodes_are_aliased_onto_their_own_robot_only():
+    graph = PoseGraph(reduce_distance_m=1.0, reduce_lag=5)
+    graph.add_robot("a", [0, 0, 0])
+    graph.add_robot("b", [0, 0.1, 0])
+    for i in range(30):  # side by side, 0.1 m apart, a constraint at every node
+        for rid in ("a", "b"):
+            d = None if i == 0 else [0.1, 0.0, 0.0]
+            graph.add_node(rid, i, d, None if i == 0 else ODOM_COV)
+        graph.add_constraint(("a", i), ("b", i), [0.0, 0.1, 0.0], LOOP_COV)
+        graph.update()
+    for rid in ("a", "b"):
+        chain = graph._chains[rid]
+        keys = chain.alias_key[:30][chain.alias_key[:30] >= 0]
+        assert len(keys) > 10
+        assert np.all(keys >> 56 == ord(chain.char))
+    np.testing.assert_allclose(graph.pose("b", 20) - graph.pose("a", 20), [0, 0.1, 0], atol=1e-3)
 
 
 def test_newest_nodes_first_node_and_gps_robots_stay_variables():

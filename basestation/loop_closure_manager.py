@@ -9,7 +9,7 @@ out of it is removed from the graph again. Each group keeps only its last
 `pcm_window` matches (PCM's sliding window): an older match's state is final and
 its record is dropped here (an accepted one keeps its factor). Two robots whose maps are not yet
 connected are joined only when `min_consistent_to_merge` mutually consistent
-matches from places at least `merge_min_spread_m` apart agree, so one lucky
+matches from places at least `merge_min_spread_m` apart (of each robot) agree, so one lucky
 match (and the matches it leads to nearby) cannot fuse two maps. The matches a
 robot has with other robots of the same map count too when they put it in the
 same place (within `merge_agree_m` / `merge_agree_rad` at their own nodes): a
@@ -216,16 +216,26 @@ class LoopClosureManager:
         return float(r @ np.linalg.solve(cov, r))
 
     def _enough_to_merge(self, group: _Group, consistent: set[int]) -> bool:
-        """`min_consistent_to_merge` agreeing matches, seen from places of one robot at
+        """`min_consistent_to_merge` agreeing matches, seen from places of each robot at
         least `merge_min_spread_m` apart: in look-alike rooms one wrong match and the
         matches searched near where it put the robot can agree; a few metres on, the
         likeness usually breaks. The robot's accepted matches with other robots of the
-        other map count too if they put it where this group's do (module doc)."""
+        other map count too if they put it where this group's do (module doc).
+        Matches of the pair that disagree with them are evidence for another
+        placement (a corridor seen both ways): the agreeing ones must outnumber them
+        by `min_consistent_to_merge`, or with matches from elsewhere, be the majority."""
         ms = [group.measurements[i] for i in sorted(consistent)]
         if not ms:
             return False
-        if self._spread_enough(ms[0].robot_b, [m.index_b for m in ms]):
-            return True
+        disagreeing = len(group.measurements) - len(ms)
+        if (
+            len(ms) - disagreeing >= self.cfg.min_consistent_to_merge
+            and self._spread_enough(ms[0].robot_b, [m.index_b for m in ms])
+            and self._spread_enough(ms[0].robot_a, [m.index_a for m in ms])
+        ):
+            return True  # seen from places of both robots apart
+        if disagreeing >= len(ms):
+            return False
         for x, y in ((ms[0].robot_b, ms[0].robot_a), (ms[0].robot_a, ms[0].robot_b)):
             extra = self._agreeing_elsewhere(x, y, ms)  # seen from more places of x?
             own = [m.index_b if x == m.robot_b else m.index_a for m in ms]

@@ -34,7 +34,7 @@ from basestation.gps_factor import GpsWeighting
 from basestation.isam2_params import make_isam2_params, pose_graph_options
 from basestation.pose_graph_gauge import GaugeMixin
 from basestation.pose_graph_gps import GpsMixin
-from basestation.pose_graph_reduction import CHAR_SHIFT, ReductionMixin
+from basestation.pose_graph_reduction import CHAR_SHIFT, REDUCE_BATCH_NODES, ReductionMixin
 from basestation.pose_graph_state import (
     Chain,
     FloatArray,
@@ -83,6 +83,7 @@ class PoseGraph(GaugeMixin, GpsMixin, ReductionMixin):
         reduce_distance_m: float = 0.0,  # > 0: reduced pose graph (pose_graph_reduction)
         reduce_lag: int = 20,  # nodes behind a chain's newest before one may be aliased
         reduce_after_nodes: int = 0,  # the reduction starts once the graph has this many
+        reduce_batch_nodes: int = REDUCE_BATCH_NODES,  # settled nodes waiting before a pass
     ) -> None:
         params = make_isam2_params(
             factorization=factorization,
@@ -108,7 +109,7 @@ class PoseGraph(GaugeMixin, GpsMixin, ReductionMixin):
         self._estimate = np.zeros((0, 3))  # committed poses, rows in key order
         self._estimate_valid = True  # False: recompute on the next full-estimate query
         self._init_gps(gps_weighting, max_pending_gps_fixes, gps_batch_period_s)
-        self._init_reduction(reduce_distance_m, reduce_lag, reduce_after_nodes)
+        self._init_reduction(reduce_distance_m, reduce_lag, reduce_after_nodes, reduce_batch_nodes)
 
     @classmethod
     def from_config(cls, b: BaseStationConfig, track_changes: bool | None = None) -> PoseGraph:

@@ -179,6 +179,45 @@ def test_agreeing_matches_from_one_spot_do_not_join_two_maps() -> None:
     assert manager.counts()["inter_robot_constraints"] == 0
 
 
+def test_matches_seen_from_one_spot_of_either_robot_do_not_join_two_maps() -> None:
+    """ACES: a robot turning on one spot matched a corridor another one drove along,
+    9 matches from 7 m of the mover's path, all agreeing, 180 degrees wrong. Each
+    robot's side must be spread: one place of a seen from b's 1 m apart nodes, then
+    from a's nodes 5 m apart."""
+    rng = np.random.default_rng(7)
+    graph, manager, truth = _setup(rng)
+    for j in (6, 8, 10, 12):  # b's nodes up to 6 m apart, a's node 9 every time
+        manager.add(("a", 9), ("b", j), _true_T(truth, ("a", 9), ("b", j)), LC_COV, "inter")
+    graph.update()
+    assert not graph.is_anchored("b")
+    assert manager.counts()["inter_robot_constraints"] == 0
+    for i in (12, 14):  # then from a's places 3 and 5 m on
+        manager.add(("a", i), ("b", i), _true_T(truth, ("a", i), ("b", i)), LC_COV, "inter")
+        graph.update(extra_iterations=5)
+    assert graph.is_anchored("b")
+    assert _max_error(graph, truth) < 0.3
+
+
+def test_a_merge_waits_while_other_matches_say_otherwise() -> None:
+    """ACES corridors: 3 agreeing wrong matches and 1 right one (3 of 4 offered) joined
+    two maps wrongly. The agreeing set must outnumber the rest by
+    `min_consistent_to_merge`; right matches arriving later then join them right."""
+    rng = np.random.default_rng(9)
+    graph, manager, truth = _setup(rng)
+    # b placed elsewhere, consistently (a corridor seen the other way round)
+    wrong_b = _truth(np.array([4.6, 4.1, np.pi]), _square())
+    for j, right in ((6, True), (4, False), (8, False), (14, True), (12, False)):
+        T = _true_T(truth, ("a", j), ("b", j)) if right else se2_between(truth["a"][j], wrong_b[j])
+        manager.add(("a", j), ("b", j), T, LC_COV, "inter")
+    graph.update()
+    assert not graph.is_anchored("b")
+    for j in (16, 18, 2, 10):  # right ones: 6 against 3
+        manager.add(("a", j), ("b", j), _true_T(truth, ("a", j), ("b", j)), LC_COV, "inter")
+        graph.update(extra_iterations=5)
+    assert graph.is_anchored("b")
+    assert _max_error(graph, truth) < 0.3
+
+
 @pytest.mark.parametrize("c_right", [True, False])
 def test_matches_with_two_robots_of_one_map_count_together_when_they_agree(c_right: bool) -> None:
     """b sees a three times from within a metre (not enough alone: look-alike places),

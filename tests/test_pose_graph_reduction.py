@@ -53,7 +53,7 @@ def test_revisits_add_no_variables_and_poses_stay_accurate():
     full = PoseGraph(heads_last=True)
     full.add_robot("a", [0, 0, 0])
     truth = fly_laps(full, 6)
-    reduced = PoseGraph(heads_last=True, reduce_distance_m=0.5, reduce_lag=10)
+    reduced = PoseGraph(heads_last=True, reduce_distance_m=0.5, reduce_lag=10, reduce_batch_nodes=1)
     reduced.add_robot("a", [0, 0, 0])
     assert np.array_equal(fly_laps(reduced, 6), truth)
     # 6 laps of 157 nodes: all iSAM2 holds is about half a lap's worth of variables
@@ -73,11 +73,11 @@ def test_revisits_add_no_variables_and_poses_stay_accurate():
 
 
 def test_variables_stop_growing_once_the_ground_is_mapped():
-    graph = PoseGraph(heads_last=True, reduce_distance_m=0.5, reduce_lag=10)
+    graph = PoseGraph(heads_last=True, reduce_distance_m=0.5, reduce_lag=10, reduce_batch_nodes=1)
     graph.add_robot("a", [0, 0, 0])
     fly_laps(graph, 3)
     after_3 = (variables(graph), odometry_factors(graph))
-    more = PoseGraph(heads_last=True, reduce_distance_m=0.5, reduce_lag=10)
+    more = PoseGraph(heads_last=True, reduce_distance_m=0.5, reduce_lag=10, reduce_batch_nodes=1)
     more.add_robot("a", [0, 0, 0])
     fly_laps(more, 8)
     after_8 = (variables(more), odometry_factors(more))
@@ -103,7 +103,7 @@ def test_the_reduction_waits_for_its_node_count():
 
 
 def test_nodes_are_aliased_onto_their_own_robot_only():
-    graph = PoseGraph(reduce_distance_m=1.0, reduce_lag=5)
+    graph = PoseGraph(reduce_distance_m=1.0, reduce_lag=5, reduce_batch_nodes=1)
     graph.add_robot("a", [0, 0, 0])
     graph.add_robot("b", [0, 0.1, 0])
     for i in range(30):  # side by side, 0.1 m apart, a constraint at every node
@@ -120,8 +120,21 @@ def test_nodes_are_aliased_onto_their_own_robot_only():
     np.testing.assert_allclose(graph.pose("b", 20) - graph.pose("a", 20), [0, 0.1, 0], atol=1e-3)
 
 
+def test_passes_wait_for_a_batch_of_settled_nodes():
+    graph = PoseGraph(reduce_distance_m=0.5, reduce_lag=5, reduce_batch_nodes=30)
+    graph.add_robot("a", [0, 0, 0])
+    aliased = []
+    for i in range(80):
+        graph.add_node("a", i, None if i == 0 else [0.1, 0, 0], None if i == 0 else ODOM_COV)
+        graph.update()
+        aliased.append(graph.num_aliased)
+    # nothing until 30 settled nodes wait (node 35 committed), then in steps
+    assert aliased[33] == 0 and aliased[36] > 15
+    assert len(set(aliased)) <= 4
+
+
 def test_newest_nodes_first_node_and_gps_robots_stay_variables():
-    graph = PoseGraph(reduce_distance_m=5.0, reduce_lag=10)
+    graph = PoseGraph(reduce_distance_m=5.0, reduce_lag=10, reduce_batch_nodes=1)
     graph.add_robot("a", [0, 0, 0])
     graph.add_robot("g", [0, 0, 0], start_sigmas=[10.0, 10.0, 1.0])
     graph.add_gps_fix("g", 100.0, [0.0, 0.0], [1.0, 1.0, 1.0])  # waits after the nodes
@@ -137,7 +150,7 @@ def test_newest_nodes_first_node_and_gps_robots_stay_variables():
 
 
 def test_constraints_on_aliased_nodes_are_moved_onto_their_variables():
-    graph = PoseGraph(reduce_distance_m=0.5, reduce_lag=5)
+    graph = PoseGraph(reduce_distance_m=0.5, reduce_lag=5, reduce_batch_nodes=1)
     graph.add_robot("a", [0, 0, 0])
     truth = [np.array([0.1 * i, 0.0, 0.0]) for i in range(60)]
     bias = np.array([0.1, 0.0, 0.0])  # odometry overshoots: the chain drifts forward
@@ -164,7 +177,7 @@ def test_constraints_on_aliased_nodes_are_moved_onto_their_variables():
 
 
 def test_a_constraint_inside_one_cluster_is_kept_but_inert():
-    graph = PoseGraph(reduce_distance_m=1.0, reduce_lag=3)
+    graph = PoseGraph(reduce_distance_m=1.0, reduce_lag=3, reduce_batch_nodes=1)
     graph.add_robot("a", [0, 0, 0])
     for i in range(12):
         graph.add_node("a", i, None if i == 0 else [0.05, 0, 0], None if i == 0 else ODOM_COV)

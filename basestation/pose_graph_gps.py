@@ -30,6 +30,7 @@ class GpsMixin(PoseGraphState):
         self._gps_weighting = weighting or GpsWeighting()
         self._gps = GpsFixQueue(max_pending_fixes, batch_period_s)
         self.num_gps_factors = 0
+        self.gps_dropped_reduced = 0
         self._gps_robots: set[str] = set()  # robots with fixes (their nodes are not reduced)
 
     def add_gps_fix(
@@ -58,6 +59,7 @@ class GpsMixin(PoseGraphState):
             "gps_pending": sum(self._gps.pending(r) for r in self._chains),
             "gps_dropped_before_start": self._gps.dropped_before_start,
             "gps_dropped_overflow": self._gps.dropped_overflow,
+            "gps_dropped_reduced": self.gps_dropped_reduced,
         }
 
     def flush_gps(self) -> int:
@@ -81,6 +83,9 @@ class GpsMixin(PoseGraphState):
         w = self._gps_weighting
         added = 0
         for b in self._gps.ready(robot_id, chain.stamps, flush):
+            if any(i < len(chain.alias_key) and chain.alias_key[i] >= 0 for i in (b.i, b.j)):
+                self.gps_dropped_reduced += 1  # a fix late enough to find its nodes reduced
+                continue
             factor = make_gps_factor(
                 gtsam.symbol(chain.char, b.i),
                 gtsam.symbol(chain.char, b.j),

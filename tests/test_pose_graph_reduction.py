@@ -227,3 +227,20 @@ def test_fusing_two_measurements():
     np.testing.assert_allclose(zf, z, atol=1e-6)
     zf, _ = fuse(z, 1e6 * cov, z2, cov)  # a vague first one: the second wins
     np.testing.assert_allclose(zf[:2], z2[:2], atol=1e-4)
+
+
+def test_a_late_gps_fix_on_reduced_nodes_is_dropped():
+    graph = PoseGraph(reduce_distance_m=0.5, reduce_lag=5, reduce_batch_nodes=1)
+    graph.add_robot("a", [0, 0, 0])
+    for i in range(40):
+        d = None if i == 0 else [0.1, 0.0, 0.0]
+        graph.add_node("a", i, d, None if i == 0 else ODOM_COV, stamp=float(i))
+        graph.update()
+    chain = graph._chains["a"]
+    assert chain.alias_key[10] >= 0 or chain.alias_key[11] >= 0
+    graph.add_gps_fix("a", 10.5, [1.05, 0.0], [1.0, 1.0, 1.0])  # long after its nodes
+    graph.flush_gps()
+    graph.update()
+    assert graph.gps_stats()["gps_dropped_reduced"] == 1
+    assert graph.gps_stats()["gps_factors"] == 0
+    np.testing.assert_allclose(graph.pose("a", 39)[:2], [3.9, 0.0], atol=1e-6)

@@ -2,11 +2,13 @@
 
 A robot that flies over mapped ground keeps sending keyframes; if every keyframe were
 a variable, iSAM2 would grow by ~4 kB per keyframe forever (Johannsson et al. 2013,
-"Temporally scalable visual SLAM using a reduced pose graph"). Here, once a committed
-node is ``lag`` keyframes behind its chain's newest one (its loop closures have had
-time to arrive), it is *aliased* onto the nearest variable node within
-``max_distance_m`` (x-y, by the current estimate) that is at most two factors away in
-the graph: the node's variable is removed from iSAM2, its pose becomes
+"Temporally scalable visual SLAM using a reduced pose graph"). Here, once the graph
+has ``after_nodes`` nodes, every committed node ``lag`` keyframes behind its chain's
+newest one (its loop closures have had time to arrive) is *aliased* onto the nearest
+variable node of the same robot within ``max_distance_m`` (x-y, by the current
+estimate) that is at most two factors away in the graph (passes run once
+``batch_nodes`` such nodes wait, oldest first, and alias onto nodes already passed):
+the node's variable is removed from iSAM2, its pose becomes
 ``T_map_anchor * offset`` with the offset frozen from the current estimate, and every
 factor on it is moved onto the anchor (measurement and covariance transformed). The
 two-factor rule ties a node only to places the graph already links it to (its chain
@@ -14,7 +16,10 @@ neighbours, or nodes a loop closure joined it to): a robot revisiting ground bef
 loop closure links it there is not tied to it by proximity alone. Odometry factors that
 end up between the same two variables are fused into one (information-weighted in the
 tangent space), so revisits add no factors either: the variables and factors grow with
-the area flown, not with the time flown.
+the area flown, not with the time flown. Other robots' variables are not used: PCM
+may still remove the constraint that links them, and an alias cannot be undone.
+Freezing offsets costs accuracy (the relations inside a cluster are dropped), so the
+base station starts only on a large graph (``basestation.reduce_after_nodes``).
 
 Keyframes keep their indices; ``PoseGraph.pose``, ``poses``, ``add_node`` and
 ``add_constraint`` resolve aliases, so callers do not see the reduction. Not reduced:

@@ -42,6 +42,12 @@ Result keys:
   update, so the wall-time ratio grows with the load; the CPU-time ratio does not.
   ``ratio_batch_over_isam2`` = ``batch_ms`` / the MEDIAN (p50) per-update iSAM2 time,
   the comparison behind seed 002's "iSAM2 2 ms vs. batch > 600 ms for 500 nodes".
+- ``reduced``: the largest size's feed again with the reduced pose graph on from the
+  first node (basestation/pose_graph_reduction.py), one entry per ``reduce_distance_m``
+  in ``REDUCED_DISTANCES_M``: the update timings, ``variables`` and ``factors`` iSAM2
+  holds at the end, and ``offset_from_batch_optimum_m_mean`` / ``_max``: how far the
+  positions end from batch LM's optimum of the whole (unreduced) graph, the price of
+  the frozen offsets.
 - ``chi2``: final chi2 (sum of squared whitened residuals) of the incrementally fed
   iSAM2 and of batch LM (from the same initial guesses), whole M3500 and Intel.
 - ``sim``: a simulated 3-robot run (``simulate_team``): noisy odometry, intra- and
@@ -75,6 +81,9 @@ FloatArray = NDArray[np.float64]
 ROBOTS = ("r0", "r1", "r2")
 M3500_NODES = 3500
 BATCH_RUNS = 3  # identical LM runs per graph; batch_ms is their median
+# basestation.reduce_distance_m values of the "reduced" entries: the default, and one that
+# aliases a grid step or two of city10000 (1 m apart)
+REDUCED_DISTANCES_M = (0.5, 2.0)
 
 
 class Constraint(NamedTuple):
@@ -174,18 +183,26 @@ def split_g2o(
     return Feed(starts, nodes)
 
 
-def new_pose_graph(cfg: Config, track_changes: bool | None = None) -> PoseGraph:
+def new_pose_graph(
+    cfg: Config, track_changes: bool | None = None, reduce_distance_m: float = 0.0
+) -> PoseGraph:
     """A PoseGraph set up as BaseStationNode sets up its own (``track_changes`` None: the
     base station's setting), except that every node stays a variable
-    (``reduce_distance_m`` 0): batch and iSAM2 are compared on the file's whole graph."""
-    b = dataclasses.replace(cfg.basestation, reduce_distance_m=0.0)
+    (``reduce_distance_m`` 0: batch and iSAM2 are compared on the file's whole graph) or,
+    with ``reduce_distance_m`` > 0, that the reduction runs from the first node on."""
+    b = dataclasses.replace(
+        cfg.basestation, reduce_distance_m=reduce_distance_m, reduce_after_nodes=0
+    )
     return PoseGraph.from_config(b, track_changes)
 
 
-def feed_pose_graph(cfg: Config, feed: Feed, track_changes: bool | None = None) -> FeedResult:
+def feed_pose_graph(
+    cfg: Config, feed: Feed, track_changes: bool | None = None, reduce_distance_m: float = 0.0
+) -> FeedResult:
     """Feed node by node, one update each, timing update() and the correction query
-    (``track_changes`` None: the base station's setting)."""
-    graph = new_pose_graph(cfg, track_changes)
+    (``track_changes`` None: the base station's setting; ``reduce_distance_m``: see
+    ``new_pose_graph``)."""
+    graph = new_pose_graph(cfg, track_changes, reduce_distance_m)
     for robot_id, start in feed.starts.items():
         graph.add_robot(robot_id, start)
     update_ms, solve_ms, cpu_ms, reorders = [], [], [], 0
@@ -302,6 +319,35 @@ def bench_feed(
     return result
 
 
+def bench_reduced(
+    cfg: Config, data: G2oGraph, n_nodes: int, distances_m: Sequence[float]
+) -> list[dict[str, Any]]:
+    """The same 3-robot feed with the reduced pose graph on from the first node (one
+    entry per ``reduce_distance_m``): update timings, what iSAM2 holds, and how far the
+    positions end from batch LM's optimum of the whole graph (m, mean and max)."""
+    feed = split_g2o(data, n_nodes)
+    optimum = reference_poses(data, n_nodes)
+    entries = []
+    for distance in distances_m:
+        fed = feed_pose_graph(cfg, feed, reduce_distance_m=distance)
+        poses = np.concatenate([fed.graph.poses(r) for r in feed.starts])
+        off = np.linalg.norm(poses[:, :2] - optimum[:, :2], axis=1)
+        stats = fed.graph.reduction_stats()
+        entries.append(
+            {
+                "nodes": n_nodes,
+                "reduce_distance_m": distance,
+                "variables": stats["variables"],
+                "factors": stats["factors"],
+                **percentiles("isam2_update_ms", fed.update_ms),
+                **percentiles("isam2_update_cpu_ms", fed.update_cpu_ms),
+                "offset_from_batch_optimum_m_mean": float(off.mean()),
+                "offset_from_batch_optimum_m_max": float(off.max()),
+            }
+        )
+    return entries
+
+
 # ----- simulated team ---------------------------------------------------------------
 HEADINGS = np.array([[1, 0], [0, 1], [-1, 0], [0, -1]])  # unit steps for yaw k * pi/2
 
@@ -378,6 +424,7 @@ def run(
     sizes: Sequence[int] = (500, 2000, 10000),
     chi2_max_nodes: int | None = None,  # None: whole graphs; a prefix length for quick tests
     sim_nodes_per_robot: int = 500,
+    reduced_distances_m: Sequence[float] = REDUCED_DISTANCES_M,
 ) -> dict[str, Any]:
     out_dir.mkdir(parents=True, exist_ok=True)
     g2o_dir = data_dir / "g2o"
@@ -394,6 +441,10 @@ def run(
         entry = bench_feed(cfg, split_g2o(graph(name), n), out_dir / f"{name}_{n}_update_ms.txt")
         result["sizes"].append({"source": f"{name}.g2o[:{n}]", **entry})
         log.info("%d nodes: %s", n, result["sizes"][-1])
+    if reduced_distances_m:
+        n = max(sizes)
+        result["reduced"] = bench_reduced(cfg, graph(_g2o_source(n)), n, reduced_distances_m)
+        log.info("reduced pose graph, %d nodes: %s", n, result["reduced"])
     for name in ("M3500", "intel"):
         data = graph(name)
         n = min(len(data.vertices_se2), chi2_max_nodes or len(data.vertices_se2))

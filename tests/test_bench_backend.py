@@ -58,7 +58,7 @@ def test_run_small(cfg: Config, shared_data: Path, tmp_path: Path) -> None:
     result = run(
         cfg, tmp_path, shared_data, sizes=(200,), chi2_max_nodes=300, sim_nodes_per_robot=60
     )
-    assert set(result) == {"sizes", "chi2", "sim"}
+    assert set(result) == {"sizes", "chi2", "sim", "reduced"}
     (entry,) = result["sizes"]
     assert SIZE_KEYS <= set(entry)
     assert entry["nodes"] == 200 and entry["source"] == "M3500.g2o[:200]"
@@ -77,3 +77,9 @@ def test_run_small(cfg: Config, shared_data: Path, tmp_path: Path) -> None:
     ate = sim["ate_rms_m"]
     assert ate["isam2"] < ate["odometry"]  # loop closures help
     assert (tmp_path / "M3500_200_update_ms.txt").is_file()
+    near, far = result["reduced"]  # reduce_distance_m 0.5 and 2.0 from the first node
+    assert near["reduce_distance_m"] < far["reduce_distance_m"]
+    assert far["variables"] < near["variables"] < near["nodes"] == 200
+    for reduced in (near, far):  # frozen offsets cost little against the whole graph's optimum
+        assert 0 < reduced["offset_from_batch_optimum_m_mean"] < 0.1
+        assert reduced["isam2_update_ms_p50"] > 0

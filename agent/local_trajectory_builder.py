@@ -83,7 +83,12 @@ class LocalTrajectoryBuilder:
 
     # --- other sensors ------------------------------------------------------------------
     def add_odometry(self, stamp: float, pose_xyyaw: np.ndarray) -> None:
-        self.extrapolator.add_odometry(pose_xyyaw)
+        self.extrapolator.add_odometry(stamp, pose_xyyaw)
+
+    @property
+    def rejected_odometry(self) -> int:
+        """Odometry messages dropped because their stamp went back."""
+        return self.extrapolator.rejected_odometry
 
     def add_imu(self, stamp: float, orientation_xyzw: np.ndarray) -> None:
         if self.cfg.use_imu_attitude:

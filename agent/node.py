@@ -348,6 +348,7 @@ class AgentNode:
             "scans": self.scans,
             "odom_distance_m": self.frontend.distance_m,
             "scans_rejected": self.frontend.rejected_scans,
+            "odometry_rejected": self.frontend.rejected_odometry,
             "guard_limited_ticks": self.guard.limited_ticks,
             "correction_epoch": self.epoch,
             "smoothing_restarts": self.smoother.restarts,

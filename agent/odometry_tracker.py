@@ -27,9 +27,20 @@ class OdometryTracker:
         self.distance_m = 0.0
         self.scans = 0
         self.rejected_scans = 0
+        self.rejected_odometry = 0
         self._last_odom: np.ndarray | None = None
+        self._last_odom_stamp = -math.inf
 
     def add_odometry(self, stamp: float, pose_xyyaw: np.ndarray) -> None:
+        if stamp < self._last_odom_stamp:
+            log.error(
+                "odometry stamp %.3f is before the previous %.3f: dropped",
+                stamp,
+                self._last_odom_stamp,
+            )
+            self.rejected_odometry += 1
+            return
+        self._last_odom_stamp = stamp
         pose = np.asarray(pose_xyyaw, dtype=np.float64)
         if self._last_odom is not None:
             step = se2_compose(se2_inverse(self._last_odom), pose)

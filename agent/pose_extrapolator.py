@@ -1,29 +1,84 @@
 """Predicts the pose at the next scan from odometry (or constant velocity).
 
-With odometry, the prediction is the last matched pose composed with the
-odometry motion since that scan; without it, the last velocity is held.
+With odometry, the prediction is the last matched pose composed with the odometry
+motion between that scan's stamp and the new scan's stamp. Odometry comes at its own
+rate (an autopilot's 50-100 Hz, not the LiDAR's 10-40 Hz), so the odometry pose at a
+scan stamp is interpolated between the two odometry messages around it (held at the
+newest one when the scan is newer than all of them). Without odometry, the last
+velocity is held.
 """
 
 from __future__ import annotations
 
+import bisect
+import logging
+
 import numpy as np
 
-from common.geometry import se2_compose, se2_inverse
+from common.geometry import se2_compose, se2_inverse, wrap_angle
+
+log = logging.getLogger(__name__)
+
+# Odometry kept for interpolation: a few seconds at 100 Hz, more than one scan period.
+MAX_ODOMETRY = 512
 
 
 class PoseExtrapolator:
     def __init__(self, use_odometry: bool = True) -> None:
         self.use_odometry = use_odometry
-        self._odom: np.ndarray | None = None  # latest odometry pose [x, y, yaw], its own frame
-        self._odom_at_pose: np.ndarray | None = None
+        self._odom_t: list[float] = []  # odometry stamps, increasing
+        self._odom: list[np.ndarray] = []  # odometry poses [x, y, yaw], its own frame
         self._poses: list[tuple[float, np.ndarray]] = []  # last two (stamp, T_local_base)
+        self.rejected_odometry = 0
 
-    def add_odometry(self, pose_xyyaw: np.ndarray) -> None:
-        self._odom = np.asarray(pose_xyyaw, dtype=np.float64)
+    def add_odometry(self, stamp: float, pose_xyyaw: np.ndarray) -> None:
+        """One odometry pose; stamps must increase (an older one is logged and dropped)."""
+        if self._odom_t and stamp <= self._odom_t[-1]:
+            if stamp < self._odom_t[-1]:
+                log.error(
+                    "odometry stamp %.3f is before the previous %.3f: dropped",
+                    stamp,
+                    self._odom_t[-1],
+                )
+                self.rejected_odometry += 1
+            else:  # the same stamp again: the newer message wins
+                self._odom[-1] = np.asarray(pose_xyyaw, dtype=np.float64)
+            return
+        self._odom_t.append(float(stamp))
+        self._odom.append(np.asarray(pose_xyyaw, dtype=np.float64))
+        keep = self._oldest_needed()
+        if keep > 0 or len(self._odom_t) > MAX_ODOMETRY:
+            keep = max(keep, len(self._odom_t) - MAX_ODOMETRY)
+            del self._odom_t[:keep], self._odom[:keep]
+
+    def _oldest_needed(self) -> int:
+        """Index of the oldest odometry still needed: the last one at or before the
+        newest matched pose's stamp (it brackets that stamp)."""
+        if not self._poses:
+            return max(0, len(self._odom_t) - 2)
+        return max(0, bisect.bisect_right(self._odom_t, self._poses[-1][0]) - 1)
+
+    def odometry_at(self, stamp: float) -> np.ndarray | None:
+        """The odometry pose at ``stamp``: interpolated between the messages around it,
+        the oldest / newest one outside them; None before any odometry."""
+        if not self._odom_t:
+            return None
+        k = bisect.bisect_left(self._odom_t, stamp)
+        if k == 0:
+            return self._odom[0].copy()
+        if k == len(self._odom_t):
+            return self._odom[-1].copy()
+        if self._odom_t[k] == stamp:
+            return self._odom[k].copy()
+        t0, t1 = self._odom_t[k - 1], self._odom_t[k]
+        p0, p1 = self._odom[k - 1], self._odom[k]
+        s = (stamp - t0) / (t1 - t0)
+        xy = p0[:2] + s * (p1[:2] - p0[:2])
+        yaw = wrap_angle(p0[2] + s * wrap_angle(p1[2] - p0[2]))
+        return np.array([xy[0], xy[1], yaw])
 
     def add_pose(self, stamp: float, pose: np.ndarray) -> None:
         self._poses = [*self._poses[-1:], (stamp, np.asarray(pose, dtype=np.float64).copy())]
-        self._odom_at_pose = None if self._odom is None else self._odom.copy()
 
     @property
     def has_pose(self) -> bool:
@@ -33,8 +88,9 @@ class PoseExtrapolator:
         if not self._poses:
             return np.zeros(3)
         t1, p1 = self._poses[-1]
-        if self.use_odometry and self._odom is not None and self._odom_at_pose is not None:
-            return se2_compose(p1, se2_compose(se2_inverse(self._odom_at_pose), self._odom))
+        if self.use_odometry and self._odom_t:
+            odom_then, odom_now = self.odometry_at(t1), self.odometry_at(stamp)
+            return se2_compose(p1, se2_compose(se2_inverse(odom_then), odom_now))
         if len(self._poses) == 2:
             t0, p0 = self._poses[0]
             if t1 > t0:

@@ -1,0 +1,116 @@
+"""Tests for agent.pose_extrapolator: the pose prediction at the next scan."""
+
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+import pytest
+
+from agent.local_trajectory_builder import LocalTrajectoryBuilder
+from agent.odometry_tracker import OdometryTracker
+from agent.pose_extrapolator import MAX_ODOMETRY, PoseExtrapolator
+from common.config import load_config
+from common.geometry import se2_compose
+
+
+def arc(t: float) -> np.ndarray:
+    """A vehicle on a circle: 1 m/s, 0.5 rad/s, in the odometry frame."""
+    yaw = 0.5 * t
+    return np.array([2.0 * np.sin(yaw), 2.0 * (1.0 - np.cos(yaw)), yaw])
+
+
+def test_the_motion_between_scan_stamps_comes_from_odometry_at_those_stamps() -> None:
+    """Odometry at 100 Hz runs ahead of the scans (it has less latency): the prediction
+    uses the odometry interpolated at the two scan stamps, not the newest message."""
+    ex = PoseExtrapolator()
+    odom_stamps = np.arange(0.0, 2.0, 0.01)
+    local_from_odom = np.array([5.0, -1.0, 0.3])  # the local frame differs from odometry's
+    scan_stamps = [0.1025, 0.2275, 0.3525]
+    fed = 0
+    for k, (t_prev, t) in enumerate(zip(scan_stamps, scan_stamps[1:], strict=False)):
+        if k == 0:
+            ex.add_pose(t_prev, se2_compose(local_from_odom, arc(t_prev)))
+        while odom_stamps[fed] <= t + 0.05:  # 50 ms of odometry past the scan
+            ex.add_odometry(odom_stamps[fed], arc(odom_stamps[fed]))
+            fed += 1
+        predicted = ex.predict(t)
+        truth = se2_compose(local_from_odom, arc(t))
+        # linear interpolation within 10 ms of a 2 m circle: well under a millimetre
+        assert np.allclose(predicted[:2], truth[:2], atol=1e-4)
+        assert predicted[2] == pytest.approx(truth[2], abs=1e-4)
+        newest = se2_compose(local_from_odom, arc(odom_stamps[fed - 1]))
+        assert np.linalg.norm(newest[:2] - truth[:2]) > 0.04  # the newest message: 5 cm off
+        ex.add_pose(t, truth)
+
+
+def test_odometry_at_interpolates_and_holds_outside() -> None:
+    ex = PoseExtrapolator()
+    assert ex.odometry_at(1.0) is None
+    ex.add_odometry(1.0, np.array([0.0, 0.0, np.pi - 0.1]))
+    ex.add_odometry(2.0, np.array([1.0, 2.0, -np.pi + 0.1]))  # across +-pi
+    mid = ex.odometry_at(1.5)
+    assert mid[:2] == pytest.approx([0.5, 1.0])
+    assert abs(abs(mid[2]) - np.pi) < 1e-9  # the short way round, not through 0
+    assert ex.odometry_at(0.5) == pytest.approx([0.0, 0.0, np.pi - 0.1])
+    assert ex.odometry_at(3.0) == pytest.approx([1.0, 2.0, -np.pi + 0.1])
+    assert ex.odometry_at(2.0) == pytest.approx([1.0, 2.0, -np.pi + 0.1])
+
+
+def test_odometry_going_back_in_time_is_dropped_with_an_error(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    ex = PoseExtrapolator()
+    ex.add_pose(0.0, np.zeros(3))
+    ex.add_odometry(0.0, np.zeros(3))
+    ex.add_odometry(1.0, np.array([1.0, 0.0, 0.0]))
+    with caplog.at_level(logging.ERROR):
+        ex.add_odometry(0.5, np.array([9.0, 9.0, 0.0]))
+    assert ex.rejected_odometry == 1
+    assert "before the previous" in caplog.text
+    assert ex.predict(1.0) == pytest.approx([1.0, 0.0, 0.0])
+    ex.add_odometry(1.0, np.array([2.0, 0.0, 0.0]))  # same stamp again: replaces
+    assert ex.rejected_odometry == 1
+    assert ex.predict(1.0) == pytest.approx([2.0, 0.0, 0.0])
+
+
+def test_old_odometry_is_forgotten_but_the_bracket_of_the_last_pose_is_kept() -> None:
+    ex = PoseExtrapolator()
+    for k in range(3 * MAX_ODOMETRY):  # no pose yet: only the last two are needed
+        ex.add_odometry(0.01 * k, np.array([0.01 * k, 0.0, 0.0]))
+    assert len(ex._odom_t) == 2
+    for k in range(3 * MAX_ODOMETRY, 4 * MAX_ODOMETRY):
+        t = 0.01 * k
+        ex.add_odometry(t, np.array([t, 0.0, 0.0]))
+        if k % 10 == 5:
+            ex.add_pose(t + 0.005, np.array([t, 0.0, 0.0]))  # between two odometry stamps
+    last_pose_t = ex._poses[-1][0]
+    assert ex._odom_t[0] < last_pose_t < ex._odom_t[1]  # its bracket is kept
+    assert len(ex._odom_t) <= 11
+    t_end = ex._odom_t[-1]
+    assert ex.predict(t_end)[0] == pytest.approx(last_pose_t - 0.005 + t_end - last_pose_t)
+
+
+def test_without_odometry_the_last_velocity_is_held() -> None:
+    ex = PoseExtrapolator(use_odometry=False)
+    ex.add_odometry(0.0, np.zeros(3))  # ignored
+    ex.add_pose(0.0, np.zeros(3))
+    ex.add_pose(0.1, np.array([0.1, 0.0, 0.0]))
+    assert ex.predict(0.2) == pytest.approx([0.2, 0.0, 0.0])
+
+
+@pytest.mark.parametrize("frontend", ["local_slam", "odometry_only"])
+def test_both_agent_frontends_drop_odometry_going_back(frontend: str) -> None:
+    """The agent's two frontends (`agent.local_slam.enabled` true / false) count what they
+    drop, for the agent's statistics."""
+    front: LocalTrajectoryBuilder | OdometryTracker
+    if frontend == "local_slam":
+        front = LocalTrajectoryBuilder(load_config(None).agent.local_slam)
+    else:
+        front = OdometryTracker()
+    front.add_odometry(1.0, np.array([1.0, 0.0, 0.0]))
+    front.add_odometry(0.5, np.array([5.0, 0.0, 0.0]))
+    front.add_odometry(2.0, np.array([2.0, 0.0, 0.0]))
+    assert front.rejected_odometry == 1
+    if isinstance(front, OdometryTracker):
+        assert front.pose[0] == pytest.approx(1.0)  # 1 -> 2 m, not via 5 m

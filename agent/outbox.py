@@ -6,8 +6,10 @@ cumulative ack covers them. If no ack makes progress for `resend_timeout_s`
 station drops duplicates, so resending is harmless. While acks stay stalled the
 wait doubles after each resend (up to `max_backoff` times the timeout), so a base
 station that is busy, not gone, is not flooded with duplicates. Once an ack covers
-a whole resent batch, the next batch goes at once: after an outage the outbox
-drains, in order, at the pace of the acks.
+a resent batch and stops there (what followed it was lost), the next batch goes at
+once: after an outage the outbox drains, in order, at the pace of the acks. An ack
+beyond the batch means the base station had the rest queued (busy, not cut off):
+nothing more is resent until the acks stall again.
 
 Bound policy: the outbox holds at most `max_len` keyframes. It warns once when
 it passes `warn_fraction` of that; when full, `has_room()` is False and the
@@ -100,8 +102,13 @@ class Outbox:
             self._last_progress = self._clock()
             self._backoff = 1
             if self._resent_upto >= 0 and acked_seq >= self._resent_upto:
+                # The ack stops at the resent batch's end: the base station has nothing
+                # after it, those were lost (an outage): the next batch now. An ack past
+                # the batch means the originals were only queued (a busy base station):
+                # resending more would only send it duplicates to decode.
+                lost = acked_seq == self._resent_upto
                 self._resent_upto = -1
-                if self._pending:  # catching up after an outage: the next batch now
+                if self._pending and lost:
                     self._last_progress -= self.resend_timeout_s
             if len(self._pending) < self.warn_len:
                 self._warned = False

@@ -72,6 +72,23 @@ def test_outbox_drains_at_ack_pace_after_an_outage() -> None:
     assert ob.due_for_resend() == []
 
 
+def test_outbox_does_not_flood_a_busy_base_station_with_duplicates() -> None:
+    """The base station is slow, not cut off: it had the originals queued, so the ack
+    after a resend goes past the resent batch, and nothing more is resent at once."""
+    clock = FakeClock()
+    ob = Outbox(max_len=100, warn_fraction=0.8, resend_timeout_s=1.0, resend_batch=3, clock=clock)
+    for s in range(10):
+        ob.add(s, bytes([s]))
+    clock.t = 1.5
+    assert ob.due_for_resend() == [b"\x00", b"\x01", b"\x02"]
+    ob.ack(6)  # its queue, originals included, processed up to 6
+    assert ob.due_for_resend() == []
+    clock.t = 2.0
+    ob.ack(8)
+    assert ob.due_for_resend() == []
+    assert ob.resent == 3
+
+
 def test_outbox_kick_resends_at_once() -> None:
     clock = FakeClock()
     ob = Outbox(max_len=10, warn_fraction=0.8, resend_timeout_s=1.0, resend_batch=5, clock=clock)

@@ -307,8 +307,7 @@ class MapBuilder:
             todo = rows.start + np.flatnonzero(hits)
             views = self._view_bins(todo)
             first = np.unique(views, return_index=True)[1]
-            unseen = [v not in job.views for v in views[first].tolist()]
-            keep = np.sort(first[np.array(unseen, dtype=bool)])
+            keep = np.sort(first[~np.isin(views[first], list(job.views))])
             todo, views = todo[keep], views[keep]
             self.rerender_skipped += len(hits.nonzero()[0]) - len(todo)
             for b in range(0, len(todo), BATCH):

@@ -3,9 +3,8 @@
 New keyframes are inserted incrementally. When the optimizer moves a keyframe already
 in the map by more than `pose_moved_m` / `pose_moved_rad`, the square tiles
 (`rerender_tile_m`) its rays can reach, at its old and at its new pose, are marked
-dirty. Dirty tiles are redrawn one at a time, each from scratch from the keyframes
-that reach into it (in insertion order, at the current poses; of several keyframes
-with the same view, `VIEW_M` x `VIEW_M` x `VIEW_RAD`, only the first), most-moved tile
+dirty. Dirty tiles are redrawn one at a time, each from scratch from every keyframe
+that reaches into it (in insertion order, at the current poses), most-moved tile
 first, within `rerender_budget_s` per `update`: a tile's redraw is resumable (it
 stops between two keyframes and goes on at the next update), so the caller's thread
 never spends O(all keyframes) at once however large the correction. A redrawn tile
@@ -24,7 +23,7 @@ from __future__ import annotations
 import logging
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -42,12 +41,6 @@ Tile = tuple[int, int]  # (column, row) of the tile lattice
 PAD = 3  # cells drawn around a tile but not pasted (see OccupancyGrid.paste)
 CHUNK = 512  # keyframes box-tested at once while redrawing a tile
 BATCH = 16  # keyframes drawn per kernel call while redrawing (the budget is checked between)
-# A tile redraw draws one keyframe per view: per VIEW_M x VIEW_M square and VIEW_RAD of
-# heading, the first keyframe inserted. A drone flying over mapped ground keeps cutting
-# keyframes (seed 002: every 0.2 m), so without this a redraw would cost O(time flown):
-# a 10-robot, 30-minute soak redrew ~14,000 keyframes per tile.
-VIEW_M = 0.5
-VIEW_RAD = np.pi / 4
 
 
 def _geometry(scan: Scan2D) -> tuple[float, float, int, float]:
@@ -62,7 +55,6 @@ class _TileJob:
     sub: OccupancyGrid
     next: int = 0
     stale: float = 0.0  # > 0: keyframes drawn into it moved again (redraw it again)
-    views: set[int] = field(default_factory=set)  # view bins drawn (see `_view_bins`)
 
 
 class MapBuilder:
@@ -87,7 +79,6 @@ class MapBuilder:
         self.rerenders = 0  # tiles redrawn
         self.rerendered_cells = 0
         self.rerender_draws = 0  # keyframe insertions spent redrawing tiles
-        self.rerender_skipped = 0  # keyframes a redraw left out (a view already drawn)
         self.last_render_ms = 0.0
 
     # --- keyframes ----------------------------------------------------------------------
@@ -305,29 +296,15 @@ class MapBuilder:
             lo, hi = self._boxes(rows)
             hits = np.all(hi >= t_lo - m, axis=1) & np.all(lo <= t_hi + m, axis=1)
             todo = rows.start + np.flatnonzero(hits)
-            views = self._view_bins(todo)
-            first = np.unique(views, return_index=True)[1]
-            keep = np.sort(first[~np.isin(views[first], list(job.views))])
-            todo, views = todo[keep], views[keep]
-            self.rerender_skipped += len(hits.nonzero()[0]) - len(todo)
             for b in range(0, len(todo), BATCH):
                 if drew and deadline is not None and time.perf_counter() >= deadline:
                     job.next = int(todo[b])
                     return False
                 self._draw(job.sub, todo[b : b + BATCH].tolist())
-                job.views.update(views[b : b + BATCH].tolist())
                 self.rerender_draws += len(todo[b : b + BATCH])
                 drew = True
             job.next = rows.stop
         return True
-
-    def _view_bins(self, idx: np.ndarray) -> np.ndarray:
-        """One int64 per keyframe: its (x, y, heading) bin of VIEW_M, VIEW_M, VIEW_RAD."""
-        p = self._pose[idx]
-        ix = np.floor(p[:, 0] / VIEW_M).astype(np.int64) & 0xFFFFFF
-        iy = np.floor(p[:, 1] / VIEW_M).astype(np.int64) & 0xFFFFFF
-        ih = np.floor((p[:, 2] + np.pi) / VIEW_RAD).astype(np.int64) % round(2 * np.pi / VIEW_RAD)
-        return (ix << 28) | (iy << 4) | ih
 
     def _paste(self, job: _TileJob) -> None:
         assert self.grid is not None

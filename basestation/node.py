@@ -460,7 +460,6 @@ class BaseStationNode:
             "map_rerenders": self.map.rerenders,  # tiles redrawn
             "map_rerendered_cells": self.map.rerendered_cells,
             "map_rerender_draws": self.map.rerender_draws,  # keyframes drawn into them
-            "map_rerender_skipped": self.map.rerender_skipped,  # same view: left out
             "map_rerender_pending": self.map.pending,
         }
 

@@ -3,8 +3,9 @@
 With odometry, the prediction is the last matched pose composed with the odometry
 motion between that scan's stamp and the new scan's stamp. Odometry comes at its own
 rate (an autopilot's 50-100 Hz, not the LiDAR's 10-40 Hz), so the odometry pose at a
-scan stamp is interpolated between the two odometry messages around it (held at the
-newest one when the scan is newer than all of them). Without odometry, the last
+scan stamp is interpolated between the two odometry messages around it (extrapolated
+at the last velocity, for up to `MAX_EXTRAPOLATION_S`, when the scan is newer than
+all of them). Without odometry, the last
 velocity is held.
 """
 
@@ -21,6 +22,11 @@ log = logging.getLogger(__name__)
 
 # Odometry kept for interpolation: a few seconds at 100 Hz, more than one scan period.
 MAX_ODOMETRY = 512
+# A scan newer than every odometry message (odometry arrives on its own topic, and may
+# come just after the scan of the same instant) gets the odometry extrapolated at the
+# last velocity for up to this long (s), then held. Holding it instead would predict no
+# motion for that gap, and the matcher's prior pulls toward the prediction.
+MAX_EXTRAPOLATION_S = 0.5
 
 
 class PoseExtrapolator:
@@ -54,20 +60,24 @@ class PoseExtrapolator:
     def _oldest_needed(self) -> int:
         """Index of the oldest odometry still needed: the last one at or before the
         newest matched pose's stamp (it brackets that stamp)."""
+        last_two = max(0, len(self._odom_t) - 2)  # the last velocity, to extrapolate
         if not self._poses:
-            return max(0, len(self._odom_t) - 2)
-        return max(0, bisect.bisect_right(self._odom_t, self._poses[-1][0]) - 1)
+            return last_two
+        return min(max(0, bisect.bisect_right(self._odom_t, self._poses[-1][0]) - 1), last_two)
 
     def odometry_at(self, stamp: float) -> np.ndarray | None:
-        """The odometry pose at ``stamp``: interpolated between the messages around it,
-        the oldest / newest one outside them; None before any odometry."""
+        """The odometry pose at ``stamp``: interpolated between the messages around it;
+        before them the oldest; after them extrapolated at the last velocity for up to
+        ``MAX_EXTRAPOLATION_S``, then the newest; None before any odometry."""
         if not self._odom_t:
             return None
         k = bisect.bisect_left(self._odom_t, stamp)
         if k == 0:
             return self._odom[0].copy()
-        if k == len(self._odom_t):
-            return self._odom[-1].copy()
+        if k == len(self._odom_t):  # newer than all: the last odometry velocity, briefly
+            if k == 1 or stamp - self._odom_t[-1] > MAX_EXTRAPOLATION_S:
+                return self._odom[-1].copy()
+            k -= 1  # extrapolate along the last two messages (s > 1 below)
         if self._odom_t[k] == stamp:
             return self._odom[k].copy()
         t0, t1 = self._odom_t[k - 1], self._odom_t[k]

@@ -53,7 +53,10 @@ def test_odometry_at_interpolates_and_holds_outside() -> None:
     assert mid[:2] == pytest.approx([0.5, 1.0])
     assert abs(abs(mid[2]) - np.pi) < 1e-9  # the short way round, not through 0
     assert ex.odometry_at(0.5) == pytest.approx([0.0, 0.0, np.pi - 0.1])
-    assert ex.odometry_at(3.0) == pytest.approx([1.0, 2.0, -np.pi + 0.1])
+    assert ex.odometry_at(3.0) == pytest.approx([1.0, 2.0, -np.pi + 0.1])  # too far: held
+    ahead = ex.odometry_at(2.25)  # a scan just newer than the newest odometry: extrapolated
+    assert ahead[:2] == pytest.approx([1.25, 2.5])
+    assert ahead[2] == pytest.approx(-np.pi + 0.15)
     assert ex.odometry_at(2.0) == pytest.approx([1.0, 2.0, -np.pi + 0.1])
 
 
@@ -114,3 +117,20 @@ def test_both_agent_frontends_drop_odometry_going_back(frontend: str) -> None:
     assert front.rejected_odometry == 1
     if isinstance(front, OdometryTracker):
         assert front.pose[0] == pytest.approx(1.0)  # 1 -> 2 m, not via 5 m
+
+
+def test_a_scan_processed_before_its_odometry_still_gets_the_whole_motion() -> None:
+    """Odometry and scans of one instant come on two topics: the scan may be handled
+    first. Its odometry is then extrapolated at the last velocity, not held (holding
+    predicts no motion for one period, and the matcher's prior pulls toward that)."""
+    ex = PoseExtrapolator()
+    dt = 0.025
+    ex.add_odometry(0.0, arc(0.0))
+    ex.add_odometry(dt, arc(dt))
+    ex.add_pose(dt, arc(dt))
+    for k in range(2, 20):
+        t = k * dt
+        predicted = ex.predict(t)  # the odometry at t is not there yet
+        assert np.linalg.norm(predicted[:2] - arc(t)[:2]) < 1e-3  # 25 mm per period moved
+        ex.add_pose(t, arc(t))
+        ex.add_odometry(t, arc(t))

@@ -38,6 +38,7 @@ from agent.vehicle import NullVehicle, ZenohVehicle
 from common.bus import Bus
 from common.config import Config
 from common.geometry import map_to_odom, odom_to_map, pose4_to_pose7, pose7_to_pose4
+from common.memory import HeapTrimmer
 from common.trajectory_io import Trajectory, write_tum
 from protocol import (
     Altimeter,
@@ -81,6 +82,7 @@ class AgentNode:
             else OdometryTracker()
         )
         self.selector = KeyframeSelector(a)
+        self.heap = HeapTrimmer()
         self.outbox = Outbox(
             a.outbox_max, a.outbox_warn_fraction, a.resend_timeout_s, a.resend_batch
         )
@@ -183,6 +185,7 @@ class AgentNode:
             if msg is not None:
                 self.handle(msg)
             self._resend()
+            self.heap.maybe_trim()
             while max_unacked is not None and len(self.outbox) > max_unacked and not stop.is_set():
                 time.sleep(0.01)
                 self._resend()

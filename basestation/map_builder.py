@@ -3,9 +3,10 @@
 New keyframes are inserted incrementally. When the optimizer moves a keyframe already
 in the map by more than `pose_moved_m` / `pose_moved_rad`, the square tiles
 (`rerender_tile_m`) its rays can reach, at its old and at its new pose, are marked
-dirty. Dirty tiles are redrawn one at a time, each from scratch from every keyframe
-that reaches into it (in insertion order, at the current poses), most-moved tile
-first, within `rerender_budget_s` per `update`: a tile's redraw is resumable (it
+dirty. Dirty tiles are redrawn one at a time, each from scratch from the keyframes
+that reach into it (in insertion order, at the current poses; of the keyframes with
+one view, `VIEW_M` x `VIEW_M` x `VIEW_RAD`, only the newest `VIEW_KEEP`), most-moved
+tile first, within `rerender_budget_s` per `update`: a tile's redraw is resumable (it
 stops between two keyframes and goes on at the next update), so the caller's thread
 never spends O(all keyframes) at once however large the correction. A redrawn tile
 replaces the grid's cells only when complete. `finish()` completes every pending
@@ -41,6 +42,14 @@ Tile = tuple[int, int]  # (column, row) of the tile lattice
 PAD = 3  # cells drawn around a tile but not pasted (see OccupancyGrid.paste)
 CHUNK = 512  # keyframes box-tested at once while redrawing a tile
 BATCH = 16  # keyframes drawn per kernel call while redrawing (the budget is checked between)
+# A tile redraw draws the newest VIEW_KEEP keyframes of each view (VIEW_M x VIEW_M square,
+# VIEW_RAD of heading). A drone flying over mapped ground keeps cutting keyframes, so
+# drawing all would cost O(time flown): a 10-robot, 30-minute soak redrew ~14,000
+# keyframes per tile. The newest, not the first: the first keyframes of a place often
+# saw other drones still standing at the start, which later scans clear again.
+VIEW_M = 0.5
+VIEW_RAD = np.pi / 4
+VIEW_KEEP = 3
 
 
 def _geometry(scan: Scan2D) -> tuple[float, float, int, float]:
@@ -53,7 +62,9 @@ class _TileJob:
 
     tile: Tile
     sub: OccupancyGrid
-    next: int = 0
+    todo: np.ndarray  # keyframes chosen when the job started (rows < next), in order
+    done: int = 0  # of todo drawn
+    next: int = 0  # keyframes from here on were added during the job: all are drawn
     stale: float = 0.0  # > 0: keyframes drawn into it moved again (redraw it again)
 
 
@@ -79,6 +90,7 @@ class MapBuilder:
         self.rerenders = 0  # tiles redrawn
         self.rerendered_cells = 0
         self.rerender_draws = 0  # keyframe insertions spent redrawing tiles
+        self.rerender_skipped = 0  # keyframes a redraw left out (older ones of a view)
         self.last_render_ms = 0.0
 
     # --- keyframes ----------------------------------------------------------------------
@@ -282,29 +294,52 @@ class MapBuilder:
         sub = self.grid.empty_like_region(
             slice(r0 - PAD, r0 + t + PAD), slice(c0 - PAD, c0 + t + PAD)
         )
-        return _TileJob(tile, sub)
+        reaching = np.flatnonzero(self._reaches(tile, slice(0, self._n)))
+        todo = self._newest_per_view(reaching)
+        self.rerender_skipped += len(reaching) - len(todo)
+        return _TileJob(tile, sub, todo, next=self._n)
 
-    def _advance(self, job: _TileJob, deadline: float | None) -> bool:
-        """Draw the keyframes reaching into the tile from `job.next` on; True when done."""
+    def _reaches(self, tile: Tile, rows: slice) -> np.ndarray:
+        """Which keyframes of `rows` have rays that may reach into `tile` (bool)."""
         res = self.cfg.resolution_m
-        t_lo = self._anchor + np.array(job.tile) * self._tile_cells * res
+        t_lo = self._anchor + np.array(tile) * self._tile_cells * res
         t_hi = t_lo + self._tile_cells * res
         m = (PAD + 2) * res
+        lo, hi = self._boxes(rows)
+        return np.all(hi >= t_lo - m, axis=1) & np.all(lo <= t_hi + m, axis=1)
+
+    def _newest_per_view(self, idx: np.ndarray) -> np.ndarray:
+        """Of keyframes `idx` (ascending), the newest VIEW_KEEP of each view, ascending."""
+        p = self._pose[idx]
+        ix = np.floor(p[:, 0] / VIEW_M).astype(np.int64) & 0xFFFFFF
+        iy = np.floor(p[:, 1] / VIEW_M).astype(np.int64) & 0xFFFFFF
+        ih = np.floor((p[:, 2] + np.pi) / VIEW_RAD).astype(np.int64) % round(2 * np.pi / VIEW_RAD)
+        views = (ix << 28) | (iy << 4) | ih
+        order = np.lexsort((idx, views))  # by view, then age
+        v = views[order]
+        last = np.r_[np.flatnonzero(v[1:] != v[:-1]), len(v) - 1]  # each view's newest
+        group_end = np.repeat(last, np.diff(np.r_[-1, last]))
+        keep = group_end - np.arange(len(v)) < VIEW_KEEP
+        return np.sort(idx[order[keep]])
+
+    def _advance(self, job: _TileJob, deadline: float | None) -> bool:
+        """Draw the job's chosen keyframes, then every keyframe reaching into the tile
+        that was added since the job started; True when done."""
         drew = False
-        while job.next < self._n:
-            rows = slice(job.next, min(self._n, job.next + CHUNK))
-            lo, hi = self._boxes(rows)
-            hits = np.all(hi >= t_lo - m, axis=1) & np.all(lo <= t_hi + m, axis=1)
-            todo = rows.start + np.flatnonzero(hits)
-            for b in range(0, len(todo), BATCH):
+        while True:
+            if job.done == len(job.todo):
+                if job.next >= self._n:
+                    return True
+                rows = slice(job.next, min(self._n, job.next + CHUNK))
+                job.todo = rows.start + np.flatnonzero(self._reaches(job.tile, rows))
+                job.done, job.next = 0, rows.stop
+            for b in range(job.done, len(job.todo), BATCH):
                 if drew and deadline is not None and time.perf_counter() >= deadline:
-                    job.next = int(todo[b])
                     return False
-                self._draw(job.sub, todo[b : b + BATCH].tolist())
-                self.rerender_draws += len(todo[b : b + BATCH])
+                self._draw(job.sub, job.todo[b : b + BATCH].tolist())
+                self.rerender_draws += len(job.todo[b : b + BATCH])
+                job.done = min(b + BATCH, len(job.todo))
                 drew = True
-            job.next = rows.stop
-        return True
 
     def _paste(self, job: _TileJob) -> None:
         assert self.grid is not None

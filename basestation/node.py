@@ -35,6 +35,7 @@ from common.errors import FileFormatError
 from common.geodesy import GeoOrigin, geodetic_to_enu
 from common.geometry import pose4_to_pose7, pose7_to_pose4
 from common.map_io import read_wgs84_origin, write_map
+from common.memory import HeapTrimmer
 from common.metrics import percentiles
 from common.picture import render_map_picture
 from common.scenario import Scenario
@@ -108,6 +109,7 @@ class BaseStationNode:
         self._lost: list[str] = []  # agents whose token went away, for run()'s thread
         self._epoch_reserved = 0
         self.recovered: dict[str, Any] = {}
+        self.heap = HeapTrimmer()
 
     # --- persistence --------------------------------------------------------------------
     def recover(self) -> None:
@@ -231,6 +233,7 @@ class BaseStationNode:
         ):
             self._last_explore = now
             self.explore()
+        self.heap.maybe_trim()
         return admitted
 
     def sync(self, stamp: float) -> None:
@@ -432,6 +435,7 @@ class BaseStationNode:
             **self.slam.stats(),
             "unknown_robot_drops": self.unknown_robot_drops,
             "intake_pauses": self.intake_pauses,
+            "heap_trims": self.heap.trims,
             "rejected_messages": dict(self.bus.rejected),
             "correction_epoch": self.epoch,
             "links": {k: dict(v) for k, v in self.links.items()},
@@ -460,6 +464,7 @@ class BaseStationNode:
             "map_rerenders": self.map.rerenders,  # tiles redrawn
             "map_rerendered_cells": self.map.rerendered_cells,
             "map_rerender_draws": self.map.rerender_draws,  # keyframes drawn into them
+            "map_rerender_skipped": self.map.rerender_skipped,  # older ones of a view
             "map_rerender_pending": self.map.pending,
         }
 

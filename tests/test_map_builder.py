@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 from test_basestation_memory import _tour  # 1081-beam scans along a line
 
-from basestation.map_builder import BATCH, MapBuilder
+from basestation.map_builder import BATCH, VIEW_KEEP, MapBuilder
 from basestation.node import BaseStationNode
 from common.bus import Bus
 from common.config import Config, MapConfig
@@ -151,7 +151,7 @@ def test_written_map_finishes_pending_tiles_at_the_final_poses(
     cfg.zenoh.listen = [endpoint]
     cfg.exploration.enabled = False
     cfg.map.rerender_budget_s = 0.0
-    kfs = _tour("r0", 60)
+    kfs = _tour("r0", 160)
     with Bus(cfg.zenoh, cfg.fleet) as bus:
         node = BaseStationNode(cfg, bus, None)
         node.process(kfs)
@@ -163,9 +163,26 @@ def test_written_map_finishes_pending_tiles_at_the_final_poses(
         node.write_outputs(tmp_path)
         assert node.map.pending == 0 and (tmp_path / "map.pgm").is_file()
         assert json.loads((tmp_path / "basestation.json").read_text())["map_rerender_pending"] == 0
-        diff = np.abs(node.map.grid.log_odds - _full_render(node.map, scans, poses)) > 1e-5
+        # every tile was redrawn from the newest VIEW_KEEP keyframes of each view (the
+        # tour goes back and forth over 4 m 8 times: 160 keyframes, ~16 x 2 views)
+        assert node.map.rerender_skipped > 0
+        newest = node.map._newest_per_view(np.arange(len(keys)))
+        assert len(newest) < 0.7 * len(keys)
+        ref = _full_render(node.map, [scans[k] for k in newest], poses[newest])
+        diff = np.abs(node.map.grid.log_odds - ref) > 1e-5
         assert diff.sum() <= 30, diff.sum()
         node.drain(1.0)
+
+
+def test_redraw_keeps_the_newest_keyframes_of_each_view() -> None:
+    mb = MapBuilder(MapConfig())
+    # 10 keyframes at one view, 2 at another, 1 at a third (interleaved in time)
+    poses = np.array([[0.1, 0.1, 0.0]] * 10 + [[2.1, 0.1, 0.0]] * 2 + [[0.1, 0.1, np.pi]])
+    order = np.array([0, 10, 1, 2, 3, 11, 4, 5, 6, 12, 7, 8, 9])
+    mb._pose = poses[order]
+    kept = mb._newest_per_view(np.arange(len(order)))
+    assert list(order[kept]) == [10, 11, 12, 7, 8, 9]  # the last VIEW_KEEP (3) of view 1
+    assert VIEW_KEEP == 3
 
 
 def test_map_from_scans_read_back_from_the_database_is_the_same(

@@ -188,6 +188,8 @@ class PoseGraphState:
             fids = self._adjacency.get(key)
             if fids is not None:
                 fids.discard(factor_id)
+                if not fids:  # an aliased node's key: no factor left on it
+                    del self._adjacency[key]
         if record.kind == "odometry" and self._odometry_pair is not None:
             pair = (min(record.keys), max(record.keys))
             if self._odometry_pair.get(pair) == factor_id:

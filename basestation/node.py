@@ -25,6 +25,7 @@ import numpy as np
 
 from basestation.exploration import make_explorer
 from basestation.global_slam import GlobalSlam
+from basestation.inbox import KeyframeInbox
 from basestation.map_builder import MapBuilder
 from basestation.map_history import MapHistory
 from basestation.path_planner import densify
@@ -90,7 +91,7 @@ class BaseStationNode:
         self._last_explore = 0.0
         self._path_id = 0
         self._explore_ms: list[float] = []  # wall time of each exploration step
-        self.inbox: queue.Queue[Keyframe] = queue.Queue()
+        self.inbox = KeyframeInbox()  # bounded (see basestation/inbox.py)
         self.gnss_inbox: queue.Queue[GnssFix] = queue.Queue()  # basestation.gps.enabled
         self.states: dict[str, RobotState] = {}
         self.epoch = 0
@@ -342,15 +343,7 @@ class BaseStationNode:
             self.slam.add_gps_fix(fix.robot_id, fix.stamp, enu[:2], fix.sigmas_enu)
 
     def _take_batch(self, timeout: float) -> int:
-        batch: list[Keyframe] = []
-        try:
-            batch.append(
-                self.inbox.get(timeout=timeout) if timeout > 0 else self.inbox.get_nowait()
-            )
-            while len(batch) < self.cfg.basestation.batch_max:
-                batch.append(self.inbox.get_nowait())
-        except queue.Empty:
-            pass
+        batch = self.inbox.take(self.cfg.basestation.batch_max, timeout)
         return self.process(batch) if batch else 0
 
     def process(self, batch: list[Keyframe]) -> int:
@@ -435,6 +428,7 @@ class BaseStationNode:
             **self.slam.stats(),
             "unknown_robot_drops": self.unknown_robot_drops,
             "intake_pauses": self.intake_pauses,
+            "inbox_drops": self.inbox.drops,  # full inbox: sent again by the agents
             "heap_trims": self.heap.trims,
             "rejected_messages": dict(self.bus.rejected),
             "correction_epoch": self.epoch,

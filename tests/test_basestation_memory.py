@@ -14,6 +14,7 @@ from pathlib import Path
 import numpy as np
 from process_helpers import synthetic_keyframe
 
+from basestation.inbox import KeyframeInbox
 from basestation.keyframe_store import KeyframeStore, scan_points
 from basestation.node import BaseStationNode
 from basestation.persistence import Batch, KeyframeDatabase
@@ -148,3 +149,29 @@ def test_node_does_not_grow_while_no_keyframe_arrives(cfg: Config, endpoint: str
         node.drain(1.0)
         json.dumps(node.stats())  # plain numbers
     assert abs(grown) < 8_000, grown  # nothing per step (a leak: >= 500 x 32 B)
+
+
+def test_full_inbox_drops_and_the_agents_resends_fill_the_gap(cfg: Config, endpoint: str) -> None:
+    """A base station that is behind holds at most INBOX_MAX keyframes; what it drops is
+    still in the agent's outbox (not acknowledged), and once sent again every keyframe
+    ends up in the graph exactly once."""
+    cfg.zenoh.listen = [endpoint]
+    kfs = _tour("r0", 60)
+    with Bus(cfg.zenoh, cfg.fleet) as bus:
+        node = BaseStationNode(cfg, bus, None)
+        node.inbox = KeyframeInbox(max_keyframes=25)
+        accepted = [node.inbox.put(kf) for kf in kfs]  # all arrive while it is busy
+        assert accepted == [True] * 25 + [False] * 35
+        assert len(node.inbox) == 25 and node.inbox.drops == 35
+        while node.step(timeout=0.0):
+            pass
+        store = node.slam.store
+        assert store.acked_seq("r0") == 24  # the ack tells the agent where to resume
+        rest = kfs[store.acked_seq("r0") + 1 :]  # the outbox sends the rest again
+        for k in range(0, len(rest), 20):
+            assert all(node.inbox.put(kf) for kf in rest[k : k + 20])
+            while node.step(timeout=0.0):
+                pass
+        assert node.slam.graph.num_nodes("r0") == 60 and store.robot("r0").duplicates == 0
+        assert node.stats()["inbox_drops"] == 35
+        node.drain(1.0)

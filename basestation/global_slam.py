@@ -33,6 +33,7 @@ from basestation.constraint_builder import ConstraintBuilder, Job, Verified, fin
 from basestation.false_matches import FalseMatches
 from basestation.keyframe_store import KeyframeScans, KeyframeStore
 from basestation.loop_closure_manager import LoopClosureManager
+from basestation.node_keys import NodeKeys
 from basestation.pcm import LoopMeasurement
 from basestation.persistence import Batch, Recovered, StoredConstraint
 from basestation.pose_graph import PoseGraph
@@ -457,19 +458,20 @@ class GlobalSlam:
         T_odom_base = self.store.robot(rid).poses_odom[idx][[0, 1, 3]]
         return se2_compose(self.graph.pose(rid, idx), se2_inverse(T_odom_base))
 
-    def map_keyframes(self) -> tuple[list[NodeKey], Sequence[Scan2D], np.ndarray]:
+    def map_keyframes(self) -> tuple[NodeKeys, Sequence[Scan2D], np.ndarray]:
         """Keyframes of robots on the map that have a scan, their scans (fetched when
         indexed: memory or database) and optimized poses."""
-        keys: list[NodeKey] = []
+        blocks = []
         poses = []
         for rid, r in self.store.robots.items():
             n = self.graph.num_nodes(rid) if rid in self.graph.robots() else 0
             if n == 0 or not self.graph.is_anchored(rid):
                 continue
             idx = np.flatnonzero(np.frombuffer(r.has_scan, dtype=np.uint8)[:n])
-            keys.extend((rid, int(i)) for i in idx)
+            blocks.append((rid, idx))
             poses.append(self.graph.poses(rid)[idx])
         P = np.concatenate(poses) if poses else np.zeros((0, 3))
+        keys = NodeKeys(blocks)
         return keys, KeyframeScans(self.store, keys), P
 
     def trajectories(self) -> dict[str, Trajectory]:

@@ -199,7 +199,7 @@ class KeyframeStore:
 class KeyframeScans(Sequence[Scan2D]):
     """The scans of `keys`, read from the keyframe store when indexed (not held here)."""
 
-    def __init__(self, store: KeyframeStore, keys: list[NodeKey]) -> None:
+    def __init__(self, store: KeyframeStore, keys: Sequence[NodeKey]) -> None:
         self._store = store
         self._keys = keys
 

@@ -28,6 +28,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from basestation.node_keys import NodeKeys
 from common.config import MapConfig
 from common.geometry import wrap_angle
 from common.map_io import GridMap
@@ -74,7 +75,7 @@ class MapBuilder:
         caller's thread); None: the builder keeps every scan it is given."""
         self.cfg = cfg
         self.grid: OccupancyGrid | None = None
-        self._index: dict[NodeKey, int] = {}  # key -> row in the arrays below
+        self._rows: dict[str, np.ndarray] = {}  # robot -> row of each index (-1: none)
         self._keys: list[NodeKey] = []  # row -> key
         self._source = scan_source
         self._held: list[Scan2D] = []  # row -> scan, without a scan_source
@@ -151,7 +152,12 @@ class MapBuilder:
                 new[:n] = old[:n]
                 setattr(self, name, new)
         for j, (key, scan) in enumerate(zip(keys, scans, strict=True)):
-            self._index[key] = n + j
+            rows = self._rows.get(key[0], np.zeros(0, dtype=np.int64))
+            if key[1] >= len(rows):
+                grown = np.full(max(2 * len(rows), key[1] + 1, 64), -1, dtype=np.int64)
+                grown[: len(rows)] = rows
+                self._rows[key[0]] = rows = grown
+            rows[key[1]] = n + j
             self._keys.append(key)
             if self._source is None:
                 self._held.append(scan)
@@ -162,7 +168,7 @@ class MapBuilder:
     # --- update -------------------------------------------------------------------------
     def update(
         self,
-        keys: list[NodeKey],
+        keys: Sequence[NodeKey],
         scans: list[Scan2D],
         poses: np.ndarray,
         budget_s: float | None = -1.0,
@@ -179,14 +185,15 @@ class MapBuilder:
             return False
         t0 = time.perf_counter()
         poses = np.asarray(poses, dtype=np.float64).reshape(-1, 3)
-        new = [j for j, k in enumerate(keys) if k not in self._index]
+        keys = NodeKeys.of(keys)
+        new = np.flatnonzero(self._rows_of(keys) < 0).tolist()
         n_old = self._n
         parts = [new[i : i + CHUNK] for i in range(0, len(new), CHUNK)]
         part_scans: list[Scan2D] = []
         for part in parts:
             part_scans = [scans[j] for j in part]
             self._append([keys[j] for j in part], part_scans, poses[part])
-        idx = np.fromiter((self._index[k] for k in keys), dtype=np.int64, count=len(keys))
+        idx = self._rows_of(keys)
         self._pose[idx] = poses
         lo, hi = self._boxes(slice(n_old, self._n))
         c = self.cfg
@@ -209,6 +216,16 @@ class MapBuilder:
             self._n - n_old, moved, self.pending, self.last_render_ms,
         )  # fmt: skip
         return moved > 0
+
+    def _rows_of(self, keys: NodeKeys) -> np.ndarray:
+        """Each key's row in the arrays (-1: not in the map yet); numpy per robot."""
+        out = np.full(len(keys), -1, dtype=np.int64)
+        for rid, idx, span in keys.spans():
+            rows = self._rows.get(rid)
+            if rows is not None:
+                known = idx < len(rows)
+                out[span][known] = rows[idx[known]]
+        return out
 
     def _boxes(
         self, rows: slice | np.ndarray, poses: np.ndarray | None = None

@@ -89,6 +89,28 @@ def test_outbox_does_not_flood_a_busy_base_station_with_duplicates() -> None:
     assert ob.resent == 3
 
 
+def test_outbox_timeout_follows_the_measured_ack_delay() -> None:
+    """A base station that acks every keyframe ~3 s after it was sent is busy: the
+    outbox waits longer than that before resending (RFC 6298's estimate), instead of
+    queueing duplicates in front of the originals after the fixed 1 s."""
+    clock = FakeClock()
+    ob = Outbox(max_len=100, warn_fraction=0.8, resend_timeout_s=1.0, resend_batch=3, clock=clock)
+    assert ob.timeout_s == 1.0  # nothing measured yet
+    for s in range(40):  # one keyframe per 0.5 s, each acked 3 s later
+        clock.t = 0.5 * s
+        ob.add(s, bytes([s]))
+        if s >= 6:
+            ob.ack(s - 6)
+            assert ob.due_for_resend() == []
+    assert 3.0 <= ob.timeout_s < 6.0 and ob.resent == 0
+    clock.t += 2.9  # acks stall for longer than the fixed timeout, less than the delay
+    assert ob.due_for_resend() == []
+    clock.t += ob.timeout_s
+    assert len(ob.due_for_resend()) == 3  # stalled for real: resend
+    ob.ack(36)  # its resent keyframes are not sampled (Karn): the estimate stays
+    assert 3.0 <= ob.timeout_s < 6.0
+
+
 def test_outbox_kick_resends_at_once() -> None:
     clock = FakeClock()
     ob = Outbox(max_len=10, warn_fraction=0.8, resend_timeout_s=1.0, resend_batch=5, clock=clock)

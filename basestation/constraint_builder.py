@@ -125,6 +125,7 @@ class ConstraintBuilder:
             max_corr_dist=cfg.max_corr_dist_m,
         )
         self._global: dict[str, Job] = {}  # robot -> its newest global search
+        self._last_kind = "loop"  # queue served last (see _next_job)
         self._queues: dict[str, collections.deque[Job]] = {
             kind: collections.deque(maxlen=cfg.max_queue) for kind in ("inter", "loop")
         }
@@ -154,11 +155,15 @@ class ConstraintBuilder:
         self._wake.set()
 
     def _next_job(self) -> Job | None:
+        """Global searches first, then the inter-robot and loop queues in turn (neither
+        starves the other when both are longer than the budget)."""
         if self._global:
             return self._global.pop(next(iter(self._global)))
-        for q in self._queues.values():
-            if q:
-                return q.popleft()
+        kinds = sorted(self._queues, key=lambda k: k == self._last_kind)  # the other first
+        for kind in kinds:
+            if self._queues[kind]:
+                self._last_kind = kind
+                return self._queues[kind].popleft()
         return None
 
     def backlog(self) -> int:

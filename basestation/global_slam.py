@@ -275,14 +275,18 @@ class GlobalSlam:
         if not new and not joined:
             return
         comp_of = {r: c for c in components for r in c}
+        # robots whose poses share a frame: each map, and every map anchored in `map`
+        # (known starts: their robots meet before any constraint joins them)
+        anchored = [r for c in components if self.graph.is_anchored(c[0]) for r in c]
+        frame_of = {**comp_of, **{r: anchored for r in anchored}}
         poses = {r: self.graph.poses(r) for r in self.graph.robots() if r in comp_of}
         links = self.loops.pending_links()
         for key in new:
-            comp = comp_of.get(key[0])
-            if comp is None:
+            frame = frame_of.get(key[0])
+            if frame is None:
                 continue
             query = self._query(key, self._neighbours(key, 1), poses)
-            self._submit_candidates(key, poses, comp, query)
+            self._submit_candidates(key, poses, frame, query)
             for m in links:  # a match with a separate map: look for more where it says
                 if key[0] in (m.robot_a, m.robot_b):
                     hyp = self._hypothesis(m, key[0], poses)

@@ -78,3 +78,16 @@ def test_worker_verifies_in_priority_order_and_reports_failures() -> None:
         assert builder.stats["failed_inter"] == 1 and builder.stats["verified_loop"] == 1
     finally:
         builder.close()
+
+
+def test_inter_robot_and_loop_queues_take_turns() -> None:
+    builder = ConstraintBuilder(ConstraintConfig())
+    builder.close()  # no worker: the queues are read here
+    pts, origin = [np.zeros((1, 2))], [np.zeros(3)]
+    for k in range(3):
+        for kind in ("inter", "loop"):
+            builder._queues[kind].append(
+                Job(kind, ("a", k), ("b", k), np.zeros(3), pts, pts[0], origin)
+            )
+    order = [builder._next_job().kind for _ in range(6)]
+    assert order == ["inter", "loop"] * 3 and builder._next_job() is None

@@ -1,6 +1,7 @@
-"""When two robots' maps are joined, the nodes one of them flew before the join are
-searched against the other robot (GlobalSlam._backfill), with the real verifier on
-ray-cast scans of a shipped floor plan."""
+"""Inter-robot search, with the real verifier on ray-cast scans of a shipped floor
+plan: when two robots' maps are joined, the nodes one of them flew before the join
+are searched against the other robot (GlobalSlam._backfill); robots with known starts
+are searched against each other from the start."""
 
 from __future__ import annotations
 
@@ -93,5 +94,31 @@ def test_nodes_flown_before_a_join_are_matched_against_the_other_robot() -> None
     for m in early:  # each agrees with the truth
         true = se2_between(truth_a[m.index_a], truth_b[m.index_b])
         assert np.hypot(*(m.T_a_b[:2] - true[:2])) < 0.1
+    P = slam.graph.poses("b")
+    assert np.abs(P[:, :2] - truth_b[:, :2]).max() < 0.1
+
+
+def test_robots_with_known_starts_get_inter_robot_constraints() -> None:
+    """Both starts known: the two chains are in `map` from their first node, though no
+    constraint joins them yet, so a node is searched against the other robot too (it
+    was searched against its own chain only, and such robots never got one)."""
+    world = World.load("floor30x25")
+    n = 37
+    xs = 1.5 + 0.5 * np.arange(n)
+    truth_a = np.column_stack([xs, np.full(n, 6.0), np.zeros(n)])
+    truth_b = truth_a + [0.0, 0.1, 0.02]
+    slam = GlobalSlam(Config(), known_starts={"a": truth_a[0], "b": truth_b[0]})
+    try:
+        for kf in _keyframes(world, "a", truth_a) + _keyframes(world, "b", truth_b):
+            assert slam.admit(kf) == 1
+        assert len(slam.graph.components()) == 2
+        slam.optimize()
+        slam.search_constraints()
+        assert slam.builder.stats["submitted_inter"] >= 5
+        _settle(slam)
+    finally:
+        slam.close()
+    assert slam.loops.counts()["inter_robot_constraints"] >= 2
+    assert len(slam.graph.components()) == 1  # one map now, by verified matches
     P = slam.graph.poses("b")
     assert np.abs(P[:, :2] - truth_b[:, :2]).max() < 0.1

@@ -156,7 +156,8 @@ class GlobalSlam:
             self.optimize()
         self.optimize()
         self._new_nodes.clear()  # their candidates were searched before the crash
-        self._together = {r: frozenset(c) for c in self.graph.components() for r in c}
+        frames = self._frames(self.graph.components())
+        self._together = {r: frozenset(f) for f in frames for r in f}
         self.take_journal()  # all of it is on disk already
         accepted = self.loops.accepted
         differ = sum(c.in_graph != (c.measurement.id in accepted) for c in rec.constraints)
@@ -271,14 +272,12 @@ class GlobalSlam:
         if self.builder is None:
             return
         components = self.graph.components()
-        joined = self._newly_joined(components)
+        frames = self._frames(components)
+        joined = self._newly_joined(frames)
         if not new and not joined:
             return
         comp_of = {r: c for c in components for r in c}
-        # robots whose poses share a frame: each map, and every map anchored in `map`
-        # (known starts: their robots meet before any constraint joins them)
-        anchored = [r for c in components if self.graph.is_anchored(c[0]) for r in c]
-        frame_of = {**comp_of, **{r: anchored for r in anchored}}
+        frame_of = {r: f for f in frames for r in f}
         poses = {r: self.graph.poses(r) for r in self.graph.robots() if r in comp_of}
         links = self.loops.pending_links()
         for key in new:
@@ -297,12 +296,19 @@ class GlobalSlam:
         for a, b in joined:
             self._backfill(a, b, poses)
 
-    def _newly_joined(self, components: list[list[str]]) -> list[tuple[str, str]]:
-        """Pairs of robots that had nodes at the last search, each in a different map
-        then and in one map now (the pair's robot with fewer nodes first)."""
-        before, self._together = self._together, {r: frozenset(c) for c in components for r in c}
+    def _frames(self, components: list[list[str]]) -> list[list[str]]:
+        """Robots searched against each other (their poses share a frame): all maps
+        anchored in `map` as one (known starts), each floating map on its own."""
+        anchored = [r for c in components if self.graph.is_anchored(c[0]) for r in c]
+        floating = [c for c in components if not self.graph.is_anchored(c[0])]
+        return [anchored, *floating] if anchored else floating
+
+    def _newly_joined(self, frames: list[list[str]]) -> list[tuple[str, str]]:
+        """Pairs of robots that had nodes at the last search, each in a different frame
+        then and in one now (the pair's robot with fewer nodes first)."""
+        before, self._together = self._together, {r: frozenset(f) for f in frames for r in f}
         pairs = []
-        for comp in components:
+        for comp in frames:
             for i, a in enumerate(comp):
                 for b in comp[i + 1 :]:
                     if a in before and b in before and b not in before[a]:

@@ -154,6 +154,16 @@ class ConstraintBuilder:
                 q.append(job)
         self._wake.set()
 
+    def has_room(self, kind: str) -> bool:
+        """False while the queue of ``kind`` is full: a job submitted now would only push
+        out an older one, so the caller need not build it (skipped, counted)."""
+        with self._lock:
+            q = self._queues[kind]
+            if len(q) < (q.maxlen or 0):
+                return True
+            self.stats[f"skipped_{kind}"] += 1
+            return False
+
     def _next_job(self) -> Job | None:
         """Global searches first, then the inter-robot and loop queues in turn (neither
         starves the other when both are longer than the budget)."""

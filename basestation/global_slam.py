@@ -297,8 +297,7 @@ class GlobalSlam:
             self._backfill(a, b, poses)
 
     def _frames(self, components: list[list[str]]) -> list[list[str]]:
-        """Robots searched against each other (their poses share a frame): all maps
-        anchored in `map` as one (known starts), each floating map on its own."""
+        """Robots searched against each other: all maps anchored in `map` as one."""
         anchored = [r for c in components if self.graph.is_anchored(c[0]) for r in c]
         floating = [c for c in components if not self.graph.is_anchored(c[0])]
         return [anchored, *floating] if anchored else floating
@@ -349,8 +348,9 @@ class GlobalSlam:
     ) -> None:
         for kind, target in find_candidates(self.cc, key, poses, robots):
             last = self._last_candidate.get((key[0], target[0]), -(10**9))
-            if (only and kind != only) or key[1] - last < self.cc.candidate_stride:
-                continue
+            too_soon = key[1] - last < self.cc.candidate_stride
+            if (only and kind != only) or too_soon or not self.builder.has_room(kind):
+                continue  # (no room: the verifier is behind, a job is not worth building)
             self._last_candidate[(key[0], target[0])] = key[1]
             self._submit_match(kind, key, target, poses, query)
 

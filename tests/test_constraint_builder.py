@@ -91,3 +91,14 @@ def test_inter_robot_and_loop_queues_take_turns() -> None:
             )
     order = [builder._next_job().kind for _ in range(6)]
     assert order == ["inter", "loop"] * 3 and builder._next_job() is None
+
+
+def test_a_full_queue_has_no_room_and_counts_the_skip() -> None:
+    builder = ConstraintBuilder(ConstraintConfig(max_queue=2))
+    builder.close()
+    pts, origin = [np.zeros((1, 2))], [np.zeros(3)]
+    assert builder.has_room("inter")
+    for k in range(2):
+        builder.submit(Job("inter", ("a", k), ("b", k), np.zeros(3), pts, pts[0], origin))
+    assert not builder.has_room("inter") and builder.has_room("loop")
+    assert builder.stats["skipped_inter"] == 1

@@ -29,9 +29,16 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from basestation.pcm import LoopMeasurement
 from basestation.scan_verifier import ScanVerifier, VerifiedMatch
 from common.config import ConstraintConfig
-from common.geometry import se2_between, se2_transform_points, wrap_angle
+from common.geometry import (
+    se2_between,
+    se2_compose,
+    se2_inverse,
+    se2_transform_points,
+    wrap_angle,
+)
 
 log = logging.getLogger(__name__)
 
@@ -102,16 +109,30 @@ def find_candidates(
         if len(P) == 0:
             continue
         d = np.hypot(P[:, 0] - p[0], P[:, 1] - p[1])
-        ok = (d < cfg.search_radius_m) & (np.abs(wrap_angle(P[:, 2] - p[2])) < cfg.search_angle_rad)
-        if other == rid:  # a loop: the robot went away and came back
-            steps = np.hypot(*np.diff(poses[rid][: idx + 1, :2], axis=0).T)
-            travel = np.concatenate([np.cumsum(steps[::-1])[::-1], [0.0]])[: len(P)]
-            ok &= (travel >= cfg.loop_min_travel_m) & (travel >= 2.0 * d)
-        if not ok.any():
+        near = np.flatnonzero(d < cfg.search_radius_m)  # angles and travel: of these only
+        near = near[np.abs(wrap_angle(P[near, 2] - p[2])) < cfg.search_angle_rad]
+        if other == rid and len(near):  # a loop: the robot went away and came back
+            steps = np.hypot(*np.diff(poses[rid][near[0] : idx + 1, :2], axis=0).T)
+            travel = np.cumsum(steps[::-1])[::-1][near - near[0]]  # from node j to idx
+            near = near[(travel >= cfg.loop_min_travel_m) & (travel >= 2.0 * d[near])]
+        if not len(near):
             continue
-        j = int(np.flatnonzero(ok)[np.argmin(d[ok])])
+        j = int(near[np.argmin(d[near])])
         out.append(("loop" if other == rid else "inter", (other, j)))
     return out
+
+
+def hypothesis_poses(
+    m: LoopMeasurement, robot: str, poses: dict[str, np.ndarray]
+) -> dict[str, np.ndarray]:
+    """`poses` with `robot`'s chain moved into the other robot's map frame as the
+    match `m` (between two separate maps) puts it."""
+    if m.robot_b == robot:
+        na, nb, T_a_b = (m.robot_a, m.index_a), (robot, m.index_b), m.T_a_b
+    else:
+        na, nb, T_a_b = (m.robot_b, m.index_b), (robot, m.index_a), se2_inverse(m.T_a_b)
+    T = se2_compose(se2_compose(poses[na[0]][na[1]], T_a_b), se2_inverse(poses[robot][nb[1]]))
+    return {**poses, robot: se2_compose(T, poses[robot])}
 
 
 class ConstraintBuilder:

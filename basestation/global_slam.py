@@ -22,19 +22,25 @@ ignore their fixes and float as without GPS.
 
 from __future__ import annotations
 
+import functools
 import logging
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from typing import Any
 
 import numpy as np
 
-from basestation.constraint_builder import ConstraintBuilder, Job, Verified, find_candidates
+from basestation.constraint_builder import (
+    ConstraintBuilder,
+    Job,
+    Verified,
+    find_candidates,
+    hypothesis_poses,
+)
 from basestation.false_matches import FalseMatches
 from basestation.keyframe_store import KeyframeScans, KeyframeStore
 from basestation.loop_closure_manager import LoopClosureManager
 from basestation.node_keys import NodeKeys
-from basestation.pcm import LoopMeasurement
 from basestation.persistence import Batch, Recovered, StoredConstraint
 from basestation.pose_graph import PoseGraph
 from basestation.scan_archive import ScanArchive, ScanReader
@@ -284,11 +290,11 @@ class GlobalSlam:
             frame = frame_of.get(key[0])
             if frame is None:
                 continue
-            query = self._query(key, self._neighbours(key, 1), poses)
+            query = functools.cache(lambda k=key: self._query(k, self._neighbours(k, 1), poses))
             self._submit_candidates(key, poses, frame, query)
             for m in links:  # a match with a separate map: look for more where it says
                 if key[0] in (m.robot_a, m.robot_b):
-                    hyp = self._hypothesis(m, key[0], poses)
+                    hyp = hypothesis_poses(m, key[0], poses)
                     other = m.robot_a if m.robot_b == key[0] else m.robot_b
                     self._submit_candidates(key, hyp, [*comp_of[other], key[0]], query, "inter")
             if not self.graph.is_anchored(key[0]) and key[1] % self.cc.global_search_every == 0:
@@ -343,16 +349,22 @@ class GlobalSlam:
         key: NodeKey,
         poses: dict[str, np.ndarray],
         robots: list[str],
-        query: tuple[list[np.ndarray], list[np.ndarray], int],
+        query: Callable[[], tuple[list[np.ndarray], list[np.ndarray], int]],
         only: str | None = None,
     ) -> None:
-        for kind, target in find_candidates(self.cc, key, poses, robots):
-            last = self._last_candidate.get((key[0], target[0]), -(10**9))
-            too_soon = key[1] - last < self.cc.candidate_stride
-            if (only and kind != only) or too_soon or not self.builder.has_room(kind):
-                continue  # (no room: the verifier is behind, a job is not worth building)
-            self._last_candidate[(key[0], target[0])] = key[1]
-            self._submit_match(kind, key, target, poses, query)
+        """Robots not searched: too soon after the last candidate with them, or their kind's
+        queue is full (the verifier is behind: a job is not worth building)."""
+        rid, idx = key
+        searched = [
+            o for o in robots
+            if (kind := "loop" if o == rid else "inter") == (only or kind)
+            and idx - self._last_candidate.get((rid, o), -(10**9)) >= self.cc.candidate_stride
+            and self.builder.has_room(kind)
+        ]  # fmt: skip
+        for kind, target in find_candidates(self.cc, key, poses, searched):
+            if self.builder.has_room(kind):
+                self._last_candidate[(rid, target[0])] = idx
+                self._submit_match(kind, key, target, poses, query())
 
     def _submit_match(
         self,
@@ -372,19 +384,6 @@ class GlobalSlam:
             Job(kind, target, key, guess, scans, q_points, origins, n_own,
                 in_node_frames=True, query_origins=q_origins)
         )  # fmt: skip
-
-    @staticmethod
-    def _hypothesis(
-        m: LoopMeasurement, robot: str, poses: dict[str, np.ndarray]
-    ) -> dict[str, np.ndarray]:
-        """`poses` with `robot`'s chain moved into the other robot's map frame as the
-        match `m` (between two separate maps) puts it."""
-        if m.robot_b == robot:
-            na, nb, T_a_b = (m.robot_a, m.index_a), (robot, m.index_b), m.T_a_b
-        else:
-            na, nb, T_a_b = (m.robot_b, m.index_b), (robot, m.index_a), se2_inverse(m.T_a_b)
-        T = se2_compose(se2_compose(poses[na[0]][na[1]], T_a_b), se2_inverse(poses[robot][nb[1]]))
-        return {**poses, robot: se2_compose(T, poses[robot])}
 
     def _submit_global(self, key: NodeKey, poses: dict[str, np.ndarray]) -> None:
         """Queue a search of the robot's recent scans against the whole map. The map

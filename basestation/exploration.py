@@ -102,14 +102,20 @@ class ExplorationManager:
         self.done = not self.frontiers and bool((grid.data == 0).any())  # not before a map
         if not self.frontiers:  # done: every robot stops (once); no map yet: wait
             # ... a robot on its way first finishes the leg it is on: where its path ends
-            # was checked against the others, a point in the middle of it was not
-            stop = [
-                r for r in P
-                if r not in self._stopped and (r in blocked or not self._finishing(r, P))
-            ] if self.done else []  # fmt: skip
-            self._stopped.update(stop)
-            for r in stop:
-                self.tasks.pop(r, None)
+            # was checked against the others, a point in the middle of it was not; one
+            # that stops hovers where it is, so the others' legs are judged again
+            stop: list[str] = []
+            while self.done:
+                more = [
+                    r for r in sorted(P)
+                    if r not in self._stopped and (r in blocked or not self._finishing(r, P))
+                ]  # fmt: skip
+                if not more:
+                    break
+                self._stopped.update(more)
+                for r in more:
+                    self.tasks.pop(r, None)
+                stop += more
             return {r: None for r in stop}
         self._stopped.clear()
         if not need:

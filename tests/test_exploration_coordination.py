@@ -146,6 +146,22 @@ def test_when_no_frontier_is_left_a_robot_on_its_way_first_finishes_its_leg() ->
     assert m.step(g, P) == {}  # once
 
 
+def test_when_no_frontier_is_left_a_robot_stopping_short_is_not_flown_into() -> None:
+    """a is held by its guard and stops at once, mid-leg; b's leg ends 0.6 m from
+    there. Judged while a was still on its way (3 m on, by then), b flew on and came
+    within 0.8 m of it (bench run, bshape); now b is judged again with a hovering."""
+    data = np.zeros((200, 200), np.int8)  # 10 x 10 m, all known: no frontier
+    data[[0, -1], :] = data[:, [0, -1]] = 100
+    g = GridMap(data, 0.05, (0.0, 0.0, 0.0))
+    m = ExplorationManager(planner=PathPlanner(0.35, 1.0, 0.2))
+    P = {"a": np.array([5.0, 2.0, 0.0]), "b": np.array([5.0, 7.0, -np.pi / 2])}
+    m.tasks["a"] = _Task(np.array([8.0, 2.0]), np.array([[5.0, 2.0], [8.0, 2.0]]))
+    m.tasks["b"] = _Task(np.array([5.0, 2.6]), np.array([[5.0, 7.0], [5.0, 2.6]]))
+    assert m._finishing("b", P)  # as long as a flies on
+    out = m.step(g, P, blocked={"a"})
+    assert m.done and out == {"a": None, "b": None}
+
+
 def test_greedy_baseline_sends_robots_to_their_own_nearest_frontier() -> None:
     a = GoalAssigner()
     frontiers = [np.array([5.0, 0.0]), np.array([-20.0, 0.0])]

@@ -175,6 +175,11 @@ class ConstraintBuilder:
                 q.append(job)
         self._wake.set()
 
+    def count(self, name: str) -> None:
+        """Count a candidate the caller left out (``name``: why) in ``stats``."""
+        with self._lock:
+            self.stats[name] += 1
+
     def has_room(self, kind: str) -> bool:
         """False while the queue of ``kind`` is full: a job submitted now would only push
         out an older one, so the caller need not build it (skipped, counted)."""

@@ -353,7 +353,8 @@ class GlobalSlam:
         only: str | None = None,
     ) -> None:
         """Robots not searched: too soon after the last candidate with them, or their kind's
-        queue is full (the verifier is behind: a job is not worth building)."""
+        queue is full (the verifier is behind: a job is not worth building). Inter-robot
+        candidates between stretches the two robots are tied at already are not verified."""
         rid, idx = key
         searched = [
             o for o in robots
@@ -362,8 +363,12 @@ class GlobalSlam:
             and self.builder.has_room(kind)
         ]  # fmt: skip
         for kind, target in find_candidates(self.cc, key, poses, searched):
-            if self.builder.has_room(kind):
-                self._last_candidate[(rid, target[0])] = idx
+            if not self.builder.has_room(kind):
+                continue
+            self._last_candidate[(rid, target[0])] = idx
+            if kind == "inter" and self.loops.covered(key, target):
+                self.builder.count("redundant_inter")  # the two places are tied already
+            else:
                 self._submit_match(kind, key, target, poses, query())
 
     def _submit_match(
@@ -426,26 +431,15 @@ class GlobalSlam:
     def _integrate(self, v: Verified) -> None:
         job, m = v.job, v.match
         if job.kind == "global":
-            a = self._nearest_anchored(m.T_a_b, exclude=job.b[0])
+            a = self.graph.nearest_anchored(m.T_a_b, exclude=job.b[0])
             if a is None:
                 return
             T_a_b = se2_between(self.graph.pose(*a), m.T_a_b)
             self.loops.add(a, job.b, T_a_b, m.covariance, "inter")
+        elif job.kind == "inter" and self.loops.covered(job.a, job.b):
+            self.builder.count("redundant_inter")  # tied while it waited in the queue
         else:
             self.loops.add(job.a, job.b, m.T_a_b, m.covariance, job.kind)
-
-    def _nearest_anchored(self, T_map_b: np.ndarray, exclude: str) -> NodeKey | None:
-        """The node of another anchored robot nearest to T_map_b."""
-        best, best_d = None, np.inf
-        for r in self.graph.robots():
-            if r == exclude or not self.graph.is_anchored(r) or self.graph.num_nodes(r) == 0:
-                continue
-            P = self.graph.poses(r)
-            d = np.hypot(P[:, 0] - T_map_b[0], P[:, 1] - T_map_b[1])
-            i = int(np.argmin(d))
-            if d[i] < best_d:
-                best, best_d = (r, i), float(d[i])
-        return best
 
     def backlog(self) -> int:
         """Candidates waiting for verification."""

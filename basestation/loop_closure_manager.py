@@ -68,6 +68,8 @@ class LoopClosureManager:
         self._next_id = 0
         self.accepted: set[int] = set()
         self.kinds: dict[int, str] = {}
+        # accepted inter-robot constraints per robot pair: measurement id -> (index_a, index_b)
+        self.links: dict[tuple[str, str], dict[int, tuple[int, int]]] = {}
         # Since the last take_journal(): new measurements, and in-graph changes (id -> in).
         self.journal: list[tuple[LoopMeasurement, str]] = []
         self.changes: dict[int, bool] = {}
@@ -161,10 +163,14 @@ class LoopClosureManager:
                 )
                 self.accepted.add(mid)
                 self.changes[mid] = True
+                if m.robot_a != m.robot_b:
+                    pair = self.links.setdefault((m.robot_a, m.robot_b), {})
+                    pair[mid] = (m.index_a, m.index_b)
             elif mid not in consistent and mid in group.in_graph:
                 self.graph.remove_constraint(group.in_graph.pop(mid))
                 self.accepted.discard(mid)
                 self.changes[mid] = False
+                self.links.get((m.robot_a, m.robot_b), {}).pop(mid, None)
                 log.info("constraint %d (%s) no longer consistent: removed", mid, self.kinds[mid])
         if separate:  # other pairs the join put on one map use their agreeing matches now
             comps = self.graph.components()
@@ -293,6 +299,21 @@ class LoopClosureManager:
             return se2_compose(at, se2_inverse(X[m.index_b]))
         at = se2_compose(self.graph.pose(m.robot_b, m.index_b), se2_inverse(m.T_a_b))
         return se2_compose(at, se2_inverse(X[m.index_a]))
+
+    def covered(self, a: NodeKey, b: NodeKey) -> bool:
+        """Whether robots a[0] and b[0] have an accepted constraint whose two ends are
+        each within `inter_redundant_keyframes` of nodes a and b along their chains: the
+        two stretches of trajectory are tied already (odometry holds along a stretch), so
+        one more tie adds little information, but each adds fill-in to iSAM2 (a
+        Bayes-tree clique spanning both robots). Closeness in space alone is not enough:
+        a robot that comes back to a place it was tied at has drifted since."""
+        if a[0] > b[0]:
+            a, b = b, a
+        links, k = self.links.get((a[0], b[0])), self.cfg.inter_redundant_keyframes
+        if not links or k <= 0:
+            return False
+        ends = np.array(list(links.values()))
+        return bool(np.any((np.abs(ends[:, 0] - a[1]) <= k) & (np.abs(ends[:, 1] - b[1]) <= k)))
 
     def take_journal(self) -> tuple[list[tuple[LoopMeasurement, str]], dict[int, bool]]:
         """New measurements (with kind) and in-graph changes since the last call."""

@@ -153,17 +153,15 @@ class LocalSlamConfig:
     max_finished_submaps: int = 0
     p_hit: float = 0.55
     p_miss: float = 0.49
-    # Real-time correlative search before refinement. Off, as in Cartographer's 2-D
-    # default: refinement starts from the odometry prediction. On the CARMEN logs the
-    # search picked far-off near-ties (yaw jumps of 10-20 deg on ACES) and added lattice
-    # jitter: Intel 1.8 m -> 0.19 m, ACES 1.0 m -> 0.06-0.16 m mean relation error off.
+    # Real-time correlative search before refinement; off as in Cartographer's 2-D default.
+    # On the CARMEN logs it picked far-off near-ties (yaw jumps of 10-20 deg on ACES) and
+    # added jitter: Intel 1.8 m -> 0.19 m, ACES 1.0 m -> 0.06-0.16 m mean relation error off.
     use_correlative: bool = False
     linear_search_window_m: float = 0.3  # m
     angular_search_window_deg: float = 20.0  # deg
-    # Refiner prior weights toward the odometry prediction. 3 (was 0.1) once the CARMEN
-    # replay gave each scan the odometry at its own stamp: relations of < 2 s, local SLAM
-    # only, ACES 0.0362 -> 0.0332 m, Intel 0.0123 -> 0.0115 m; sim drift 0.034 -> 0.026 %;
-    # ACES 3 robots 0.0384 -> 0.0348 m. rotation_weight 1 or 10: no better / worse.
+    # Refiner prior weights toward the odometry prediction; 3 (was 0.1), relations < 2 s,
+    # local SLAM only: ACES 0.0362 -> 0.0332 m, Intel 0.0123 -> 0.0115 m; sim drift 0.034 ->
+    # 0.026 %; ACES 3 robots 0.0384 -> 0.0348 m. rotation_weight 1 or 10: no better / worse.
     translation_weight: float = 3.0  # refiner prior weight (1/m)
     rotation_weight: float = 0.1  # refiner prior weight (1/rad)
     min_match_score: float = 0.3  # mean cell probability below which a match is rejected
@@ -256,6 +254,9 @@ class ConstraintConfig:
     global_map_rebuild_nodes: int = 200  # rebuild the whole-map search target this often
     global_query_keyframes: int = 20  # recent keyframes matched against the map at once
     candidate_stride: int = 3  # keyframes of a robot between candidates against one robot
+    # An inter-robot candidate is not verified when the two robots have a constraint with
+    # both ends within this many keyframes of its own (0: off): fill-in, little else.
+    inter_redundant_keyframes: int = 10
     # When two robots' maps are joined, the earlier nodes of the one with fewer nodes are
     # searched against the other (every candidate_stride-th with a candidate), at most this many.
     backfill_max_candidates: int = 200

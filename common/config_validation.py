@@ -198,6 +198,7 @@ def _validate_backend(b: BaseStationConfig) -> None:
             "robust_k",
         ),
     )
+    _non_negative_fields("basestation.constraints", cc, ("inter_redundant_keyframes",))
     if not 0.0 <= cc.false_match_fraction < 1.0:
         raise ConfigError("basestation.constraints.false_match_fraction: expected 0 <= f < 1")
     if cc.robust_kernel not in ("huber", "cauchy", "none"):

@@ -90,7 +90,12 @@ def test_nodes_flown_before_a_join_are_matched_against_the_other_robot() -> None
     early = [
         m for i, m in group.measurements.items() if i in slam.loops.accepted and m.index_b < n - 11
     ]
-    assert len(early) >= 5, f"only {len(early)} accepted matches on b's earlier nodes"
+    # one tie per stretch of `inter_redundant_keyframes` (the rest is redundant)
+    k = cfg.basestation.constraints.inter_redundant_keyframes
+    tied = np.array(sorted(m.index_b for m in early))
+    assert len(tied) >= 2, f"only {len(tied)} accepted matches on b's earlier nodes"
+    gaps = np.diff([0, *tied, n - 11])
+    assert gaps.max() <= 2 * k + 1, f"b's earlier nodes tied at {tied} only"
     for m in early:  # each agrees with the truth
         true = se2_between(truth_a[m.index_a], truth_b[m.index_b])
         assert np.hypot(*(m.T_a_b[:2] - true[:2])) < 0.1
@@ -122,3 +127,43 @@ def test_robots_with_known_starts_get_inter_robot_constraints() -> None:
     assert len(slam.graph.components()) == 1  # one map now, by verified matches
     P = slam.graph.poses("b")
     assert np.abs(P[:, :2] - truth_b[:, :2]).max() < 0.1
+
+
+def _side_by_side(redundant_keyframes: int) -> tuple[list[tuple[int, int]], dict, float]:
+    """Two robots with known starts fly a corridor side by side, a few keyframes at a
+    time: the accepted ties (a, b), the builder's counts, b's largest position error."""
+    world = World.load("floor30x25")
+    n = 37
+    xs = 1.5 + 0.5 * np.arange(n)
+    truth_a = np.column_stack([xs, np.full(n, 6.0), np.zeros(n)])
+    truth_b = truth_a + [0.0, 0.1, 0.02]
+    cfg = Config()
+    cfg.basestation.constraints.inter_redundant_keyframes = redundant_keyframes
+    slam = GlobalSlam(cfg, known_starts={"a": truth_a[0], "b": truth_b[0]})
+    try:
+        kfs = {r: _keyframes(world, r, t) for r, t in (("a", truth_a), ("b", truth_b))}
+        for first in range(0, n, 4):
+            for kf in kfs["a"][first : first + 4] + kfs["b"][first : first + 4]:
+                assert slam.admit(kf) == 1
+            slam.optimize()
+            slam.search_constraints()
+            _settle(slam)
+    finally:
+        slam.close()
+    ties = sorted(slam.loops.links[("a", "b")].values())
+    error = float(np.abs(slam.graph.poses("b")[:, :2] - truth_b[:, :2]).max())
+    return ties, dict(slam.builder.stats), error
+
+
+def test_stretches_two_robots_are_tied_at_get_no_more_inter_robot_matches() -> None:
+    """Once a match ties two stretches of two robots' chains, the candidates between
+    those stretches (within `inter_redundant_keyframes` at both ends) are not verified,
+    or not used if they were queued before the tie: iSAM2 gets about one tie per
+    stretch, not one per `candidate_stride`, and the estimate stays as good."""
+    ties, stats, error = _side_by_side(Config().basestation.constraints.inter_redundant_keyframes)
+    all_ties, all_stats, all_error = _side_by_side(0)
+    assert all_stats.get("redundant_inter", 0) == 0 and len(all_ties) >= 12, all_ties
+    assert stats["redundant_inter"] >= 10, stats
+    assert stats["submitted_inter"] < all_stats["submitted_inter"], (stats, all_stats)
+    assert 2 <= len(ties) <= len(all_ties) / 2, (ties, all_ties)
+    assert error < 0.1 and all_error < 0.1

@@ -264,3 +264,24 @@ def test_matches_leaving_the_pcm_window_keep_their_state() -> None:
         "rejected_by_pcm": 1,
     }
     assert graph.is_anchored("b") and _max_error(graph, truth) < 0.3
+
+
+def test_a_tie_covers_candidates_between_the_same_two_stretches_only() -> None:
+    """`covered`: a candidate whose ends are both within `inter_redundant_keyframes` of
+    an accepted inter-robot constraint's (either order of the robots) is redundant; a
+    later pass over the same place, or a tie PCM has kept out, covers nothing."""
+    graph, manager, truth = _setup(np.random.default_rng(3))
+    wrong = se2_compose(_true_T(truth, ("a", 10), ("b", 10)), [1.5, -1.0, 0.6])
+    manager.add(("a", 10), ("b", 10), wrong, LC_COV, "inter")
+    for i, j in [(2, 2), (7, 8), (15, 14), (18, 18)]:
+        manager.add(("a", i), ("b", j), _true_T(truth, ("a", i), ("b", j)), LC_COV, "inter")
+    graph.update(extra_iterations=5)
+    assert graph.is_anchored("b") and 10 not in {j for i, j in manager.links[("a", "b")].values()}
+    manager.cfg.inter_redundant_keyframes = 2
+    assert manager.covered(("a", 4), ("b", 3))  # 2 and 1 keyframes from the (2, 2) tie
+    assert manager.covered(("b", 16), ("a", 13))  # robots the other way round
+    assert not manager.covered(("a", 11), ("b", 11))  # near the wrong match only
+    assert not manager.covered(("a", 3), ("b", 14))  # one end far from any tie
+    assert not manager.covered(("a", 22), ("b", 2))  # a's next lap over the same place
+    manager.cfg.inter_redundant_keyframes = 0
+    assert not manager.covered(("a", 2), ("b", 2))  # off

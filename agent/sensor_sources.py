@@ -35,10 +35,19 @@ class SensorSource(Protocol):
 
 
 class ZenohSensors:
-    """A drone's sensors over Zenoh (`robot/<id>/sensor/*`), from the simulator or a driver."""
+    """A drone's sensors over Zenoh (`robot/<id>/sensor/*`), from the simulator or a driver.
 
-    def __init__(self, bus: Bus, robot_id: str) -> None:
+    Keyframes carry the altimeter's height, so scans that come before the altimeter's
+    first reading are dropped (the topics are separate: at start-up a scan can overtake
+    the reading published before it, and the first keyframe then said z = 0, a 1 m error
+    in one robot's ATE in about every other `make run`); the simulator's lock-step sends
+    such a tick again. After `max_scans_before_altitude` such scans, a drone with no
+    altimeter flies on at z = 0 (warned once)."""
+
+    def __init__(self, bus: Bus, robot_id: str, max_scans_before_altitude: int = 5) -> None:
         self._queue: queue.Queue[Any] = queue.Queue()
+        self._robot_id = robot_id
+        self._scans_waiting = max_scans_before_altitude  # left to drop; 0: pass them on
         for kind, typ in (
             ("odom", Odometry),
             ("imu", Imu),
@@ -50,9 +59,19 @@ class ZenohSensors:
     def messages(self, stop: threading.Event) -> Iterator[Any | None]:
         while not stop.is_set():
             try:
-                yield self._queue.get(timeout=0.05)
+                msg = self._queue.get(timeout=0.05)
             except queue.Empty:
                 yield None
+                continue
+            if isinstance(msg, Altimeter):
+                self._scans_waiting = 0
+            elif isinstance(msg, LaserScan) and self._scans_waiting > 0:
+                self._scans_waiting -= 1
+                if self._scans_waiting == 0:
+                    log.warning("robot %s: no altimeter: keyframes at z = 0", self._robot_id)
+                yield None  # dropped: no altitude for its keyframe yet
+                continue
+            yield msg
 
 
 class OdometryTrack:

@@ -14,8 +14,10 @@ never touches the graph. A job may carry each node's points in that node's own
 frame (`in_node_frames`: read-only arrays shared with the keyframe store and other
 jobs, so a full queue costs little memory); the worker places them. The worker
 keeps to `max_candidates_per_s` and takes jobs by priority: global searches
-first (only the newest per robot is kept), then inter-robot candidates, then
-loop closures; each of the last two queues keeps its newest `max_queue` jobs.
+first (robots in turn, oldest first; each robot keeps its newest
+`global_pending_per_robot`: live, only the newest scan is worth the search), then
+inter-robot candidates, then loop closures; each of the last two queues keeps its
+newest `max_queue` jobs.
 """
 
 from __future__ import annotations
@@ -44,15 +46,17 @@ log = logging.getLogger(__name__)
 
 NodeKey = tuple[str, int]
 GLOBAL_SEARCH_COST = 10
+GLOBAL_TARGETS_CACHED = 4  # whole-map search targets kept built (the map and floating maps)
 
 
 @dataclass(frozen=True)
 class Job:
     kind: str  # "loop" | "inter" | "global"
-    a: NodeKey  # target node (its frame is the target frame; for "global": a map node)
+    a: NodeKey  # target node (its frame is the target frame; for "global": b)
     b: NodeKey  # query node
     T_a_b_guess: np.ndarray  # for "global": unused
-    target_scans: list[np.ndarray]  # points in frame a (for "global": in the map frame)
+    # points in frame a (for "global": the scans of target_nodes in the map's frame)
+    target_scans: list[np.ndarray]
     query_points: np.ndarray | list[np.ndarray]  # points in frame b (see in_node_frames)
     target_origins: list[np.ndarray] | None = None  # sensor pose of each target scan
     n_sensor: int | None = None  # the first n query points are node b's own scan
@@ -63,6 +67,12 @@ class Job:
     # node's frame, placed in frame a by target_origins[i] (T_a_i).
     in_node_frames: bool = False
     query_origins: list[np.ndarray] | None = None
+    target_nodes: list[NodeKey] | None = None  # "global": the node of each target scan
+
+    def queue_name(self) -> str:
+        """A global search's queue: its query robot's, and the target map's first robot."""
+        first = self.target_nodes[0][0] if self.target_nodes else ""
+        return f"{self.b[0]}>{first}"
 
     def placed_targets(self) -> list[np.ndarray]:
         """The target scans in frame a."""
@@ -89,7 +99,7 @@ class Job:
 @dataclass(frozen=True)
 class Verified:
     job: Job
-    match: VerifiedMatch  # T_a_b (for "global": T_map_b)
+    match: VerifiedMatch  # T_a_b (for "global": node b in the frame of the target's origins)
 
 
 def find_candidates(
@@ -145,7 +155,7 @@ class ConstraintBuilder:
             min_overlap=cfg.min_overlap,
             max_corr_dist=cfg.max_corr_dist_m,
         )
-        self._global: dict[str, Job] = {}  # robot -> its newest global search
+        self._global: dict[str, collections.deque[Job]] = {}  # robot -> its global searches
         self._last_kind = "loop"  # queue served last (see _next_job)
         self._queues: dict[str, collections.deque[Job]] = {
             kind: collections.deque(maxlen=cfg.max_queue) for kind in ("inter", "loop")
@@ -154,7 +164,8 @@ class ConstraintBuilder:
         self._lock = threading.Lock()
         self._wake = threading.Event()
         self._stop = threading.Event()
-        self._global_target: tuple[object, object] | None = None  # (key, Target)
+        # whole-map search targets by target_key, newest last (the map, floating maps)
+        self._global_targets: collections.OrderedDict[object, object] = collections.OrderedDict()
         self.stats = collections.Counter()
         self._busy = False
         self._busy_kind: str | None = None
@@ -165,9 +176,11 @@ class ConstraintBuilder:
         with self._lock:
             self.stats[f"submitted_{job.kind}"] += 1
             if job.kind == "global":
-                if job.b[0] in self._global:
+                n = self.cfg.global_pending_per_robot
+                q = self._global.setdefault(job.queue_name(), collections.deque(maxlen=n))
+                if len(q) == n:
                     self.stats["superseded_global"] += 1
-                self._global[job.b[0]] = job
+                q.append(job)
             else:
                 q = self._queues[job.kind]
                 if len(q) == q.maxlen:
@@ -179,6 +192,15 @@ class ConstraintBuilder:
         """Count a candidate the caller left out (``name``: why) in ``stats``."""
         with self._lock:
             self.stats[name] += 1
+
+    def cancel_global(self, frames: list[list[str]]) -> None:
+        """Drop the waiting global searches whose query robot is now in one of ``frames``
+        (robots mapped in one frame) with the target map's robots: joined since."""
+        with self._lock:
+            for name in list(self._global):
+                query, target = name.split(">")
+                if any(query in f and target in f for f in frames):
+                    self.stats["cancelled_global"] += len(self._global.pop(name))
 
     def has_room(self, kind: str) -> bool:
         """False while the queue of ``kind`` is full: a job submitted now would only push
@@ -194,7 +216,12 @@ class ConstraintBuilder:
         """Global searches first, then the inter-robot and loop queues in turn (neither
         starves the other when both are longer than the budget)."""
         if self._global:
-            return self._global.pop(next(iter(self._global)))
+            robot = next(iter(self._global))
+            q = self._global.pop(robot)
+            job = q.popleft()
+            if q:
+                self._global[robot] = q  # to the back: the next robot's turn
+            return job
         kinds = sorted(self._queues, key=lambda k: k == self._last_kind)  # the other first
         for kind in kinds:
             if self._queues[kind]:
@@ -206,7 +233,7 @@ class ConstraintBuilder:
         """Pending work in candidate units: a global search counts as
         `GLOBAL_SEARCH_COST` candidates (it costs about that much more)."""
         with self._lock:
-            n_global = len(self._global) + (self._busy_kind == "global")
+            n_global = sum(map(len, self._global.values())) + (self._busy_kind == "global")
             return GLOBAL_SEARCH_COST * n_global + sum(len(q) for q in self._queues.values())
 
     def results(self) -> list[Verified]:
@@ -253,14 +280,15 @@ class ConstraintBuilder:
     def _verify(self, job: Job) -> VerifiedMatch | None:
         v = self.verifier
         if job.kind == "global":
-            if self._global_target is None or self._global_target[0] != job.target_key:
-                self._global_target = (
-                    job.target_key,
-                    v.build_target(job.target_scans, job.target_origins),
-                )
+            target = self._global_targets.pop(job.target_key, None)
+            if target is None:
+                target = v.build_target(job.target_scans, job.target_origins)
+            self._global_targets[job.target_key] = target
+            while len(self._global_targets) > GLOBAL_TARGETS_CACHED:
+                self._global_targets.popitem(last=False)
             query = job.placed_query()
             return v.global_search(
-                self._global_target[1],
+                target,
                 query,
                 self.cfg.global_min_score,
                 query[: job.n_sensor],

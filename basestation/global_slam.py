@@ -26,6 +26,7 @@ import functools
 import logging
 import time
 from collections.abc import Callable, Sequence
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -58,6 +59,16 @@ log = logging.getLogger(__name__)
 NodeKey = tuple[str, int]
 
 
+@dataclass(frozen=True)
+class _GlobalMap:
+    """A whole-map search target: the robots' scans placed in their frame."""
+
+    key: tuple[tuple[str, ...], int]  # (robots, version)
+    nodes: list[NodeKey]
+    scans: list[np.ndarray]  # (n_i, 2) float32, frame of the map
+    origins: list[np.ndarray]  # each node's pose then
+
+
 class GlobalSlam:
     def __init__(
         self,
@@ -88,7 +99,7 @@ class GlobalSlam:
         self._new_nodes: list[NodeKey] = []
         self._constraints_added = False  # verified matches handed over since the last update
         self.false_matches = FalseMatches(self.cc, self.graph, self.loops)  # evaluation only
-        self._global_map: tuple[object, list[np.ndarray], list[np.ndarray]] | None = None
+        self._global_maps: dict[tuple[str, ...], _GlobalMap] = {}  # by the map's robots
         self._last_candidate: dict[tuple[str, str], int] = {}  # (robot, target robot) -> index
         self._together: dict[str, frozenset[str]] = {}  # robot -> its map's robots, last search
         self._unsaved: list[Keyframe] = []  # admitted since the last take_journal()
@@ -279,6 +290,7 @@ class GlobalSlam:
             return
         components = self.graph.components()
         frames = self._frames(components)
+        self.builder.cancel_global(frames)  # searches queued before two maps were joined
         joined = self._newly_joined(frames)
         if not new and not joined:
             return
@@ -297,8 +309,14 @@ class GlobalSlam:
                     hyp = hypothesis_poses(m, key[0], poses)
                     other = m.robot_a if m.robot_b == key[0] else m.robot_b
                     self._submit_candidates(key, hyp, [*comp_of[other], key[0]], query, "inter")
-            if not self.graph.is_anchored(key[0]) and key[1] % self.cc.global_search_every == 0:
-                self._submit_global(key, poses)
+            if not self.graph.is_anchored(key[0]):
+                if key[1] % self.cc.global_search_every == 0 and self.graph.is_anchored(
+                    frames[0][0]
+                ):
+                    self._submit_global(key, poses, frames[0])
+            elif key[1] % self.cc.global_query_keyframes == 0:  # each stretch once
+                for floating in frames[1:]:  # where a robot not on the map flew before
+                    self._submit_global(key, poses, floating)
         for a, b in joined:
             self._backfill(a, b, poses)
 
@@ -390,28 +408,36 @@ class GlobalSlam:
                 in_node_frames=True, query_origins=q_origins)
         )  # fmt: skip
 
-    def _submit_global(self, key: NodeKey, poses: dict[str, np.ndarray]) -> None:
-        """Queue a search of the robot's recent scans against the whole map. The map
-        target is rebuilt when robots join it or every `global_map_rebuild_nodes` nodes."""
-        anchored = tuple(sorted(r for r in poses if self.graph.is_anchored(r)))
-        if not anchored:
+    def _submit_global(self, key: NodeKey, poses: dict[str, np.ndarray], frame: list[str]) -> None:
+        """Queue a search of robot key[0]'s recent scans against the whole map of the robots
+        in ``frame``: the map frame's, for a robot whose start is unknown; or a floating
+        map's, for a robot on the map (where the floating robot flew before the map reached
+        there: its own searches only ever try its newest scans). A map target is rebuilt
+        when robots join it or every `global_map_rebuild_nodes` nodes."""
+        robots = tuple(sorted(r for r in frame if r != key[0] and len(poses.get(r, ()))))
+        if not robots:
             return
-        n = sum(len(poses[r]) for r in anchored)
-        map_key = (anchored, n // self.cc.global_map_rebuild_nodes)
-        if self._global_map is None or self._global_map[0] != map_key:
-            nodes = [(r, i) for r in anchored for i in range(len(poses[r]))]
+        n = sum(len(poses[r]) for r in robots)
+        map_key = (robots, n // self.cc.global_map_rebuild_nodes)
+        cached = self._global_maps.get(robots)
+        if cached is None or cached.key != map_key:
+            nodes = [(r, i) for r in robots for i in range(len(poses[r]))]
             scans = [
                 se2_transform_points(poses[r][i], self.store.points(r, i)).astype(np.float32)
                 for r, i in nodes
             ]
-            self._global_map = (map_key, scans, [poses[r][i] for r, i in nodes])
-        _, scans, origins = self._global_map
+            cached = _GlobalMap(map_key, nodes, scans, [poses[r][i] for r, i in nodes])
+            stale = [k for k in self._global_maps if set(k) & set(robots)]  # older versions
+            for k in stale:
+                del self._global_maps[k]
+            self._global_maps[robots] = cached
         first = max(0, key[1] - self.cc.global_query_keyframes + 1)
         recent = [(key[0], j) for j in range(first, key[1] + 1)]
         q_points, q_origins, n_own = self._query(key, recent, poses)
         self.builder.submit(
-            Job("global", key, key, np.zeros(3), scans, q_points, origins, n_own,
-                target_key=map_key, in_node_frames=True, query_origins=q_origins)
+            Job("global", key, key, np.zeros(3), cached.scans, q_points, cached.origins, n_own,
+                target_key=map_key, in_node_frames=True, query_origins=q_origins,
+                target_nodes=cached.nodes)
         )  # fmt: skip
 
     def integrate_constraints(self) -> int:
@@ -430,12 +456,12 @@ class GlobalSlam:
 
     def _integrate(self, v: Verified) -> None:
         job, m = v.job, v.match
-        if job.kind == "global":
-            a = self.graph.nearest_anchored(m.T_a_b, exclude=job.b[0])
-            if a is None:
-                return
-            T_a_b = se2_between(self.graph.pose(*a), m.T_a_b)
-            self.loops.add(a, job.b, T_a_b, m.covariance, "inter")
+        if job.kind == "global":  # tie b to the target map's nearest node, as it was then
+            assert job.target_nodes is not None and job.target_origins is not None
+            origins = np.asarray(job.target_origins)
+            i = int(np.argmin(np.hypot(*(origins[:, :2] - m.T_a_b[:2]).T)))
+            T_a_b = se2_between(origins[i], m.T_a_b)
+            self.loops.add(job.target_nodes[i], job.b, T_a_b, m.covariance, "inter")
         elif job.kind == "inter" and self.loops.covered(job.a, job.b):
             self.builder.count("redundant_inter")  # tied while it waited in the queue
         else:

@@ -359,18 +359,6 @@ class PoseGraph(GaugeMixin, GpsMixin, ReductionMixin):
     def robots(self) -> list[str]:
         return list(self._chains)
 
-    def nearest_anchored(self, xy: FloatArray, exclude: str) -> tuple[str, int] | None:
-        """The node of an anchored robot other than ``exclude`` nearest to ``xy``."""
-        best, best_d = None, np.inf
-        for r in self.robots():
-            if r == exclude or not self.is_anchored(r) or self.num_nodes(r) == 0:
-                continue
-            d = np.hypot(*(self.poses(r)[:, :2] - xy[:2]).T)
-            i = int(np.argmin(d))
-            if d[i] < best_d:
-                best, best_d = (r, i), float(d[i])
-        return best
-
     def latest_index(self, robot_id: str) -> int | None:
         size = self._chain(robot_id).size
         return size - 1 if size else None

@@ -85,6 +85,8 @@ def eval_carmen(
     b = cfg.basestation
     b.map_frame_robot = b.map_frame_robot or "seg0"
     b.pause_intake_backlog = b.pause_intake_backlog or 20
+    # ... and every global search of a robot not on the map yet runs, as at sensor rate
+    b.constraints.global_pending_per_robot = max(b.constraints.global_pending_per_robot, 10**6)
     b.drain_timeout_s = max(b.drain_timeout_s, 600.0)
     # agents wait for every ack too (a loaded machine may be minutes behind the log)
     cfg.agent.drain_timeout_s = max(cfg.agent.drain_timeout_s, 600.0)

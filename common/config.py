@@ -282,6 +282,9 @@ class ConstraintConfig:
     merge_agree_m: float = 1.0
     merge_agree_rad: float = 0.2
     global_search_every: int = 5  # keyframes of an unanchored robot between global searches
+    # Global searches a robot may have waiting; older ones are dropped (live: only the
+    # newest scan is worth it). A replay sets it high: every search runs, as at sensor rate.
+    global_pending_per_robot: int = 1
     global_min_score: float = 0.65  # stricter score for a whole-map search
     # Evaluation only (robustness benchmarks): after each verified match, inject a wrong
     # one with probability f / (1 - f) so that a fraction f of all matches is false.

@@ -189,6 +189,7 @@ def _validate_backend(b: BaseStationConfig) -> None:
             "backfill_max_candidates",
             "search_radius_m",
             "global_search_every",
+            "global_pending_per_robot",
             "min_consistent_to_merge",
             "linear_window_m",
             "angular_window_deg",

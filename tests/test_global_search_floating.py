@@ -1,0 +1,48 @@
+"""Whole-map searches both ways, with the real verifier on ray-cast scans of a shipped
+floor plan: a robot whose start is unknown searches its newest scans against the map,
+and a robot on the map searches its scans against the floating robot's map, so a place
+the floating robot flew before the map reached it still joins the two."""
+
+from __future__ import annotations
+
+import numpy as np
+from test_global_slam_backfill import _keyframes, _settle
+
+from basestation.global_slam import GlobalSlam
+from common.config import Config
+from simulation.world import World
+
+
+def test_a_robot_joins_where_the_map_reaches_only_after_it_has_flown_there() -> None:
+    world = World.load("floor30x25")
+    n = 37  # 0.5 m apart along the corridor at y = 6 m
+    xs = 1.5 + 0.5 * np.arange(n)
+    room = np.column_stack([11.5 + 0.5 * np.arange(5), np.full(5, 20.0), np.zeros(5)])
+    corridor = np.column_stack([xs, np.full(n, 6.0), np.zeros(n)])
+    truth_a = np.vstack([room, corridor])  # a room that sees nothing of the corridor first
+    truth_b = np.column_stack([xs, np.full(n, 6.1), np.full(n, 0.02)])
+    kf_a = _keyframes(world, "a", truth_a)
+    slam = GlobalSlam(Config(), known_starts={"a": truth_a[0]})
+    try:
+        for kf in kf_a[:5] + _keyframes(world, "b", truth_b):
+            assert slam.admit(kf) == 1
+        slam.optimize()
+        slam.search_constraints()
+        _settle(slam)
+        # b's own searches met only a's room: b's start stays unknown, and b flies no more
+        assert not slam.graph.is_anchored("b")
+        assert slam.builder.stats["submitted_global"] >= n // 5
+
+        for k in range(5, len(kf_a), 5):  # a flies the corridor b flew
+            for kf in kf_a[k : k + 5]:
+                assert slam.admit(kf) == 1
+            slam.optimize()
+            slam.search_constraints()
+            _settle(slam)
+    finally:
+        slam.close()
+
+    assert slam.graph.is_anchored("b")
+    P = slam.graph.poses("b")
+    err = np.hypot(*(P[:, :2] - truth_b[:, :2]).T)
+    assert err.max() < 0.1, f"b placed up to {err.max():.2f} m off"

@@ -100,6 +100,7 @@ class GlobalSlam:
         self._constraints_added = False  # verified matches handed over since the last update
         self.false_matches = FalseMatches(self.cc, self.graph, self.loops)  # evaluation only
         self._global_maps: dict[tuple[str, ...], _GlobalMap] = {}  # by the map's robots
+        self._map_nodes_unsearched = 0  # map nodes since the last search of floating maps
         self._last_candidate: dict[tuple[str, str], int] = {}  # (robot, target robot) -> index
         self._together: dict[str, frozenset[str]] = {}  # robot -> its map's robots, last search
         self._unsaved: list[Keyframe] = []  # admitted since the last take_journal()
@@ -314,9 +315,13 @@ class GlobalSlam:
                     frames[0][0]
                 ):
                     self._submit_global(key, poses, frames[0])
-            elif key[1] % self.cc.global_query_keyframes == 0:  # each stretch once
-                for floating in frames[1:]:  # where a robot not on the map flew before
-                    self._submit_global(key, poses, floating)
+            elif len(frames) > 1:  # where a robot not on the map flew before
+                # once per `global_query_keyframes` map nodes (of all its robots together)
+                self._map_nodes_unsearched += 1
+                if self._map_nodes_unsearched >= self.cc.global_query_keyframes:
+                    self._map_nodes_unsearched = 0
+                    for floating in frames[1:]:
+                        self._submit_global(key, poses, floating)
         for a, b in joined:
             self._backfill(a, b, poses)
 

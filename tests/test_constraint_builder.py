@@ -6,7 +6,12 @@ import time
 
 import numpy as np
 
-from basestation.constraint_builder import ConstraintBuilder, Job, find_candidates
+from basestation.constraint_builder import (
+    GLOBAL_SEARCH_COST,
+    ConstraintBuilder,
+    Job,
+    find_candidates,
+)
 from common.config import ConstraintConfig
 
 
@@ -102,3 +107,25 @@ def test_a_full_queue_has_no_room_and_counts_the_skip() -> None:
         builder.submit(Job("inter", ("a", k), ("b", k), np.zeros(3), pts, pts[0], origin))
     assert not builder.has_room("inter") and builder.has_room("loop")
     assert builder.stats["skipped_inter"] == 1
+
+
+def test_global_searches_wait_per_target_map_take_turns_and_are_dropped_once_joined() -> None:
+    builder = ConstraintBuilder(ConstraintConfig(global_pending_per_robot=2))
+    builder.close()  # no worker: the queues are read here
+    pts, origin = [np.zeros((1, 2))], [np.zeros(3)]
+
+    def search(query: str, k: int, target: str) -> Job:
+        return Job("global", (query, k), (query, k), np.zeros(3), pts, pts[0], origin,
+                   target_nodes=[(target, 0)])  # fmt: skip
+
+    for k in range(3):  # u searches the map (of a); a searches u's floating map
+        builder.submit(search("u", k, "a"))
+        builder.submit(search("a", k, "u"))
+    builder.submit(search("v", 0, "a"))
+    assert builder.stats["superseded_global"] == 2  # each pair keeps its newest 2
+    assert builder.backlog() == 5 * GLOBAL_SEARCH_COST
+    first = [builder._next_job().b for _ in range(3)]  # the maps in turn, oldest first
+    assert first == [("u", 1), ("a", 1), ("v", 0)]
+    builder.cancel_global([["a", "u"], ["v"]])  # u has joined a's map
+    assert builder.stats["cancelled_global"] == 2
+    assert builder._next_job() is None and builder.idle()

@@ -81,9 +81,9 @@ FloatArray = NDArray[np.float64]
 ROBOTS = ("r0", "r1", "r2")
 M3500_NODES = 3500
 BATCH_RUNS = 3  # identical LM runs per graph; batch_ms is their median
-# basestation.reduce_distance_m values of the "reduced" entries: the default, and one that
-# aliases a grid step or two of city10000 (1 m apart)
-REDUCED_DISTANCES_M = (0.5, 2.0)
+# basestation.reduce_distance_m values of the "reduced" entries: 0.5 m, and ones that alias
+# one or two grid steps of city10000 (1 m apart)
+REDUCED_DISTANCES_M = (0.5, 1.0, 2.0)
 
 
 class Constraint(NamedTuple):

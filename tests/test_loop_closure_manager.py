@@ -218,6 +218,21 @@ def test_a_merge_waits_while_other_matches_say_otherwise() -> None:
     assert _max_error(graph, truth) < 0.3
 
 
+def test_more_matches_are_looked_for_where_most_matches_agree() -> None:
+    """Two maps not joined yet (3 right matches against 2 wrong, agreeing ones): the
+    match new candidates are searched around is the newest right one, not the newest."""
+    rng = np.random.default_rng(9)
+    graph, manager, truth = _setup(rng)
+    wrong_b = _truth(np.array([4.6, 4.1, np.pi]), _square())
+    for j, right in ((8, False), (6, True), (14, True), (4, True), (12, False)):
+        T = _true_T(truth, ("a", j), ("b", j)) if right else se2_between(truth["a"][j], wrong_b[j])
+        manager.add(("a", j), ("b", j), T, LC_COV, "inter")
+    graph.update()
+    assert not graph.is_anchored("b")  # 3 against 2
+    (lead,) = manager.pending_links()
+    assert (lead.robot_a, lead.index_a, lead.robot_b, lead.index_b) == ("a", 4, "b", 4)
+
+
 @pytest.mark.parametrize("c_right", [True, False])
 def test_matches_with_two_robots_of_one_map_count_together_when_they_agree(c_right: bool) -> None:
     """b sees a three times from within a metre (not enough alone: look-alike places),

@@ -234,13 +234,18 @@ class LoopClosureManager:
         if not ms:
             return False
         disagreeing = len(group.measurements) - len(ms)
+        agreeing = len(ms)  # both in `map` (known starts): matched near where they are
+        if not (self.graph.is_anchored(ms[0].robot_a) and self.graph.is_anchored(ms[0].robot_b)):
+            agreeing = min(
+                self._stretches([m.index_a for m in ms]), self._stretches([m.index_b for m in ms])
+            )
         if (
-            len(ms) - disagreeing >= self.cfg.min_consistent_to_merge
+            agreeing - disagreeing >= self.cfg.min_consistent_to_merge
             and self._spread_enough(ms[0].robot_b, [m.index_b for m in ms])
             and self._spread_enough(ms[0].robot_a, [m.index_a for m in ms])
         ):
             return True  # seen from places of both robots apart
-        if disagreeing >= len(ms):
+        if disagreeing >= agreeing:
             return False
         for x, y in ((ms[0].robot_b, ms[0].robot_a), (ms[0].robot_a, ms[0].robot_b)):
             extra = self._agreeing_elsewhere(x, y, ms)  # seen from more places of x?
@@ -248,6 +253,17 @@ class LoopClosureManager:
             if extra and self._spread_enough(x, own + extra):
                 return True
         return False
+
+    def _stretches(self, nodes: list[int]) -> int:
+        """How many of a robot's matched nodes are `merge_stretch_keyframes` apart along its
+        chain: matches from overlapping stretches share their scans (run 13 of an ACES
+        replay: 4 whole-map matches of one segment, 5 keyframes apart and each over its 20
+        newest, agreed on a corridor seen the other way round, and joined it 20 m off)."""
+        count, last = 0, None
+        for i in sorted(nodes):
+            if last is None or i - last >= self.cfg.merge_stretch_keyframes:
+                count, last = count + 1, i
+        return count
 
     def _spread_enough(self, robot: str, nodes: list[int]) -> bool:
         """At least `min_consistent_to_merge` nodes of `robot`, the farthest two at least

@@ -191,6 +191,7 @@ def _validate_backend(b: BaseStationConfig) -> None:
             "global_search_every",
             "global_pending_per_robot",
             "min_consistent_to_merge",
+            "merge_stretch_keyframes",
             "linear_window_m",
             "angular_window_deg",
             "max_corr_dist_m",

@@ -56,7 +56,11 @@ def _setup(rng: np.random.Generator, cfg: ConstraintConfig | None = None, third:
         n = np.abs(np.asarray(j) - np.asarray(i))[:, None, None]
         return n * ODO_COV + n**2 * ODO_COV[2, 2] * np.diag([1.0, 1.0, 0.0])
 
-    manager = LoopClosureManager(graph, cfg or ConstraintConfig(), chain_cov)
+    # 1 m between nodes, not ~0.3 m: each match counts toward a merge (the stretch rule
+    # has its own test)
+    cfg = cfg or ConstraintConfig()
+    cfg.merge_stretch_keyframes = 1
+    manager = LoopClosureManager(graph, cfg, chain_cov)
     return graph, manager, truth
 
 
@@ -214,6 +218,22 @@ def test_a_merge_waits_while_other_matches_say_otherwise() -> None:
     for j in (16, 18, 2, 10):  # right ones: 6 against 3
         manager.add(("a", j), ("b", j), _true_T(truth, ("a", j), ("b", j)), LC_COV, "inter")
         graph.update(extra_iterations=5)
+    assert graph.is_anchored("b")
+    assert _max_error(graph, truth) < 0.3
+
+
+def test_matches_from_one_stretch_of_a_chain_count_once_toward_a_merge() -> None:
+    """Whole-map searches a few keyframes apart match overlapping stretches of scans:
+    four agreeing matches from two stretches do not join two maps, a third one does."""
+    rng = np.random.default_rng(9)
+    graph, manager, truth = _setup(rng)
+    manager.cfg.merge_stretch_keyframes = 5
+    for j in (2, 4, 6, 8):  # stretches from 2 and from 8
+        manager.add(("a", j), ("b", j), _true_T(truth, ("a", j), ("b", j)), LC_COV, "inter")
+        graph.update()
+    assert not graph.is_anchored("b")
+    manager.add(("a", 14), ("b", 14), _true_T(truth, ("a", 14), ("b", 14)), LC_COV, "inter")
+    graph.update(extra_iterations=5)
     assert graph.is_anchored("b")
     assert _max_error(graph, truth) < 0.3
 

@@ -229,23 +229,26 @@ class LoopClosureManager:
         other map count too if they put it where this group's do (module doc).
         Matches of the pair that disagree with them are evidence for another
         placement (a corridor seen both ways): the agreeing ones must outnumber them
-        by `min_consistent_to_merge`, or with matches from elsewhere, be the majority."""
+        by `min_consistent_to_merge`, or with matches from elsewhere, be the majority.
+        A floating map's agreeing matches must also come from `min_consistent_to_merge`
+        stretches of each robot's chain (`_stretches`)."""
         ms = [group.measurements[i] for i in sorted(consistent)]
         if not ms:
             return False
         disagreeing = len(group.measurements) - len(ms)
-        agreeing = len(ms)  # both in `map` (known starts): matched near where they are
+        stretches = len(ms)  # both in `map` (known starts): matched near where they are
         if not (self.graph.is_anchored(ms[0].robot_a) and self.graph.is_anchored(ms[0].robot_b)):
-            agreeing = min(
+            stretches = min(
                 self._stretches([m.index_a for m in ms]), self._stretches([m.index_b for m in ms])
             )
         if (
-            agreeing - disagreeing >= self.cfg.min_consistent_to_merge
+            len(ms) - disagreeing >= self.cfg.min_consistent_to_merge
+            and stretches >= self.cfg.min_consistent_to_merge
             and self._spread_enough(ms[0].robot_b, [m.index_b for m in ms])
             and self._spread_enough(ms[0].robot_a, [m.index_a for m in ms])
         ):
             return True  # seen from places of both robots apart
-        if disagreeing >= agreeing:
+        if disagreeing >= len(ms):
             return False
         for x, y in ((ms[0].robot_b, ms[0].robot_a), (ms[0].robot_a, ms[0].robot_b)):
             extra = self._agreeing_elsewhere(x, y, ms)  # seen from more places of x?
@@ -256,9 +259,10 @@ class LoopClosureManager:
 
     def _stretches(self, nodes: list[int]) -> int:
         """How many of a robot's matched nodes are `merge_stretch_keyframes` apart along its
-        chain: matches from overlapping stretches share their scans (run 13 of an ACES
-        replay: 4 whole-map matches of one segment, 5 keyframes apart and each over its 20
-        newest, agreed on a corridor seen the other way round, and joined it 20 m off)."""
+        chain: matches from overlapping stretches share their scans (an ACES replay: 4
+        whole-map matches of one segment, 5 keyframes apart and each over its 20 newest
+        scans, 1 against, agreed on a corridor seen the other way round and joined the
+        segment 20 m off)."""
         count, last = 0, None
         for i in sorted(nodes):
             if last is None or i - last >= self.cfg.merge_stretch_keyframes:

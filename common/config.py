@@ -277,9 +277,9 @@ class ConstraintConfig:
     pcm_window: int = 100
     min_consistent_to_merge: int = 3  # consistent matches needed to join two robots' maps
     merge_min_spread_m: float = 2.0  # m between the places those matches were seen from
-    # Matches within this many keyframes of one another along a robot's chain count as one
-    # toward a merge (whole-map searches 5 keyframes apart match 20 recent scans each).
-    merge_stretch_keyframes: int = 10
+    # ... and from that many stretches of both robots' chains this many keyframes long: a
+    # whole-map search matches a robot's 20 newest scans (global_query_keyframes).
+    merge_stretch_keyframes: int = 20
     # A robot's matches with other robots of the same map count toward the merge when they
     # put it where the pair's matches do, within this (at the matched node; m, rad).
     merge_agree_m: float = 1.0

@@ -22,7 +22,9 @@ def test_a_robot_joins_where_the_map_reaches_only_after_it_has_flown_there() -> 
     truth_a = np.vstack([room, corridor])  # a room that sees nothing of the corridor first
     truth_b = np.column_stack([xs, np.full(n, 6.1), np.full(n, 0.02)])
     kf_a = _keyframes(world, "a", truth_a)
-    slam = GlobalSlam(Config(), known_starts={"a": truth_a[0]})
+    cfg = Config()
+    cfg.basestation.constraints.merge_stretch_keyframes = 10  # 5 m: keyframes 0.5 m apart
+    slam = GlobalSlam(cfg, known_starts={"a": truth_a[0]})
     try:
         for kf in kf_a[:5] + _keyframes(world, "b", truth_b):
             assert slam.admit(kf) == 1

@@ -64,6 +64,7 @@ def test_nodes_flown_before_a_join_are_matched_against_the_other_robot() -> None
     truth_b = truth_a + [0.0, 0.1, 0.02]
     cfg = Config()
     cfg.basestation.constraints.global_min_score = 1.0  # b cannot join by global search
+    cfg.basestation.constraints.merge_stretch_keyframes = 10  # 5 m: keyframes 0.5 m apart
     slam = GlobalSlam(cfg, known_starts={"a": truth_a[0]})
     try:
         for kf in _keyframes(world, "a", truth_a) + _keyframes(world, "b", truth_b):

@@ -230,17 +230,18 @@ class LoopClosureManager:
         Matches of the pair that disagree with them are evidence for another
         placement (a corridor seen both ways): the agreeing ones must outnumber them
         by `min_consistent_to_merge`, or with matches from elsewhere, be the majority.
-        A floating map's agreeing matches must also come from `min_consistent_to_merge`
-        stretches of each robot's chain (`_stretches`)."""
+        The agreeing matches must also come from `min_consistent_to_merge` stretches of
+        the chain of each robot whose start is unknown (`_stretches`)."""
         ms = [group.measurements[i] for i in sorted(consistent)]
         if not ms:
             return False
         disagreeing = len(group.measurements) - len(ms)
-        stretches = len(ms)  # both in `map` (known starts): matched near where they are
-        if not (self.graph.is_anchored(ms[0].robot_a) and self.graph.is_anchored(ms[0].robot_b)):
-            stretches = min(
-                self._stretches([m.index_a for m in ms]), self._stretches([m.index_b for m in ms])
-            )
+        floating = [  # the matched nodes of each robot whose start is unknown
+            [m.index_a if m.robot_a == r else m.index_b for m in ms]
+            for r in (ms[0].robot_a, ms[0].robot_b)
+            if not self.graph.is_anchored(r)
+        ]
+        stretches = min((self._stretches(nodes) for nodes in floating), default=len(ms))
         if (
             len(ms) - disagreeing >= self.cfg.min_consistent_to_merge
             and stretches >= self.cfg.min_consistent_to_merge

@@ -242,9 +242,10 @@ class LoopClosureManager:
             if not self.graph.is_anchored(r)
         ]
         stretches = min((self._stretches(nodes) for nodes in floating), default=len(ms))
+        n_min = self.cfg.min_consistent_to_merge
         if (
-            len(ms) - disagreeing >= self.cfg.min_consistent_to_merge
-            and stretches >= self.cfg.min_consistent_to_merge
+            len(ms) - disagreeing >= n_min
+            and stretches >= n_min
             and self._spread_enough(ms[0].robot_b, [m.index_b for m in ms])
             and self._spread_enough(ms[0].robot_a, [m.index_a for m in ms])
         ):
@@ -254,7 +255,11 @@ class LoopClosureManager:
         for x, y in ((ms[0].robot_b, ms[0].robot_a), (ms[0].robot_a, ms[0].robot_b)):
             extra = self._agreeing_elsewhere(x, y, ms)  # seen from more places of x?
             own = [m.index_b if x == m.robot_b else m.index_a for m in ms]
-            if extra and self._spread_enough(x, own + extra):
+            if (
+                extra
+                and self._spread_enough(x, own + extra)
+                and (self.graph.is_anchored(x) or self._stretches(own + extra) >= n_min)
+            ):
                 return True
         return False
 

@@ -274,6 +274,26 @@ def test_matches_with_two_robots_of_one_map_count_together_when_they_agree(c_rig
         assert _max_error(graph, truth) < 0.3
 
 
+def test_matches_with_other_robots_of_the_map_count_from_enough_stretches_only() -> None:
+    """As above with c right, but counting stretches of 5 nodes along b's chain: b's
+    matches at 8, 9, 9, 13 and 14 come from two stretches and do not join its map; one
+    more of c from 19, a third stretch, does."""
+    rng = np.random.default_rng(5)
+    graph, manager, truth = _setup(rng, third=True)
+    manager.cfg.merge_stretch_keyframes = 5
+    for j in (8, 9, 9):
+        manager.add(("a", j), ("b", j), _true_T(truth, ("a", j), ("b", j)), LC_COV, "inter")
+    for j in (13, 14):
+        manager.add(("c", j), ("b", j), _true_T(truth, ("c", j), ("b", j)), LC_COV, "inter")
+        graph.update(extra_iterations=5)
+    assert not graph.is_anchored("b")
+    manager.add(("c", 19), ("b", 19), _true_T(truth, ("c", 19), ("b", 19)), LC_COV, "inter")
+    manager.add(("a", 10), ("b", 10), _true_T(truth, ("a", 10), ("b", 10)), LC_COV, "inter")
+    graph.update(extra_iterations=5)
+    assert graph.is_anchored("b")
+    assert _max_error(graph, truth) < 0.3
+
+
 def test_matches_leaving_the_pcm_window_keep_their_state() -> None:
     """With a PCM window of 3, the manager keeps records of the last 3 matches of a
     pair only; accepted matches that left it stay in the graph (and in the counts),

@@ -6,7 +6,7 @@ the floating robot flew before the map reached it still joins the two."""
 from __future__ import annotations
 
 import numpy as np
-from test_global_slam_backfill import _keyframes, _settle
+from test_global_slam_backfill import _feed, _keyframes
 
 from basestation.global_slam import GlobalSlam
 from common.config import Config
@@ -26,21 +26,13 @@ def test_a_robot_joins_where_the_map_reaches_only_after_it_has_flown_there() -> 
     cfg.basestation.constraints.merge_stretch_keyframes = 10  # 5 m: keyframes 0.5 m apart
     slam = GlobalSlam(cfg, known_starts={"a": truth_a[0]})
     try:
-        for kf in kf_a[:5] + _keyframes(world, "b", truth_b):
-            assert slam.admit(kf) == 1
-        slam.optimize()
-        slam.search_constraints()
-        _settle(slam)
+        _feed(slam, kf_a[:5] + _keyframes(world, "b", truth_b))
         # b's own searches met only a's room: b's start stays unknown, and b flies no more
         assert not slam.graph.is_anchored("b")
         assert slam.builder.stats["submitted_global"] >= n // 5
 
         for k in range(5, len(kf_a), 5):  # a flies the corridor b flew
-            for kf in kf_a[k : k + 5]:
-                assert slam.admit(kf) == 1
-            slam.optimize()
-            slam.search_constraints()
-            _settle(slam)
+            _feed(slam, kf_a[k : k + 5])
     finally:
         slam.close()
 

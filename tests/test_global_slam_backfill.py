@@ -46,6 +46,15 @@ def _keyframes(world: World, robot: str, truth: np.ndarray) -> list[Keyframe]:
     return out
 
 
+def _feed(slam: GlobalSlam, keyframes: list[Keyframe]) -> None:
+    """Admit keyframes as one batch, then optimize, search and settle, as live."""
+    for kf in keyframes:
+        assert slam.admit(kf) == 1
+    slam.optimize()
+    slam.search_constraints()
+    _settle(slam)
+
+
 def _settle(slam: GlobalSlam) -> None:
     """Verify everything queued, hand the matches over, optimize, search again."""
     for _ in range(5):
@@ -146,11 +155,7 @@ def _side_by_side(redundant_keyframes: int) -> tuple[list[tuple[int, int]], dict
     try:
         kfs = {r: _keyframes(world, r, t) for r, t in (("a", truth_a), ("b", truth_b))}
         for first in range(0, n, 4):
-            for kf in kfs["a"][first : first + 4] + kfs["b"][first : first + 4]:
-                assert slam.admit(kf) == 1
-            slam.optimize()
-            slam.search_constraints()
-            _settle(slam)
+            _feed(slam, kfs["a"][first : first + 4] + kfs["b"][first : first + 4])
     finally:
         slam.close()
     ties = sorted(slam.loops.links[("a", "b")].values())

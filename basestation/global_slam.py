@@ -26,7 +26,6 @@ import functools
 import logging
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -47,9 +46,10 @@ from basestation.pose_graph import PoseGraph
 from basestation.scan_archive import ScanArchive, ScanReader
 from basestation.slam_stats import slam_stats
 from basestation.update_series import UpdateSeries
+from basestation.whole_map_search import WholeMapSearch, tie
 from common.config import Config
 from common.errors import CollabSlamError
-from common.geometry import quat_to_yaw, se2_between, se2_compose, se2_inverse, se2_transform_points
+from common.geometry import quat_to_yaw, se2_between, se2_compose, se2_inverse
 from common.trajectory_io import Trajectory
 from protocol import Keyframe
 from protocol.messages import Scan2D
@@ -57,16 +57,6 @@ from protocol.messages import Scan2D
 log = logging.getLogger(__name__)
 
 NodeKey = tuple[str, int]
-
-
-@dataclass(frozen=True)
-class _GlobalMap:
-    """A whole-map search target: the robots' scans placed in their frame."""
-
-    key: tuple[tuple[str, ...], int]  # (robots, version)
-    nodes: list[NodeKey]
-    scans: list[np.ndarray]  # (n_i, 2) float32, frame of the map
-    origins: list[np.ndarray]  # each node's pose then
 
 
 class GlobalSlam:
@@ -99,8 +89,7 @@ class GlobalSlam:
         self._new_nodes: list[NodeKey] = []
         self._constraints_added = False  # verified matches handed over since the last update
         self.false_matches = FalseMatches(self.cc, self.graph, self.loops)  # evaluation only
-        self._global_maps: dict[tuple[str, ...], _GlobalMap] = {}  # by the map's robots
-        self._map_nodes_unsearched = 0  # map nodes since the last search of floating maps
+        self.whole_map = WholeMapSearch(self.cc, self.store.points)
         self._last_candidate: dict[tuple[str, str], int] = {}  # (robot, target robot) -> index
         self._together: dict[str, frozenset[str]] = {}  # robot -> its map's robots, last search
         self._unsaved: list[Keyframe] = []  # admitted since the last take_journal()
@@ -315,13 +304,9 @@ class GlobalSlam:
                     frames[0][0]
                 ):
                     self._submit_global(key, poses, frames[0])
-            elif len(frames) > 1:  # where a robot not on the map flew before
-                # once per `global_query_keyframes` map nodes (of all its robots together)
-                self._map_nodes_unsearched += 1
-                if self._map_nodes_unsearched >= self.cc.global_query_keyframes:
-                    self._map_nodes_unsearched = 0
-                    for floating in frames[1:]:
-                        self._submit_global(key, poses, floating)
+            elif len(frames) > 1 and self.whole_map.floating_due():
+                for floating in frames[1:]:  # where a robot not on the map flew before
+                    self._submit_global(key, poses, floating)
         for a, b in joined:
             self._backfill(a, b, poses)
 
@@ -415,35 +400,10 @@ class GlobalSlam:
 
     def _submit_global(self, key: NodeKey, poses: dict[str, np.ndarray], frame: list[str]) -> None:
         """Queue a search of robot key[0]'s recent scans against the whole map of the robots
-        in ``frame``: the map frame's, for a robot whose start is unknown; or a floating
-        map's, for a robot on the map (where the floating robot flew before the map reached
-        there: its own searches only ever try its newest scans). A map target is rebuilt
-        when robots join it or every `global_map_rebuild_nodes` nodes."""
-        robots = tuple(sorted(r for r in frame if r != key[0] and len(poses.get(r, ()))))
-        if not robots:
-            return
-        n = sum(len(poses[r]) for r in robots)
-        map_key = (robots, n // self.cc.global_map_rebuild_nodes)
-        cached = self._global_maps.get(robots)
-        if cached is None or cached.key != map_key:
-            nodes = [(r, i) for r in robots for i in range(len(poses[r]))]
-            scans = [
-                se2_transform_points(poses[r][i], self.store.points(r, i)).astype(np.float32)
-                for r, i in nodes
-            ]
-            cached = _GlobalMap(map_key, nodes, scans, [poses[r][i] for r, i in nodes])
-            stale = [k for k in self._global_maps if set(k) & set(robots)]  # older versions
-            for k in stale:
-                del self._global_maps[k]
-            self._global_maps[robots] = cached
-        first = max(0, key[1] - self.cc.global_query_keyframes + 1)
-        recent = [(key[0], j) for j in range(first, key[1] + 1)]
-        q_points, q_origins, n_own = self._query(key, recent, poses)
-        self.builder.submit(
-            Job("global", key, key, np.zeros(3), cached.scans, q_points, cached.origins, n_own,
-                target_key=map_key, in_node_frames=True, query_origins=q_origins,
-                target_nodes=cached.nodes)
-        )  # fmt: skip
+        in ``frame`` (basestation/whole_map_search.py)."""
+        job = self.whole_map.job(key, poses, frame, self._query)
+        if job is not None:
+            self.builder.submit(job)
 
     def integrate_constraints(self) -> int:
         """Hand verified matches to the loop-closure manager; returns how many arrived."""
@@ -462,11 +422,8 @@ class GlobalSlam:
     def _integrate(self, v: Verified) -> None:
         job, m = v.job, v.match
         if job.kind == "global":  # tie b to the target map's nearest node, as it was then
-            assert job.target_nodes is not None and job.target_origins is not None
-            origins = np.asarray(job.target_origins)
-            i = int(np.argmin(np.hypot(*(origins[:, :2] - m.T_a_b[:2]).T)))
-            T_a_b = se2_between(origins[i], m.T_a_b)
-            self.loops.add(job.target_nodes[i], job.b, T_a_b, m.covariance, "inter")
+            a, T_a_b = tie(job, m)
+            self.loops.add(a, job.b, T_a_b, m.covariance, "inter")
         elif job.kind == "inter" and self.loops.covered(job.a, job.b):
             self.builder.count("redundant_inter")  # tied while it waited in the queue
         else:

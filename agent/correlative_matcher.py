@@ -20,6 +20,7 @@ import numpy as np
 from numba import njit
 from numpy.typing import ArrayLike, NDArray
 
+from agent.branch_and_bound import branch_and_bound
 from agent.probability_grid import ProbabilityGrid, cell_probability
 from agent.voxel_filter import check_probability, finite_points
 from common.errors import ConfigError
@@ -111,104 +112,6 @@ def _build_levels(
         np.maximum(tmp[:-sw], tmp[sw:], out=levels[k, :-sw])  # along y
         levels[k, -sw:] = tmp[-sw:]
     return levels
-
-
-@njit(cache=True)
-def _node_score(level, flat, a, off, n):
-    acc = 0
-    for i in range(n):
-        acc += level[flat[a, i] + off]
-    return acc / (255.0 * n)
-
-
-@njit(cache=True)
-def _bound(levels, flat, a, dx, dy, k, w, win, ang_cost, lin_coef):
-    """Upper bound of the penalized score over the node: angle a, offsets
-    [dx, dx + 2^k) x [dy, dy + 2^k) clipped to the window (exact when k == 0)."""
-    near = 0.0
-    for d in (dx, dy):
-        hi = min(d + (1 << k) - 1, win)
-        if not d <= 0 <= hi:
-            m = min(abs(d), abs(hi))
-            near += m * m
-    f = ang_cost[a] + lin_coef * math.sqrt(near)
-    return math.exp(-f * f) * _node_score(levels[k], flat, a, dy * w + dx, flat.shape[1])
-
-
-@njit(cache=True)
-def _argsort(x):
-    """Indices sorting x ascending (Shell sort: np.argsort costs seconds of compile)."""
-    n = x.shape[0]
-    idx = np.arange(n)
-    gap = n // 2
-    while gap > 0:
-        for i in range(gap, n):
-            j, k = i, idx[i]
-            while j >= gap and x[idx[j - gap]] > x[k]:
-                idx[j] = idx[j - gap]
-                j -= gap
-            idx[j] = k
-        gap //= 2
-    return idx
-
-
-@njit(cache=True)
-def _branch_and_bound(levels, flat, w, win, depth, ang_cost, lin_coef, min_score):
-    """Best (angle index, dx, dy, score) with score > min_score (angle index -1: none).
-    Depth-first, best child first, pruning nodes whose bound <= the best leaf so far."""
-    n_ang = flat.shape[0]
-    step = 1 << depth
-    per_axis = (2 * win) // step + 1
-    n_root = n_ang * per_axis * per_axis
-    root = np.empty((n_root, 3), np.int64)
-    root_s = np.empty(n_root)
-    r = 0
-    for a in range(n_ang):
-        for ix in range(per_axis):
-            for iy in range(per_axis):
-                dx, dy = -win + ix * step, -win + iy * step
-                root[r, 0], root[r, 1], root[r, 2] = a, dx, dy
-                root_s[r] = _bound(levels, flat, a, dx, dy, depth, w, win, ang_cost, lin_coef)
-                r += 1
-    cap = n_root + 4 * (depth + 1)
-    st = np.empty((cap, 4), np.int64)  # angle, dx, dy, depth
-    st_s = np.empty(cap)
-    order = _argsort(root_s)  # ascending: the best root is popped first
-    for j in range(n_root):
-        q = order[j]
-        st[j, 0], st[j, 1], st[j, 2], st[j, 3] = root[q, 0], root[q, 1], root[q, 2], depth
-        st_s[j] = root_s[q]
-    sp = n_root
-    best_a, best_x, best_y, best_s = -1, 0, 0, min_score
-    ch = np.empty((4, 2), np.int64)
-    ch_s = np.empty(4)
-    while sp > 0:
-        sp -= 1
-        a, dx, dy, k = st[sp, 0], st[sp, 1], st[sp, 2], st[sp, 3]
-        if st_s[sp] <= best_s:
-            continue
-        if k == 0:
-            best_a, best_x, best_y, best_s = a, dx, dy, st_s[sp]
-            continue
-        half = 1 << (k - 1)
-        m = 0
-        for cx in (dx, dx + half):
-            for cy in (dy, dy + half):
-                if cx > win or cy > win:
-                    continue
-                s = _bound(levels, flat, a, cx, cy, k - 1, w, win, ang_cost, lin_coef)
-                j = m  # insertion sort, ascending
-                while j > 0 and ch_s[j - 1] > s:
-                    ch[j, 0], ch[j, 1], ch_s[j] = ch[j - 1, 0], ch[j - 1, 1], ch_s[j - 1]
-                    j -= 1
-                ch[j, 0], ch[j, 1], ch_s[j] = cx, cy, s
-                m += 1
-        for j in range(m):
-            if ch_s[j] > best_s:
-                st[sp, 0], st[sp, 1], st[sp, 2], st[sp, 3] = a, ch[j, 0], ch[j, 1], k - 1
-                st_s[sp] = ch_s[j]
-                sp += 1
-    return best_a, best_x, best_y, best_s
 
 
 _LOG_LUT = np.log(np.maximum(np.arange(256), 0.5) / 255.0)  # log P of a uint8 cell value
@@ -335,26 +238,11 @@ class RealTimeCorrelativeMatcher:
     ) -> CorrelativeResult | None:
         """Best T_submap_sensor near `predicted_pose`; None without points or when no
         candidate scores above `min_score`."""
-        pts = finite_points(points_sensor, "points_sensor")
-        pred = np.asarray(predicted_pose, dtype=np.float64).reshape(3)
-        if len(pts) == 0:
+        found = self._search(grid, points_sensor, predicted_pose, 1, 0.0, 0.0)
+        if found is None:
             return None
-        lat = self._lattice(grid, pts, pred)
-        a, dx, dy, score = _branch_and_bound(
-            lat.levels,
-            lat.flat,
-            lat.width,
-            lat.win,
-            lat.depth,
-            self.rotation_delta_cost_weight * np.abs(lat.offsets),
-            self.translation_delta_cost_weight * grid.resolution,
-            self.min_score,
-        )
-        if a < 0:
-            return None
-        res = grid.resolution
-        yaw = float(wrap_angle(pred[2] + lat.offsets[a]))
-        pose = np.array([pred[0] + dx * res, pred[1] + dy * res, yaw])
+        lat, hits = found
+        (pose, score, a, dx, dy) = hits[0]
         covariance = _olson_covariance(
             lat.levels[0],
             lat.flat,
@@ -364,11 +252,65 @@ class RealTimeCorrelativeMatcher:
             dx,
             dy,
             lat.offsets,
-            res,
+            grid.resolution,
             lat.step,
             _LOG_LUT,
         )
-        return CorrelativeResult(pose=pose, score=float(score), covariance=covariance)
+        return CorrelativeResult(pose=pose, score=score, covariance=covariance)
+
+    def candidates(
+        self,
+        grid: ProbabilityGrid,
+        points_sensor: ArrayLike,
+        predicted_pose: ArrayLike,
+        k: int,
+        separation_m: float,
+        separation_rad: float,
+    ) -> list[tuple[FloatArray, float]]:
+        """Up to k best lattice poses (pose, score), best first, exact like `match`:
+        local optima more than `separation_m` or `separation_rad` apart (a better
+        pose suppresses those closer to it)."""
+        if k < 1:
+            raise ConfigError(f"need k >= 1 candidates, got {k}")
+        found = self._search(grid, points_sensor, predicted_pose, k, separation_m, separation_rad)
+        return [] if found is None else [(h[0], h[1]) for h in found[1]]
+
+    def _search(
+        self,
+        grid: ProbabilityGrid,
+        points_sensor: ArrayLike,
+        predicted_pose: ArrayLike,
+        k: int,
+        separation_m: float,
+        separation_rad: float,
+    ) -> tuple[_Lattice, list[tuple[FloatArray, float, int, int, int]]] | None:
+        pts = finite_points(points_sensor, "points_sensor")
+        pred = np.asarray(predicted_pose, dtype=np.float64).reshape(3)
+        if len(pts) == 0:
+            return None
+        lat = self._lattice(grid, pts, pred)
+        res = grid.resolution
+        n, best, best_s = branch_and_bound(
+            lat.levels,
+            lat.flat,
+            lat.width,
+            lat.win,
+            lat.depth,
+            self.rotation_delta_cost_weight * np.abs(lat.offsets),
+            self.translation_delta_cost_weight * res,
+            self.min_score,
+            k,
+            int(separation_m / res),
+            int(separation_rad / lat.step),
+        )
+        if n == 0:
+            return None
+        hits = []
+        for (a, dx, dy), score in zip(best[:n].tolist(), best_s[:n].tolist(), strict=True):
+            yaw = float(wrap_angle(pred[2] + lat.offsets[a]))
+            pose = np.array([pred[0] + dx * res, pred[1] + dy * res, yaw])
+            hits.append((pose, float(score), a, dx, dy))
+        return lat, hits
 
     def covariance(
         self, grid: ProbabilityGrid, points_sensor: ArrayLike, pose: ArrayLike
@@ -446,6 +388,3 @@ class RealTimeCorrelativeMatcher:
         levels = _build_levels(grid, x0, y0, w, h, depth, self.unknown_probability)
         self._cache = (weakref.ref(grid), grid.version, depth, x0, y0, w, h, levels)
         return x0, y0, w, levels
-
-
-# ---------------------------------------------------------------- refinement (numba kernels)

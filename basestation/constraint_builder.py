@@ -292,6 +292,7 @@ class ConstraintBuilder:
                 query,
                 self.cfg.global_min_score,
                 query[: job.n_sensor],
+                self.cfg.global_candidates,
             )
         query = job.placed_query()
         target = v.build_target(job.placed_targets(), job.target_origins)

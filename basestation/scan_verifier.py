@@ -47,7 +47,7 @@ NEES was ~8 for 3 dof; `covariance_scale` = 3 brings it to ~2.5.
 `global_search` (Cartographer's global localization, to anchor a robot whose start
 pose is unknown) runs the branch and bound over the whole target and all headings on a
 coarse field (`global_resolution`, cached in the target), then `verify`'s search,
-refinement and tests in a small window around the coarse optimum.
+refinement and tests in a small window around each of the best few coarse optima.
 
 A `Target` caches the correlative pyramid: use one per thread.
 """
@@ -124,7 +124,8 @@ class ScanVerifier:
     `max_beam_violation` (fraction of the query's beams that cross a target point),
     `max_free_space_violation` (fraction of query points in the target's free space) and
     `free_space_margin` (m) for the free-space tests; `global_resolution` (m) of the
-    coarse field of `global_search`;
+    coarse field of `global_search`, `global_separation_m` / `_rad` between the coarse
+    optima it tries;
     `covariance_scale` inflates the ICP covariance (module doc); `max_target_cells`
     bounds a target's grid (a stray point kilometres away must not allocate gigabytes).
     """
@@ -156,6 +157,8 @@ class ScanVerifier:
         max_beam_violation: float = 0.2,
         free_space_margin: float = 0.3,
         global_resolution: float = 0.2,
+        global_separation_m: float = 1.0,
+        global_separation_rad: float = 0.35,
         covariance_scale: float = 3.0,
         max_target_cells: int = 16_000_000,
     ) -> None:
@@ -191,6 +194,8 @@ class ScanVerifier:
         self.max_beam_violation = float(max_beam_violation)
         self.free_space_margin = float(free_space_margin)
         self.global_resolution = float(global_resolution)
+        self.global_separation_m = float(global_separation_m)
+        self.global_separation_rad = float(global_separation_rad)
         self.covariance_scale = float(covariance_scale)
         self.max_target_cells = int(max_target_cells)
 
@@ -268,11 +273,14 @@ class ScanVerifier:
         query_points_b: ArrayLike,
         min_score: float | None = None,
         sensor_points: ArrayLike | None = None,
+        candidates: int = 1,
     ) -> VerifiedMatch | None:
         """Search the whole target (every position inside its extent, all headings) for
         the pose of the query (M, 2 points in frame b); same acceptance tests, with
-        `min_score` (default the verifier's); `sensor_points` as in `verify`. None when
-        nothing passes."""
+        `min_score` (default the verifier's); `sensor_points` as in `verify`. The
+        `candidates` best coarse optima (distinct places, `global_separation_m` or
+        `global_separation_rad` apart) are each refined and tested; the best-scoring
+        one that passes is returned, None when none does."""
         raw = finite_points(query_points_b, "query_points_b")
         beams = raw if sensor_points is None else finite_points(sensor_points, "sensor_points")
         q = self._filter_query(raw)
@@ -288,14 +296,22 @@ class ScanVerifier:
             coarse = LikelihoodField(target.points, self.global_resolution, sigma)
             target._cache["coarse_field"] = coarse
         m = self._matcher(target, "global", window, math.pi, 0.0)
-        corr = m.match(cast(ProbabilityGrid, coarse), q, centre)
-        if corr is None:
-            return None
-        # Fine search around the coarse optimum: a few coarse cells and angular steps.
+        found = m.candidates(
+            cast(ProbabilityGrid, coarse),
+            q,
+            centre,
+            candidates,
+            self.global_separation_m,
+            self.global_separation_rad,
+        )
+        # Fine search around each coarse optimum: a few coarse cells and angular steps.
         d_max = float(np.sqrt(np.einsum("ij,ij->i", q, q).max()))
         step = math.acos(max(1.0 - self.global_resolution**2 / (2.0 * d_max**2), -1.0))
-        lw = 2.0 * self.global_resolution
-        return self._search(target, beams, q, corr.pose, lw, max(3.0 * step, 0.02), 0.0, ms)
+        lw, aw = 2.0 * self.global_resolution, max(3.0 * step, 0.02)
+        passed = [r for p, _ in found if (r := self._search(target, beams, q, p, lw, aw, 0.0, ms))]
+        if len(passed) > 1:
+            logger.debug("global search: %d of %d coarse optima pass", len(passed), len(found))
+        return max(passed, key=lambda r: r.score, default=None)
 
     # ----- internals ----------------------------------------------------------------
     def _filter_query(self, q: FloatArray) -> FloatArray:

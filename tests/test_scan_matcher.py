@@ -17,7 +17,7 @@ from agent.probability_grid import ProbabilityGrid
 from agent.scan_matcher import ScanMatcher, match
 from agent.submaps import ActiveSubmaps, Submap
 from agent.voxel_filter import adaptive_voxel_filter, voxel_filter
-from common.errors import CollabSlamError
+from common.errors import CollabSlamError, ConfigError
 from common.geometry import se2_between, se2_compose
 
 BEAMS = 1081
@@ -150,6 +150,39 @@ def test_branch_and_bound_equals_exhaustive_search(room_submap: Submap) -> None:
                 cost = 0.1 * math.hypot(dx, dy) * res + 0.1 * abs(k * step)
                 best = max(best, score * math.exp(-cost * cost))
     assert found.score == pytest.approx(best, abs=1e-9)
+
+
+def test_candidates_are_the_distinct_places_a_scan_fits() -> None:
+    # Two copies of the room 12 m apart (walls of both, seen from both): a scan of
+    # one fits both. `match` keeps one; `candidates` finds both, best first, and the
+    # best equals `match`'s.
+    shift = np.array([12.0, 0.0, 0.0])
+    twin = np.concatenate([ROOM, ROOM + np.tile(shift[:2], 2)])
+    submaps = ActiveSubmaps(resolution=0.05, scans_per_submap=10)
+    rng = np.random.default_rng(5)
+    for T in (T_ROOM, T_ROOM + shift):
+        submaps.insert(T, cast(twin, T, rng))
+    submap = submaps.matching_submap()
+    assert submap is not None
+    truth = se2_compose(T_ROOM, [0.1, -0.1, 0.03])
+    points = adaptive_voxel_filter(cast(twin, truth, rng))
+    matcher = RealTimeCorrelativeMatcher(
+        linear_window=8.0,
+        angular_window=math.radians(5.0),
+        translation_delta_cost_weight=0.0,  # no pull toward the prediction, between the two
+        rotation_delta_cost_weight=0.0,
+    )
+    pred = submap.to_submap(T_ROOM + 0.5 * shift)
+    best = matcher.match(submap.grid, points, pred)
+    found = matcher.candidates(submap.grid, points, pred, 3, 1.0, math.radians(10.0))
+    assert best is not None and len(found) >= 2
+    assert np.array_equal(found[0][0], best.pose) and found[0][1] == best.score
+    assert [s for _, s in found] == sorted((s for _, s in found), reverse=True)
+    places = [submap.to_local(p) for p, _ in found[:2]]
+    for T in (truth, truth + shift):
+        assert min(float(np.hypot(*(p - T)[:2])) for p in places) < 0.1
+    with pytest.raises(ConfigError):
+        matcher.candidates(submap.grid, points, pred, 0, 1.0, 0.1)
 
 
 def test_corridor_covariance_is_long_along_the_corridor() -> None:

@@ -50,6 +50,7 @@ class _Group:
     pcm: IncrementalPcm
     measurements: dict[int, LoopMeasurement] = field(default_factory=dict)
     in_graph: dict[int, int] = field(default_factory=dict)  # measurement id -> factor id
+    left_out: set[int] = field(default_factory=set)  # ids kept out when the maps were joined
 
 
 class LoopClosureManager:
@@ -141,12 +142,17 @@ class LoopClosureManager:
         separate = m0.robot_a != m0.robot_b and not any(
             m0.robot_a in c and m0.robot_b in c for c in self.graph.components()
         )
-        if separate and not self._enough_to_merge(group, consistent):
-            return  # wait for more agreeing matches before joining two maps
+        consistent = consistent - group.left_out
         if separate:
+            outliers = self._far_from_the_rest([group.measurements[i] for i in consistent])
+            if not self._enough_to_merge(group, consistent - outliers):
+                return  # wait for more agreeing matches before joining two maps
+            consistent -= outliers
+            group.left_out |= outliers
             log.info(
-                "maps of %s and %s joined by %d agreeing matches (%d offered)",
-                m0.robot_a, m0.robot_b, len(consistent), len(group.measurements),
+                "maps of %s and %s joined by %d agreeing matches (%d offered, %d left out: "
+                "far from where the rest put them)",
+                m0.robot_a, m0.robot_b, len(consistent), len(group.measurements), len(outliers),
             )  # fmt: skip
         robust = None if self.cfg.robust_kernel == "none" else self.cfg.robust_kernel
         changed = (consistent - group.in_graph.keys()) | (group.in_graph.keys() - consistent)
@@ -186,6 +192,27 @@ class LoopClosureManager:
                     self._reconcile(
                         other, accepted if len(accepted) > 1 else self._lone(other, accepted)
                     )
+
+    def _far_from_the_rest(self, ms: list[LoopMeasurement]) -> set[int]:
+        """Ids of the matches, between two maps about to be joined, that put robot b's
+        node more than `merge_outlier_m` from where the largest group of matches puts it
+        (each match aligns b's map to a's; the alignment most others agree with, at
+        their own nodes, is the reference). PCM tests matches against each other
+        through the chains' covariance, which grows with the distance between the
+        matched nodes: a wrong match hundreds of keyframes from the others passes it
+        (ACES replay: one of 28 put a segment's node 35 m from where the other 27 did,
+        each within 0.4 m of the rest, and bent that segment by 50 degrees)."""
+        if len(ms) < 3:
+            return set()
+        Pa = self.graph.poses(ms[0].robot_a)[[m.index_a for m in ms]]
+        Pb = self.graph.poses(ms[0].robot_b)[[m.index_b for m in ms]]
+        A = se2_compose(se2_compose(Pa, np.array([m.T_a_b for m in ms])), se2_inverse(Pb))
+        placed = se2_compose(A[:, None], Pb[None])  # [k, l]: node of match l by match k
+        own = np.diagonal(placed, axis1=0, axis2=1).T  # where match l puts its own node
+        d = np.hypot(*(placed[..., :2] - own[None, :, :2]).transpose(2, 0, 1))
+        near = d <= self.cfg.merge_outlier_m
+        ref = int(np.argmax(near.sum(axis=1)))
+        return {m.id for m, ok in zip(ms, near[ref], strict=True) if not ok}
 
     def _lone(self, group: _Group, consistent: set[int], last: int = 10) -> set[int]:
         """The match to use when no two of the group agree (PCM's clique has one member,

@@ -51,6 +51,9 @@ class ConstraintConfig:
     # put it where the pair's matches do, within this (at the matched node; m, rad).
     merge_agree_m: float = 1.0
     merge_agree_rad: float = 0.2
+    # A match of a join that puts the robot's node this far (m) from where most of the
+    # join's matches put it is left out of the graph for good (LoopClosureManager).
+    merge_outlier_m: float = 5.0
     global_search_every: int = 5  # keyframes of an unanchored robot between global searches
     # Global searches a robot may have waiting; older ones are dropped (live: only the
     # newest scan is worth it). A replay sets it high: every search runs, as at sensor rate.

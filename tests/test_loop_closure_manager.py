@@ -240,6 +240,29 @@ def test_wrong_matches_that_agree_with_nothing_do_not_hold_a_merge_back() -> Non
     assert _max_error(graph, truth) < 0.3
 
 
+def test_a_match_far_from_where_the_rest_put_the_robot_stays_out_of_a_join() -> None:
+    """ACES: PCM tests matches through the chains' covariance, which grows with the
+    distance between matched nodes, so a wrong match far along the chain can agree with
+    every right one. Here the chains are taken as very uncertain (PCM accepts a match
+    7 m off); the join leaves it out, and it stays out when more matches come."""
+    rng = np.random.default_rng(4)
+    graph, manager, truth = _setup(rng)
+    manager.chain_covariance = lambda robot, i, j: np.abs(np.asarray(j) - np.asarray(i))[
+        :, None, None
+    ] * np.diag([4.0, 4.0, 0.01])
+    wrong = se2_compose(_true_T(truth, ("a", 18), ("b", 18)), [7.0, 0.0, 0.0])
+    manager.add(("a", 18), ("b", 18), wrong, LC_COV, "inter")
+    for j in (2, 5, 8, 11):
+        manager.add(("a", j), ("b", j), _true_T(truth, ("a", j), ("b", j)), LC_COV, "inter")
+    (group,) = manager.groups.values()
+    assert len(group.pcm.accepted) == 5  # PCM alone takes the wrong one too
+    manager.add(("a", 14), ("b", 14), _true_T(truth, ("a", 14), ("b", 14)), LC_COV, "inter")
+    graph.update(extra_iterations=5)
+    assert graph.is_anchored("b")
+    assert 0 not in manager.accepted and len(manager.accepted) == 5
+    assert _max_error(graph, truth) < 0.3
+
+
 def test_matches_from_one_stretch_of_a_chain_count_once_toward_a_merge() -> None:
     """Whole-map searches a few keyframes apart match overlapping stretches of scans:
     four agreeing matches from two stretches do not join two maps, a third one does."""

@@ -287,13 +287,18 @@ class ConstraintBuilder:
             while len(self._global_targets) > GLOBAL_TARGETS_CACHED:
                 self._global_targets.popitem(last=False)
             query = job.placed_query()
-            return v.global_search(
+            match = v.global_search(
                 target,
                 query,
                 self.cfg.global_min_score,
                 query[: job.n_sensor],
                 self.cfg.global_candidates,
             )
+            log.debug(
+                "whole-map search of %s:%d against %s: %s", *job.b, job.target_key,
+                "none" if match is None else f"{np.round(match.T_a_b, 2)} score {match.score:.2f}",
+            )  # fmt: skip
+            return match
         query = job.placed_query()
         target = v.build_target(job.placed_targets(), job.target_origins)
         return v.verify(

@@ -262,7 +262,7 @@ class LoopClosureManager:
         ms = [group.measurements[i] for i in sorted(consistent)]
         if not ms:
             return False
-        rival = group.pcm.rival()
+        disagreeing = len(group.measurements) - len(ms)
         floating = [  # the matched nodes of each robot whose start is unknown
             [m.index_a if m.robot_a == r else m.index_b for m in ms]
             for r in (ms[0].robot_a, ms[0].robot_b)
@@ -271,13 +271,13 @@ class LoopClosureManager:
         stretches = min((self._stretches(nodes) for nodes in floating), default=len(ms))
         n_min = self.cfg.min_consistent_to_merge
         if (
-            len(ms) - rival >= n_min
+            len(ms) - disagreeing >= n_min
             and stretches >= n_min
             and self._spread_enough(ms[0].robot_b, [m.index_b for m in ms])
             and self._spread_enough(ms[0].robot_a, [m.index_a for m in ms])
         ):
             return True  # seen from places of both robots apart
-        if rival >= len(ms):
+        if disagreeing >= len(ms):
             return False
         for x, y in ((ms[0].robot_b, ms[0].robot_a), (ms[0].robot_a, ms[0].robot_b)):
             extra = self._agreeing_elsewhere(x, y, ms)  # seen from more places of x?

@@ -371,25 +371,6 @@ class IncrementalPcm:
                 self._clique = grown
         return {self.measurements[i].id for i in self._clique}
 
-    def rival(self) -> int:
-        """Size of the largest consistent set that contradicts the accepted one: among the
-        measurements that disagree with most of the accepted set, the largest clique
-        (exact up to `max_exact` of them, else grown greedily). The second-best
-        hypothesis, against which the best one is weighed (Olson 2009 weighs the first
-        two eigenvalues of the consistency matrix). Scattered wrong matches each make a
-        set of one; a corridor seen the other way round makes a set of its own."""
-        adj = self._d2 <= self.threshold_chi2
-        np.fill_diagonal(adj, False)
-        clique = np.array(self._clique, dtype=np.int64)
-        outside = np.setdiff1d(np.arange(len(self.measurements)), clique)
-        against = outside[2 * adj[np.ix_(outside, clique)].sum(axis=1) < len(clique)]
-        if len(against) == 0:
-            return 0
-        sub, d2 = adj[np.ix_(against, against)], self._d2[np.ix_(against, against)]
-        if len(against) <= self.max_exact:
-            return len(_maximum_clique(sub, d2))
-        return len(_greedy_clique(sub, d2))
-
     @property
     def accepted(self) -> set[int]:
         """Ids of the accepted measurements in the window."""

@@ -59,9 +59,10 @@ class ConstraintConfig:
     # newest scan is worth it). A replay sets it high: every search runs, as at sensor rate.
     global_pending_per_robot: int = 1
     global_min_score: float = 0.65  # stricter score for a whole-map search
-    # Coarse optima of a whole-map search refined and tested, best first (distinct places):
-    # with one, a look-alike place that scores best hides the right one.
-    global_candidates: int = 3
+    # Coarse optima of a whole-map search refined and tested (distinct places; the best
+    # that passes is kept). ACES replays with 3 found more matches, wrong ones among them
+    # (docs/architecture.md, "Candidates").
+    global_candidates: int = 1
     # Evaluation only (robustness benchmarks): after each verified match, inject a wrong
     # one with probability f / (1 - f) so that a fraction f of all matches is false.
     false_match_fraction: float = 0.0

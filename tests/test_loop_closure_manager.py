@@ -204,7 +204,7 @@ def test_matches_seen_from_one_spot_of_either_robot_do_not_join_two_maps() -> No
 
 def test_a_merge_waits_while_other_matches_say_otherwise() -> None:
     """ACES corridors: 3 agreeing wrong matches and 1 right one (3 of 4 offered) joined
-    two maps wrongly. The agreeing set must outnumber the rival set by
+    two maps wrongly. The agreeing set must outnumber the rest by
     `min_consistent_to_merge`; right matches arriving later then join them right."""
     rng = np.random.default_rng(9)
     graph, manager, truth = _setup(rng)
@@ -216,24 +216,6 @@ def test_a_merge_waits_while_other_matches_say_otherwise() -> None:
     graph.update()
     assert not graph.is_anchored("b")
     for j in (16, 18, 2, 10):  # right ones: 6 against 3
-        manager.add(("a", j), ("b", j), _true_T(truth, ("a", j), ("b", j)), LC_COV, "inter")
-        graph.update(extra_iterations=5)
-    assert graph.is_anchored("b")
-    assert _max_error(graph, truth) < 0.3
-
-
-def test_wrong_matches_that_agree_with_nothing_do_not_hold_a_merge_back() -> None:
-    """ACES corridors: whole-map searches also find wrong matches scattered along a
-    corridor and either way round, each agreeing with nothing. Four right matches
-    join two maps past three such ones; a consistent rival set still holds them back
-    (test above)."""
-    rng = np.random.default_rng(9)
-    graph, manager, truth = _setup(rng)
-    offsets = ([2.5, 0.4, np.pi], [-3.0, 0.2, 0.1], [1.2, -0.8, -2.0])
-    for j, off in zip((5, 9, 13), offsets, strict=True):
-        T = se2_compose(_true_T(truth, ("a", j), ("b", j)), off)
-        manager.add(("a", j), ("b", j), T, LC_COV, "inter")
-    for j in (2, 6, 11, 16):
         manager.add(("a", j), ("b", j), _true_T(truth, ("a", j), ("b", j)), LC_COV, "inter")
         graph.update(extra_iterations=5)
     assert graph.is_anchored("b")

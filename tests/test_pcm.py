@@ -267,25 +267,3 @@ def test_incremental_pcm_keeps_a_bounded_window(world):
     assert len(pcm.accepted) == window - 1  # the last wrong one is out
     with pytest.raises(CollabSlamError):
         IncrementalPcm(window=0)
-
-
-@pytest.mark.parametrize("max_exact", [40, 0])
-def test_the_rival_is_the_largest_set_that_agrees_against_the_accepted_one(world, max_exact):
-    """Scattered wrong matches are rivals of one each; wrong matches that agree with each
-    other (robot b seen as if shifted by one rigid motion) are a rival of their size."""
-    robots, odometry, rng = world
-    good = _loops(robots, rng, [(3, 5), (8, 10), (15, 12), (22, 30), (30, 33), (37, 20)], False)
-    pcm = IncrementalPcm(max_exact=max_exact)
-    for m in good:
-        pcm.add(m, odometry)
-    assert pcm.rival() == 0
-    for m in _loops(robots, rng, [(5, 7), (18, 25), (33, 36)], True, start_id=100):
-        pcm.add(m, odometry)
-    assert pcm.accepted == {m.id for m in good}
-    assert pcm.rival() == 1
-    D = np.array([1.5, -0.6, 0.4])
-    for k, (i, j) in enumerate([(10, 14), (20, 22), (26, 28), (34, 30)]):
-        T = se2_between(robots["a"].truth[i], se2_compose(D, robots["b"].truth[j]))
-        pcm.add(LoopMeasurement(200 + k, "a", i, "b", j, T, np.diag(LOOP_SIGMAS**2)), odometry)
-    assert pcm.accepted == {m.id for m in good}
-    assert pcm.rival() == 4

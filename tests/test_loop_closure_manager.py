@@ -229,9 +229,9 @@ def test_a_match_far_from_where_the_rest_put_the_robot_stays_out_of_a_join() -> 
     7 m off); the join leaves it out, and it stays out when more matches come."""
     rng = np.random.default_rng(4)
     graph, manager, truth = _setup(rng)
-    manager.chain_covariance = lambda robot, i, j: np.abs(np.asarray(j) - np.asarray(i))[
-        :, None, None
-    ] * np.diag([4.0, 4.0, 0.01])
+    manager.chain_covariance = lambda robot, i, j: (
+        np.abs(np.asarray(j) - np.asarray(i))[:, None, None] * np.diag([4.0, 4.0, 0.01])
+    )
     wrong = se2_compose(_true_T(truth, ("a", 18), ("b", 18)), [7.0, 0.0, 0.0])
     manager.add(("a", 18), ("b", 18), wrong, LC_COV, "inter")
     for j in (2, 5, 8, 11):

@@ -238,7 +238,7 @@ class RealTimeCorrelativeMatcher:
     ) -> CorrelativeResult | None:
         """Best T_submap_sensor near `predicted_pose`; None without points or when no
         candidate scores above `min_score`."""
-        found = self._search(grid, points_sensor, predicted_pose, 1, 0.0, 0.0)
+        found = self._search(grid, points_sensor, predicted_pose)
         if found is None:
             return None
         lat, hits = found
@@ -272,7 +272,8 @@ class RealTimeCorrelativeMatcher:
         pose suppresses those closer to it)."""
         if k < 1:
             raise ConfigError(f"need k >= 1 candidates, got {k}")
-        found = self._search(grid, points_sensor, predicted_pose, k, separation_m, separation_rad)
+        nms = (k, separation_m, separation_rad)
+        found = self._search(grid, points_sensor, predicted_pose, nms)
         return [] if found is None else [(h[0], h[1]) for h in found[1]]
 
     def _search(
@@ -280,10 +281,11 @@ class RealTimeCorrelativeMatcher:
         grid: ProbabilityGrid,
         points_sensor: ArrayLike,
         predicted_pose: ArrayLike,
-        k: int,
-        separation_m: float,
-        separation_rad: float,
+        nms: tuple[int, float, float] = (1, 0.0, 0.0),
     ) -> tuple[_Lattice, list[tuple[FloatArray, float, int, int, int]]] | None:
+        """The lattice and its best poses (pose, score, angle index, dx, dy), for
+        nms = (k, separation_m, separation_rad) as in `candidates`."""  # fmt: skip
+        k, separation_m, separation_rad = nms
         pts = finite_points(points_sensor, "points_sensor")
         pred = np.asarray(predicted_pose, dtype=np.float64).reshape(3)
         if len(pts) == 0:

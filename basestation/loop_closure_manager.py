@@ -144,11 +144,14 @@ class LoopClosureManager:
         )
         consistent = consistent - group.left_out
         if separate:
-            outliers = self._far_from_the_rest([group.measurements[i] for i in consistent])
+            outliers, T_a_b = self._far_from_the_rest([group.measurements[i] for i in consistent])
             if not self._enough_to_merge(group, consistent - outliers):
                 return  # wait for more agreeing matches before joining two maps
             consistent -= outliers
             group.left_out |= outliers
+            # the floating map first turns and shifts to where the matches put it
+            if T_a_b is not None and not self.graph.move_floating(m0.robot_b, T_a_b):
+                self.graph.move_floating(m0.robot_a, se2_inverse(T_a_b))
             log.info(
                 "maps of %s and %s joined by %d agreeing matches (%d offered, %d left out: "
                 "far from where the rest put them)",
@@ -193,17 +196,18 @@ class LoopClosureManager:
                         other, accepted if len(accepted) > 1 else self._lone(other, accepted)
                     )
 
-    def _far_from_the_rest(self, ms: list[LoopMeasurement]) -> set[int]:
+    def _far_from_the_rest(self, ms: list[LoopMeasurement]) -> tuple[set[int], np.ndarray | None]:
         """Ids of the matches, between two maps about to be joined, that put robot b's
         node more than `merge_outlier_m` from where the largest group of matches puts it
         (each match aligns b's map to a's; the alignment most others agree with, at
-        their own nodes, is the reference). PCM tests matches against each other
-        through the chains' covariance, which grows with the distance between the
-        matched nodes: a wrong match hundreds of keyframes from the others passes it
-        (ACES replay: one of 28 put a segment's node 35 m from where the other 27 did,
-        each within 0.4 m of the rest, and bent that segment by 50 degrees)."""
-        if len(ms) < 3:
-            return set()
+        their own nodes, is the reference, returned too: b's frame in a's). PCM tests
+        matches against each other through the chains' covariance, which grows with the
+        distance between the matched nodes: a wrong match hundreds of keyframes from the
+        others passes it (ACES replay: one of 28 put a segment's node 35 m from where the
+        other 27 did, each within 0.4 m of the rest, and bent that segment by 50
+        degrees)."""
+        if not ms:
+            return set(), None
         Pa = self.graph.poses(ms[0].robot_a)[[m.index_a for m in ms]]
         Pb = self.graph.poses(ms[0].robot_b)[[m.index_b for m in ms]]
         A = se2_compose(se2_compose(Pa, np.array([m.T_a_b for m in ms])), se2_inverse(Pb))
@@ -212,7 +216,9 @@ class LoopClosureManager:
         d = np.hypot(*(placed[..., :2] - own[None, :, :2]).transpose(2, 0, 1))
         near = d <= self.cfg.merge_outlier_m
         ref = int(np.argmax(near.sum(axis=1)))
-        return {m.id for m, ok in zip(ms, near[ref], strict=True) if not ok}
+        if len(ms) < 3:  # too few to tell an outlier
+            return set(), A[ref]
+        return {m.id for m, ok in zip(ms, near[ref], strict=True) if not ok}, A[ref]
 
     def _lone(self, group: _Group, consistent: set[int], last: int = 10) -> set[int]:
         """The match to use when no two of the group agree (PCM's clique has one member,

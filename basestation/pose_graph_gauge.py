@@ -8,7 +8,10 @@ earliest-registered robot, at that node's current estimate: it fixes the
 component's own frame and carries no information. When a constraint joins
 components, surplus gauge priors are removed in the same update (so the merge is
 not biased) and extra iterations let the moved chain settle; if removing a
-constraint splits a component again, a gauge prior is re-added.
+constraint splits a component again, a gauge prior is re-added. Before a join, the
+caller may first move the floating component rigidly to where the joining
+constraints put it (``move_floating``): Gauss-Newton from a frame half a turn off
+settled a 600-node ACES segment into a bent minimum.
 
 Package-internal: a mixin of ``basestation.pose_graph.PoseGraph``.
 """
@@ -22,6 +25,7 @@ from typing import TYPE_CHECKING
 import gtsam
 
 from basestation.pose_graph_state import FloatArray, PoseGraphState, pose2
+from common.geometry import se2_compose
 
 logger = logging.getLogger(__name__)
 
@@ -32,6 +36,8 @@ class GaugeMixin(PoseGraphState):
     if TYPE_CHECKING:  # provided by PoseGraph
 
         def pose(self, robot_id: str, index: int) -> FloatArray: ...
+
+        def update(self, extra_iterations: int = 0) -> object: ...
 
     def _init_gauges(self) -> None:
         self._pair_count: Counter[tuple[str, str]] = Counter()  # inter-robot constraints
@@ -109,3 +115,23 @@ class GaugeMixin(PoseGraphState):
                 chain.gauge_factor = self._add_factor(prior, "gauge")
         self._topology_dirty = False
         return merged
+
+    def move_floating(self, robot_id: str, T_new_old: FloatArray, iterations: int = 30) -> bool:
+        """Move the floating component of ``robot_id`` rigidly by ``T_new_old`` (its new
+        frame from its current one): its gauge prior is put at the moved pose and the
+        component relinearized there (at most ``iterations`` steps; none of its own
+        factors change, so it only turns and shifts). False if it is not floating."""
+        comp = next((c for c in self._components() if robot_id in c), [robot_id])
+        holder = next((r for r in comp if self._chains[r].gauge_factor is not None), None)
+        if holder is None or any(self._chains[r].T_map_first is not None for r in comp):
+            return False
+        chain = self._chains[holder]
+        assert chain.gauge_factor is not None
+        self._drop_factor(chain.gauge_factor)
+        target = se2_compose(T_new_old, self.pose(holder, 0))
+        prior = gtsam.PriorFactorPose2(
+            gtsam.symbol(chain.char, 0), pose2(target), self._prior_noise
+        )
+        chain.gauge_factor = self._add_factor(prior, "gauge")
+        self.update(extra_iterations=iterations)
+        return True

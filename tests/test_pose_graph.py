@@ -169,6 +169,28 @@ def test_floating_chain_merges_after_one_inter_robot_constraint(
     assert_pose_close(graph.pose("b", 0), b[0], 1e-6, 1e-6)
 
 
+def test_a_floating_map_moves_rigidly_half_a_turn() -> None:
+    """Before a join the floating map is moved where the matches put it (Gauss-Newton
+    from half a turn off can settle a long chain in a bent minimum): every node moves by
+    the same rigid motion, relative poses stay; a map with a known start does not move."""
+    graph = PoseGraph()
+    build_chain(graph, "a", np.zeros(3), [np.array([1.0, 0.0, 0.1])] * 30)
+    build_chain(graph, "b", None, [np.array([1.0, 0.0, -0.12])] * 60)
+    graph.update()
+    before = graph.poses("b")
+    T = np.array([-25.0, 40.0, 3.1])
+    assert graph.move_floating("b", T)
+    after = graph.poses("b")
+    assert_pose_close(after, se2_compose(T, before), 1e-4, 1e-5)
+    assert not graph.move_floating("a", T)
+    assert_pose_close(
+        graph.poses("a")[-1],
+        compose_chain(np.zeros(3), [np.array([1.0, 0.0, 0.1])] * 30)[-1],
+        1e-6,
+        1e-6,
+    )
+
+
 def test_new_floating_chain_joins_in_the_same_update() -> None:
     graph = PoseGraph()
     build_chain(graph, "a", np.zeros(3), [np.array([1.0, 0.0, 0.1])] * 5)

@@ -4,8 +4,9 @@ A robot whose start is unknown has its recent scans searched against the whole m
 a robot on the map has its recent scans searched against each floating map (a robot,
 or robots joined to each other, not on the map yet), since the floating robot's own
 searches only ever try its newest scans. `WholeMapSearch` keeps one target per map
-(the robots' scans placed in their frame), rebuilt when robots join it or every
-`global_map_rebuild_nodes` nodes, builds the jobs, and turns a verified match into a
+(the robots' scans placed in their frame), rebuilt when robots join it or it has
+grown by a quarter (at least `global_query_keyframes`, at most
+`global_map_rebuild_nodes` nodes), builds the jobs, and turns a verified match into a
 tie to the target's nearest node as it stood when the search was queued (a join or
 correction in between does not bend it).
 """
@@ -31,7 +32,7 @@ QueryFn = Callable[
 
 @dataclass(frozen=True)
 class _MapTarget:
-    key: tuple[tuple[str, ...], int]  # (robots, version)
+    key: tuple[tuple[str, ...], int]  # (robots, their nodes when it was built)
     nodes: list[NodeKey]
     scans: list[np.ndarray]  # (n_i, 2) float32, frame of the map
     origins: list[np.ndarray]  # each node's pose then
@@ -43,6 +44,16 @@ class WholeMapSearch:
         self._points = points  # a node's scan points in its own frame
         self._targets: dict[tuple[str, ...], _MapTarget] = {}  # by the map's robots
         self._map_nodes_unsearched = 0  # map nodes since the last search of floating maps
+
+    def _rebuild_step(self, n_built: int) -> int:
+        """New map nodes before a target built from `n_built` nodes is rebuilt: a quarter
+        of its size, at least `global_query_keyframes`, at most
+        `global_map_rebuild_nodes`. A fixed step of 200 kept a target built from the
+        map's first few nodes until it had 200 (ACES replays where the first segment
+        lagged: the middle one searched a map of a few dozen nodes for minutes, found
+        nothing, and never joined)."""
+        cc = self.cc
+        return min(cc.global_map_rebuild_nodes, max(cc.global_query_keyframes, n_built // 4))
 
     def floating_due(self) -> bool:
         """Count a node added to the map; True once per `global_query_keyframes` of them
@@ -62,9 +73,9 @@ class WholeMapSearch:
         if not robots:
             return None
         n = sum(len(poses[r]) for r in robots)
-        map_key = (robots, n // self.cc.global_map_rebuild_nodes)
         target = self._targets.get(robots)
-        if target is None or target.key != map_key:
+        if target is None or n >= target.key[1] + self._rebuild_step(target.key[1]):
+            map_key = (robots, n)
             nodes = [(r, i) for r in robots for i in range(len(poses[r]))]
             scans = [
                 se2_transform_points(poses[r][i], self._points(r, i)).astype(np.float32)
@@ -78,7 +89,7 @@ class WholeMapSearch:
         recent = [(key[0], j) for j in range(first, key[1] + 1)]
         q_points, q_origins, n_own = query(key, recent, poses)
         return Job("global", key, key, np.zeros(3), target.scans, q_points, target.origins,
-                   n_own, target_key=map_key, in_node_frames=True, query_origins=q_origins,
+                   n_own, target_key=target.key, in_node_frames=True, query_origins=q_origins,
                    target_nodes=target.nodes)  # fmt: skip
 
 

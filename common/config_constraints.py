@@ -18,7 +18,9 @@ class ConstraintConfig:
     # A loop candidate also needs this much travel (m) since the target, and at least twice
     # the straight distance: the robot went away and came back (not just drove on).
     loop_min_travel_m: float = 10.0
-    global_map_rebuild_nodes: int = 200  # rebuild the whole-map search target this often
+    # the whole-map search target is rebuilt once the map grew by a quarter, at least
+    # global_query_keyframes and at most this many nodes
+    global_map_rebuild_nodes: int = 200
     global_query_keyframes: int = 20  # recent keyframes matched against the map at once
     candidate_stride: int = 3  # keyframes of a robot between candidates against one robot
     # An inter-robot candidate is not verified when the two robots have a constraint with

@@ -9,7 +9,8 @@ import numpy as np
 from test_global_slam_backfill import _feed, _keyframes
 
 from basestation.global_slam import GlobalSlam
-from common.config import Config
+from basestation.whole_map_search import WholeMapSearch
+from common.config import Config, ConstraintConfig
 from simulation.world import World
 
 
@@ -40,3 +41,25 @@ def test_a_robot_joins_where_the_map_reaches_only_after_it_has_flown_there() -> 
     P = slam.graph.poses("b")
     err = np.hypot(*(P[:, :2] - truth_b[:, :2]).T)
     assert err.max() < 0.1, f"b placed up to {err.max():.2f} m off"
+
+
+def test_the_whole_map_target_follows_a_growing_map() -> None:
+    """Rebuilt once the map grew by a quarter (at least global_query_keyframes, at most
+    global_map_rebuild_nodes nodes): a target built from the map's first nodes must not
+    stay until it has 200 (ACES: a lagging first segment's 30-node map was searched for
+    minutes)."""
+    cc = ConstraintConfig()  # 20 and 200
+    search = WholeMapSearch(cc, lambda r, i: np.array([[1.0, 0.0], [0.0, 1.0], [1.0, 1.0]]))
+
+    def query(key, nodes, poses):
+        return [np.zeros((3, 2))], [np.zeros(3)], 3
+
+    def built_from(n_map: int) -> int:
+        poses = {"a": np.zeros((n_map, 3)), "b": np.zeros((5, 3))}
+        job = search.job(("b", 4), poses, ["a", "b"], query)
+        assert job is not None and job.target_nodes is not None
+        return len(job.target_nodes)
+
+    assert [built_from(n) for n in (10, 29, 30, 49, 50, 400, 499, 500, 1000, 1199, 1200)] == [
+        10, 10, 30, 30, 50, 400, 400, 500, 1000, 1000, 1200,
+    ]  # fmt: skip

@@ -146,6 +146,8 @@ class LoopClosureManager:
         if separate:
             outliers, T_a_b = self._far_from_the_rest([group.measurements[i] for i in consistent])
             if not self._enough_to_merge(group, consistent - outliers):
+                if outliers:
+                    log.debug("%d of the agreeing matches far from the rest", len(outliers))
                 return  # wait for more agreeing matches before joining two maps
             consistent -= outliers
             group.left_out |= outliers
@@ -286,6 +288,10 @@ class LoopClosureManager:
             and self._spread_enough(ms[0].robot_a, [m.index_a for m in ms])
         ):
             return True  # seen from places of both robots apart
+        log.debug(
+            "%s-%s wait: %d agreeing (%d clear) against %d (%d clear), %d stretches",
+            ms[0].robot_a, ms[0].robot_b, len(ms), clear, disagreeing, against, stretches,
+        )  # fmt: skip
         if disagreeing >= len(ms):
             return False
         for x, y in ((ms[0].robot_b, ms[0].robot_a), (ms[0].robot_a, ms[0].robot_b)):

@@ -264,9 +264,7 @@ class LoopClosureManager:
         other map count too if they put it where this group's do (module doc).
         Matches of the pair that disagree with them are evidence for another
         placement (a corridor seen both ways): the agreeing ones must outnumber them
-        by `min_consistent_to_merge`, counting only matches from stretches of the
-        floating chain that the other side has no match in (`_clear_of_each_other`),
-        or with matches from elsewhere, be the majority.
+        by `min_consistent_to_merge`, or with matches from elsewhere, be the majority.
         The agreeing matches must also come from `min_consistent_to_merge` stretches of
         the chain of each robot whose start is unknown (`_stretches`)."""
         ms = [group.measurements[i] for i in sorted(consistent)]
@@ -280,17 +278,16 @@ class LoopClosureManager:
         ]
         stretches = min((self._stretches(nodes) for nodes in floating), default=len(ms))
         n_min = self.cfg.min_consistent_to_merge
-        clear, against = self._clear_of_each_other(group, ms)
         if (
-            clear - against >= n_min
+            len(ms) - disagreeing >= n_min
             and stretches >= n_min
             and self._spread_enough(ms[0].robot_b, [m.index_b for m in ms])
             and self._spread_enough(ms[0].robot_a, [m.index_a for m in ms])
         ):
             return True  # seen from places of both robots apart
         log.debug(
-            "%s-%s wait: %d agreeing (%d clear) against %d (%d clear), %d stretches",
-            ms[0].robot_a, ms[0].robot_b, len(ms), clear, disagreeing, against, stretches,
+            "%s-%s wait: %d agreeing against %d, %d stretches",
+            ms[0].robot_a, ms[0].robot_b, len(ms), disagreeing, stretches,
         )  # fmt: skip
         if disagreeing >= len(ms):
             return False
@@ -304,32 +301,6 @@ class LoopClosureManager:
             ):
                 return True
         return False
-
-    def _clear_of_each_other(self, group: _Group, ms: list[LoopMeasurement]) -> tuple[int, int]:
-        """How many of the agreeing matches `ms`, and of the group's other matches, have no
-        match of the other side within `merge_stretch_keyframes` of their node on the
-        chain of a robot whose start is unknown. Where the whole-map search matched one
-        stretch of a chain both ways (a corridor seen both ways round, a look-alike
-        room), that stretch does not say where the robot is, for either side (ACES
-        replay: 15 right matches of the middle segment from one part of its flight,
-        13 wrong ones from a corridor where the searches had also found it right, and
-        the segment never joined)."""
-        ids = {m.id for m in ms}
-        others = [m for i, m in group.measurements.items() if i not in ids]
-        floating = [r for r in (ms[0].robot_a, ms[0].robot_b) if not self.graph.is_anchored(r)]
-        w = self.cfg.merge_stretch_keyframes
-
-        def nodes(side: list[LoopMeasurement], r: str) -> np.ndarray:
-            return np.array([m.index_a if m.robot_a == r else m.index_b for m in side])
-
-        def clear(side: list[LoopMeasurement], rest: list[LoopMeasurement]) -> int:
-            ok = np.ones(len(side), dtype=bool)
-            for r in floating if rest else ():
-                gap = np.abs(nodes(side, r)[:, None] - nodes(rest, r)[None, :])
-                ok &= (gap >= w).all(axis=1)
-            return int(ok.sum())
-
-        return clear(ms, others), clear(others, ms)
 
     def _stretches(self, nodes: list[int]) -> int:
         """How many of a robot's matched nodes are `merge_stretch_keyframes` apart along its

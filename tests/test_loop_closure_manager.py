@@ -222,25 +222,6 @@ def test_a_merge_waits_while_other_matches_say_otherwise() -> None:
     assert _max_error(graph, truth) < 0.3
 
 
-def test_a_stretch_matched_both_ways_counts_for_neither_side() -> None:
-    """ACES: whole-map searches matched one corridor of a segment's flight right once and
-    wrong (scattered, either way round) several times; those wrong matches held back
-    the right ones from elsewhere of its flight. Matches within `merge_stretch_keyframes`
-    of a match of the other side count for neither side of the margin."""
-    rng = np.random.default_rng(9)
-    graph, manager, truth = _setup(rng)
-    manager.cfg.merge_stretch_keyframes = 3
-    offsets = {16: [2.5, 0.4, np.pi], 17: [-3.0, 0.2, 0.1], 19: [1.2, -0.8, -2.0]}
-    for j in (18, 16, 17, 19, 2, 6, 10):  # right at 18, wrong around it; right elsewhere
-        T = _true_T(truth, ("a", j), ("b", j))
-        manager.add(("a", j), ("b", j), se2_compose(T, offsets[j]) if j in offsets else T,
-                    LC_COV, "inter")  # fmt: skip
-    graph.update(extra_iterations=5)
-    assert graph.is_anchored("b")  # 3 clear right ones against 0 (all: 4 against 3)
-    assert not {1, 2, 3} & manager.accepted  # the wrong ones stay out
-    assert _max_error(graph, truth) < 0.3
-
-
 def test_a_match_far_from_where_the_rest_put_the_robot_stays_out_of_a_join() -> None:
     """ACES: PCM tests matches through the chains' covariance, which grows with the
     distance between matched nodes, so a wrong match far along the chain can agree with

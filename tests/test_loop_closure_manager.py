@@ -33,15 +33,21 @@ def _truth(start: np.ndarray, deltas: list[np.ndarray]) -> np.ndarray:
     return np.array(P)
 
 
-def _setup(rng: np.random.Generator, cfg: ConstraintConfig | None = None, third: bool = False):
+def _setup(
+    rng: np.random.Generator,
+    cfg: ConstraintConfig | None = None,
+    third: bool = False,
+    third_known: bool = True,
+):
     """Robots a (known start) and b (floating); with `third`, c too (known start: on
-    a's map), flying the square from 1 m to the side of b's start."""
+    a's map, unless not `third_known`), flying the square from 1 m to the side of b's
+    start."""
     deltas = _square()
     truth = {"a": _truth(np.zeros(3), deltas), "b": _truth(START_B, deltas)}
     starts = [("a", np.zeros(3)), ("b", None)]
     if third:
         truth["c"] = _truth(START_B + [1.0, 0.0, 0.0], deltas)
-        starts.append(("c", truth["c"][0]))
+        starts.append(("c", truth["c"][0] if third_known else None))
     graph = PoseGraph()
     for rid, start in starts:
         graph.add_robot(rid, start)
@@ -242,6 +248,28 @@ def test_a_match_far_from_where_the_rest_put_the_robot_stays_out_of_a_join() -> 
     graph.update(extra_iterations=5)
     assert graph.is_anchored("b")
     assert 0 not in manager.accepted and len(manager.accepted) == 5
+    assert _max_error(graph, truth) < 0.3
+
+
+def test_another_pairs_matches_far_from_where_a_join_puts_them_stay_out() -> None:
+    """ACES: two wrong matches between the second and third segments agreed with each
+    other (PCM tests nothing else) and entered the graph when a join put both segments
+    on one map, 22 m off. They are checked against where the join put the robots."""
+    rng = np.random.default_rng(9)
+    graph, manager, truth = _setup(rng, third=True, third_known=False)  # b, c floating
+    D = np.array([8.0, 3.0, 0.4])  # c seen 8.5 m off by b, twice, consistently
+    for j in (5, 9):
+        T = se2_between(truth["b"][j], se2_compose(D, truth["c"][j]))
+        manager.add(("b", j), ("c", j), T, LC_COV, "inter")
+    for j in (3, 10, 16):  # right matches with a join c's map
+        manager.add(("a", j), ("c", j), _true_T(truth, ("a", j), ("c", j)), LC_COV, "inter")
+        graph.update(extra_iterations=5)
+    assert graph.is_anchored("c")
+    for j in (2, 8, 14):  # right matches with a join b's map
+        manager.add(("a", j), ("b", j), _true_T(truth, ("a", j), ("b", j)), LC_COV, "inter")
+        graph.update(extra_iterations=5)
+    assert graph.is_anchored("b")
+    assert not {0, 1} & manager.accepted
     assert _max_error(graph, truth) < 0.3
 
 

@@ -12,8 +12,10 @@ from __future__ import annotations
 import bisect
 import heapq
 import logging
+import math
 import queue
 import threading
+import time
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any, Protocol
@@ -22,6 +24,7 @@ import numpy as np
 
 from agent.carmen_log import CarmenLaser, CarmenOdometry, odometry_stamps_regular, read_carmen
 from common.bus import Bus
+from common.errors import ConfigError
 from common.geometry import pose4_to_pose7, wrap_angle
 from protocol import Altimeter, Imu, LaserScan, Odometry
 
@@ -121,7 +124,8 @@ class CarmenReplay:
     see `OdometryTrack` and `odometry_stamps_regular`) followed by a `LaserScan`.
     Records are re-sorted by timestamp within `reorder_window_s` (some classic logs,
     Intel among them, step back in time by up to ~0.9 s in file order). `segment` =
-    (start, end) ipc times, either None.
+    (start, end) ipc times, either None. With `rate` > 0 the scans come at the log's
+    pace times `rate`, the first at `start_unix` (wall clock; 0: now); 0: at once.
     """
 
     def __init__(
@@ -130,7 +134,13 @@ class CarmenReplay:
         robot_id: str,
         segment: tuple[float | None, float | None] = (None, None),
         reorder_window_s: float = 2.0,
+        rate: float = 0.0,
+        start_unix: float = 0.0,
     ) -> None:
+        if not (math.isfinite(rate) and rate >= 0.0):
+            raise ConfigError(f"replay rate must be >= 0 (0: as fast as possible), got {rate}")
+        self.rate = rate
+        self.start_unix = start_unix
         self.path = Path(path)
         self.robot_id = robot_id
         self.segment = segment
@@ -175,7 +185,13 @@ class CarmenReplay:
 
     def messages(self, stop: threading.Event) -> Iterator[Any | None]:
         rid = self.robot_id
+        start = self.start_unix or time.time()
+        first: float | None = None
         for rec, odom_pose in self._lasers():
+            if first is None:
+                first = rec.stamp
+            if self.rate > 0.0:  # the log's own pace, `rate` times faster
+                stop.wait(max(0.0, start + (rec.stamp - first) / self.rate - time.time()))
             if stop.is_set():
                 return
             x, y, th = odom_pose

@@ -85,7 +85,11 @@ def cmd_agent(args: argparse.Namespace) -> int:
     install_signal_handlers(stop)
     with _bus(cfg) as bus:
         if args.replay:
-            source = CarmenReplay(args.replay, args.robot_id, _segment(args.segment))
+            a = cfg.agent
+            source = CarmenReplay(
+                args.replay, args.robot_id, _segment(args.segment),
+                rate=a.replay_rate, start_unix=a.replay_start_unix,
+            )  # fmt: skip
             node = AgentNode(cfg, args.robot_id, bus, tour, T_map_odom, NullVehicle())
         else:
             source = ZenohSensors(bus, args.robot_id)

@@ -90,6 +90,8 @@ def eval_carmen(
     b.drain_timeout_s = max(b.drain_timeout_s, 600.0)
     # agents wait for every ack too (a loaded machine may be minutes behind the log)
     cfg.agent.drain_timeout_s = max(cfg.agent.drain_timeout_s, 600.0)
+    if cfg.agent.replay_rate > 0.0:  # every segment starts at once, and stays in step
+        cfg.agent.replay_start_unix = cfg.agent.replay_start_unix or time.time() + 5.0
     dump_config(cfg, out / "config.toml")
     ep = endpoint(free_port())
     group = ProcessGroup(out, log_level)

@@ -216,6 +216,11 @@ class AgentConfig:
     state_period_s: float = 0.5  # s sim time between RobotState messages
     drain_timeout_s: float = 15.0  # s wall: on shutdown wait this long for acks
     replay_max_unacked: int = 200  # --replay: pause the log while this many keyframes wait
+    # --replay: log seconds per wall second (0: as fast as the acks allow), from the wall
+    # clock time replay_start_unix (0: when the agent starts). Replays sharing a start
+    # and a rate fly their log segments in step, as a team does live.
+    replay_rate: float = 0.0
+    replay_start_unix: float = 0.0
     local_slam: LocalSlamConfig = field(default_factory=LocalSlamConfig)
     smoothing: SmoothingConfig = field(default_factory=SmoothingConfig)
 

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import math
 import threading
+import time
 from pathlib import Path
 
 import numpy as np
@@ -13,6 +14,7 @@ import pytest
 
 from agent.carmen_log import odometry_stamps_regular
 from agent.sensor_sources import CarmenReplay, OdometryTrack
+from common.errors import ConfigError
 from common.geometry import pose7_to_pose4
 from protocol import LaserScan, Odometry
 
@@ -115,3 +117,20 @@ def test_the_shipped_logs_are_told_apart(log: str, regular: bool) -> None:
     path = CARMEN / f"{log}.clf.bz2"  # the shared real logs (../shared/data), always there
     assert path.is_file(), f"shared CARMEN log {path} is missing"
     assert odometry_stamps_regular(path) is regular
+
+
+def test_a_paced_replay_keeps_the_log_pace_from_a_shared_start(tmp_path: Path) -> None:
+    """`rate` log seconds per wall second from `start_unix`: the 12 scans span 2.75 s of
+    log, so at rate 10 the last comes no sooner than 0.275 s after the start (a lower
+    bound: a loaded machine can only be later). Rate 0 replays at once."""
+    path = regular_log(tmp_path)
+    start = time.time() + 0.2  # a start shared by several replays may lie ahead
+    stamps = []
+    for m in CarmenReplay(path, "r0", rate=10.0, start_unix=start).messages(threading.Event()):
+        if isinstance(m, LaserScan):
+            stamps.append(time.time())
+    assert len(stamps) == 12
+    assert stamps[0] >= start
+    assert stamps[-1] - start >= 0.275 - 1e-3
+    with pytest.raises(ConfigError):
+        CarmenReplay(path, "r0", rate=-1.0)

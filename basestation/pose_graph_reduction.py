@@ -5,8 +5,9 @@ a variable, iSAM2 would grow by ~4 kB per keyframe forever (Johannsson et al. 20
 "Temporally scalable visual SLAM using a reduced pose graph"). Here, once the graph
 has ``after_nodes`` nodes, every committed node ``lag`` keyframes behind its chain's
 newest one (its loop closures have had time to arrive) is *aliased* onto the nearest
-variable node of the same robot within ``max_distance_m`` (x-y, by the current
-estimate) that is at most two factors away in the graph (passes run once
+variable node within ``max_distance_m`` (x-y, by the current estimate) that is at most
+two factors away in the graph, of the same robot or of a robot it shares at least
+``ACROSS_MIN_CONSTRAINTS`` inter-robot constraints with (passes run once
 ``batch_nodes`` such nodes wait, oldest first, and alias onto nodes already passed):
 the node's variable is removed from iSAM2, its pose becomes
 ``T_map_anchor * offset`` with the offset frozen from the current estimate, and every
@@ -16,8 +17,15 @@ neighbours, or nodes a loop closure joined it to): a robot revisiting ground bef
 loop closure links it there is not tied to it by proximity alone. Odometry factors that
 end up between the same two variables are fused into one (information-weighted in the
 tangent space), so revisits add no factors either: the variables and factors grow with
-the area flown, not with the time flown. Other robots' variables are not used: PCM
-may still remove the constraint that links them, and an alias cannot be undone.
+the area flown, not with the time flown. Once one node of a stretch is an alias of
+another robot's variable (through an inter-robot constraint), its successor's odometry
+factor ends on that variable, so the next node is two factors from the other robot's
+next variable: a robot flying another's ground is folded onto that robot's variables
+node by node, and a team of robots over one area holds one set of variables, not one
+per robot (with inter-robot constraints iSAM2's fill-in across robots otherwise grows
+with every robot's distance flown). An alias cannot be undone, so another robot's
+variables are used only once the pair's relative placement rests on several agreeing
+matches (``ACROSS_MIN_CONSTRAINTS``), not on one PCM may still remove.
 Freezing offsets costs accuracy (the relations inside a cluster are dropped), so the
 base station starts only on a large graph (``basestation.reduce_after_nodes``).
 
@@ -31,6 +39,7 @@ Package-internal: a mixin of ``basestation.pose_graph.PoseGraph``.
 from __future__ import annotations
 
 import logging
+from collections import Counter
 from typing import TYPE_CHECKING
 
 import gtsam
@@ -51,6 +60,10 @@ MAX_ALIASES_PER_UPDATE = 100
 # old parts of the Bayes tree; in batches, most updates only append (10-robot soak replay:
 # update p50 at 18,000-27,000 nodes 5.5-8.0 ms with a pass every update, 1.3-2.8 ms so).
 REDUCE_BATCH_NODES = 100
+# Inter-robot constraints two robots need in the graph before one's nodes may become
+# aliases of the other's variables: an alias cannot be undone, so the robots' relative
+# placement must rest on several agreeing matches, not one PCM may still remove.
+ACROSS_MIN_CONSTRAINTS = 5
 
 
 def _arr(p: gtsam.Pose2) -> FloatArray:
@@ -104,6 +117,7 @@ class ReductionMixin(PoseGraphState):
         _guesses: gtsam.Values
         _isam: gtsam.ISAM2
         _gps_robots: set[str]
+        _pair_count: Counter[tuple[str, str]]
 
     def _init_reduction(
         self, max_distance_m: float, lag: int, after_nodes: int, batch_nodes: int
@@ -191,6 +205,7 @@ class ReductionMixin(PoseGraphState):
             if robot_id in self._gps_robots or stop <= chain.reduce_next:
                 continue
             chain.grow_aliases(chain.num_committed)
+            anchors = self._anchor_chains(robot_id)
             for index in range(max(chain.reduce_next, 1), stop):
                 chain.reduce_next = index  # anchors: variables the pass has gone past
                 if count >= MAX_ALIASES_PER_UPDATE:
@@ -201,11 +216,11 @@ class ReductionMixin(PoseGraphState):
                 fids = self._adjacency.get(key)
                 if not fids or any(self._factors[f].kind not in REDUCIBLE_KINDS for f in fids):
                     continue
-                own = ord(chain.char)
-                near = [  # this robot's variables the pass has gone past (they stay)
+                near = [  # variables the pass has gone past (they stay), of robots allowed
                     k
                     for k in self._two_hops(key, fids)
-                    if k >> CHAR_SHIFT == own and (k & INDEX_MASK) < chain.reduce_next
+                    if (c := anchors.get(k >> CHAR_SHIFT)) is not None
+                    and (k & INDEX_MASK) < c.reduce_next
                 ]
                 if not near:
                     continue
@@ -221,6 +236,19 @@ class ReductionMixin(PoseGraphState):
                 chain.reduce_next = stop
         self.num_aliased += count
         return count
+
+    def _anchor_chains(self, robot_id: str) -> dict[int, Chain]:
+        """Key character -> chain, for the chains whose (passed) variables
+        ``robot_id``'s nodes may be aliased onto: its own, and those of robots it shares
+        at least ``ACROSS_MIN_CONSTRAINTS`` inter-robot constraints with (no GPS robot)."""
+        out = {}
+        for rid, chain in self._chains.items():
+            pair = (min(rid, robot_id), max(rid, robot_id))
+            if rid == robot_id or (
+                rid not in self._gps_robots and self._pair_count[pair] >= ACROSS_MIN_CONSTRAINTS
+            ):
+                out[ord(chain.char)] = chain
+        return out
 
     def _two_hops(self, key: int, fids: set[int]) -> set[int]:
         near: set[int] = set()

@@ -293,7 +293,8 @@ class BaseStationConfig:
     track_changes: bool = False  # O(n) UpdateStats.changed_robots per update (not needed)
     # Reduced pose graph (basestation/pose_graph_reduction.py): once the graph has
     # reduce_after_nodes nodes, a node reduce_lag keyframes old becomes an alias of a variable
-    # of its robot within reduce_distance_m (0: never), two factors away: memory stays flat.
+    # within reduce_distance_m (0: never), two factors away, of its robot or of one it shares
+    # several inter-robot constraints with: memory stays flat.
     reduce_distance_m: float = 0.5
     reduce_lag: int = 20
     reduce_after_nodes: int = 10000

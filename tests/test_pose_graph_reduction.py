@@ -102,21 +102,40 @@ def test_the_reduction_waits_for_its_node_count():
     assert np.count_nonzero(graph._chains["a"].alias_key[:LAP] >= 0) > LAP // 2
 
 
-def test_nodes_are_aliased_onto_their_own_robot_only():
-    graph = PoseGraph(reduce_distance_m=1.0, reduce_lag=5, reduce_batch_nodes=1)
+def side_by_side(constraints: int) -> PoseGraph:
+    """Robots a and b flying side by side, 0.1 m apart, in steps of 0.5 m (so no node
+    has a variable of its own robot within the 0.3 m of the reduction), the first
+    ``constraints`` node pairs tied by an inter-robot constraint."""
+    graph = PoseGraph(reduce_distance_m=0.3, reduce_lag=5, reduce_batch_nodes=1)
     graph.add_robot("a", [0, 0, 0])
     graph.add_robot("b", [0, 0.1, 0])
-    for i in range(30):  # side by side, 0.1 m apart, a constraint at every node
+    for i in range(40):
         for rid in ("a", "b"):
-            d = None if i == 0 else [0.1, 0.0, 0.0]
+            d = None if i == 0 else [0.5, 0.0, 0.0]
             graph.add_node(rid, i, d, None if i == 0 else ODOM_COV)
-        graph.add_constraint(("a", i), ("b", i), [0.0, 0.1, 0.0], LOOP_COV)
+        if i < constraints:
+            graph.add_constraint(("a", i), ("b", i), [0.0, 0.1, 0.0], LOOP_COV)
         graph.update()
-    for rid in ("a", "b"):
-        chain = graph._chains[rid]
-        keys = chain.alias_key[:30][chain.alias_key[:30] >= 0]
-        assert len(keys) > 10
-        assert np.all(keys >> 56 == ord(chain.char))
+    return graph
+
+
+def test_a_robot_over_anothers_ground_is_folded_onto_its_variables():
+    graph = side_by_side(constraints=8)  # tied at the start only: the rest follows
+    aliases = {r: graph._chains[r].alias_key[:40] for r in "ab"}
+    across = sum(np.count_nonzero(k >= 0) for k in aliases.values())
+    # every settled node after the first few is an alias of the other robot's variable
+    assert across > 25
+    for r, other in (("a", "b"), ("b", "a")):
+        keys = aliases[r][aliases[r] >= 0]
+        assert np.all(keys >> 56 == ord(graph._chains[other].char))
+    assert variables(graph) < 40 + 15  # about one robot's worth, not two
+    for i in (10, 25, 33, 39):
+        np.testing.assert_allclose(graph.pose("b", i) - graph.pose("a", i), [0, 0.1, 0], atol=1e-3)
+
+
+def test_a_pair_with_few_constraints_keeps_its_own_variables():
+    graph = side_by_side(constraints=4)  # fewer than ACROSS_MIN_CONSTRAINTS
+    assert graph.num_aliased == 0 and variables(graph) == 80
     np.testing.assert_allclose(graph.pose("b", 20) - graph.pose("a", 20), [0, 0.1, 0], atol=1e-3)
 
 

@@ -41,6 +41,8 @@ class GaugeMixin(PoseGraphState):
 
     def _init_gauges(self) -> None:
         self._pair_count: Counter[tuple[str, str]] = Counter()  # inter-robot constraints
+        # robot pairs tied for good: a node of one is an alias of the other's variable
+        self._alias_ties: set[tuple[str, str]] = set()
         self._topology_dirty = False
         self._topology_version = 0  # bumped on every change of the robots' grouping
         self._components_cache: tuple[int, list[list[str]]] = (-1, [])
@@ -84,6 +86,8 @@ class GaugeMixin(PoseGraphState):
         for (a, b), count in self._pair_count.items():
             if count > 0:
                 parent[find(a)] = find(b)
+        for a, b in self._alias_ties:  # even if PCM removed every constraint between them
+            parent[find(a)] = find(b)
         groups: dict[str, list[str]] = {}
         for rid in parent:  # registration order inside each group
             groups.setdefault(find(rid), []).append(rid)

@@ -118,6 +118,9 @@ class ReductionMixin(PoseGraphState):
         _isam: gtsam.ISAM2
         _gps_robots: set[str]
         _pair_count: Counter[tuple[str, str]]
+        _alias_ties: set[tuple[str, str]]
+
+        def _topology_changed(self) -> None: ...
 
     def _init_reduction(
         self, max_distance_m: float, lag: int, after_nodes: int, batch_nodes: int
@@ -220,7 +223,7 @@ class ReductionMixin(PoseGraphState):
                     k
                     for k in self._two_hops(key, fids)
                     if (c := anchors.get(k >> CHAR_SHIFT)) is not None
-                    and (k & INDEX_MASK) < c.reduce_next
+                    and (k & INDEX_MASK) < c[1].reduce_next
                 ]
                 if not near:
                     continue
@@ -231,14 +234,19 @@ class ReductionMixin(PoseGraphState):
                 if d2[best] > self._reduce_distance**2:
                     continue
                 self._alias(chain, index, key, near[best], se2_between(poses[best], here))
+                other = anchors[near[best] >> CHAR_SHIFT][0]
+                tie = (min(robot_id, other), max(robot_id, other))
+                if other != robot_id and tie not in self._alias_ties:
+                    self._alias_ties.add(tie)  # one component for good
+                    self._topology_changed()
                 count += 1
             else:
                 chain.reduce_next = stop
         self.num_aliased += count
         return count
 
-    def _anchor_chains(self, robot_id: str) -> dict[int, Chain]:
-        """Key character -> chain, for the chains whose (passed) variables
+    def _anchor_chains(self, robot_id: str) -> dict[int, tuple[str, Chain]]:
+        """Key character -> (robot, chain), for the chains whose (passed) variables
         ``robot_id``'s nodes may be aliased onto: its own, and those of robots it shares
         at least ``ACROSS_MIN_CONSTRAINTS`` inter-robot constraints with (no GPS robot)."""
         out = {}
@@ -247,7 +255,7 @@ class ReductionMixin(PoseGraphState):
             if rid == robot_id or (
                 rid not in self._gps_robots and self._pair_count[pair] >= ACROSS_MIN_CONSTRAINTS
             ):
-                out[ord(chain.char)] = chain
+                out[ord(chain.char)] = (rid, chain)
         return out
 
     def _two_hops(self, key: int, fids: set[int]) -> set[int]:

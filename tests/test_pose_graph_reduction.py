@@ -102,25 +102,26 @@ def test_the_reduction_waits_for_its_node_count():
     assert np.count_nonzero(graph._chains["a"].alias_key[:LAP] >= 0) > LAP // 2
 
 
-def side_by_side(constraints: int) -> PoseGraph:
+def side_by_side(constraints: int) -> tuple[PoseGraph, list[int]]:
     """Robots a and b flying side by side, 0.1 m apart, in steps of 0.5 m (so no node
     has a variable of its own robot within the 0.3 m of the reduction), the first
     ``constraints`` node pairs tied by an inter-robot constraint."""
     graph = PoseGraph(reduce_distance_m=0.3, reduce_lag=5, reduce_batch_nodes=1)
     graph.add_robot("a", [0, 0, 0])
     graph.add_robot("b", [0, 0.1, 0])
+    ids = []
     for i in range(40):
         for rid in ("a", "b"):
             d = None if i == 0 else [0.5, 0.0, 0.0]
             graph.add_node(rid, i, d, None if i == 0 else ODOM_COV)
         if i < constraints:
-            graph.add_constraint(("a", i), ("b", i), [0.0, 0.1, 0.0], LOOP_COV)
+            ids.append(graph.add_constraint(("a", i), ("b", i), [0.0, 0.1, 0.0], LOOP_COV))
         graph.update()
-    return graph
+    return graph, ids
 
 
 def test_a_robot_over_anothers_ground_is_folded_onto_its_variables():
-    graph = side_by_side(constraints=8)  # tied at the start only: the rest follows
+    graph, ids = side_by_side(constraints=8)  # tied at the start only: the rest follows
     aliases = {r: graph._chains[r].alias_key[:40] for r in "ab"}
     across = sum(np.count_nonzero(k >= 0) for k in aliases.values())
     # every settled node after the first few is an alias of the other robot's variable
@@ -131,10 +132,16 @@ def test_a_robot_over_anothers_ground_is_folded_onto_its_variables():
     assert variables(graph) < 40 + 15  # about one robot's worth, not two
     for i in (10, 25, 33, 39):
         np.testing.assert_allclose(graph.pose("b", i) - graph.pose("a", i), [0, 0.1, 0], atol=1e-3)
+    # the aliases tie the two for good: one map even without a constraint between them
+    for fid in ids:
+        graph.remove_constraint(fid)
+    graph.update()
+    assert graph.components() == [["a", "b"]]
+    np.testing.assert_allclose(graph.pose("b", 25) - graph.pose("a", 25), [0, 0.1, 0], atol=1e-3)
 
 
 def test_a_pair_with_few_constraints_keeps_its_own_variables():
-    graph = side_by_side(constraints=4)  # fewer than ACROSS_MIN_CONSTRAINTS
+    graph, _ = side_by_side(constraints=4)  # fewer than ACROSS_MIN_CONSTRAINTS
     assert graph.num_aliased == 0 and variables(graph) == 80
     np.testing.assert_allclose(graph.pose("b", 20) - graph.pose("a", 20), [0, 0.1, 0], atol=1e-3)
 

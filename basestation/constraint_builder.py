@@ -16,8 +16,13 @@ jobs, so a full queue costs little memory); the worker places them. The worker
 keeps to `max_candidates_per_s` and takes jobs by priority: global searches
 first (robots in turn, oldest first; each robot keeps its newest
 `global_pending_per_robot`: live, only the newest scan is worth the search), then
-inter-robot candidates, then loop closures; each of the last two queues keeps its
-newest `max_queue` jobs.
+inter-robot candidates, then loop closures; each of the last two queues holds at
+most `max_queue` jobs (when full, new ones are not built) and serves the newest
+first. Under load (10 robots on 2 cores) the worker verifies fewer candidates than
+the robots bring: served oldest first, every match came ~800 keyframes after its
+node (minutes), after the robot had long flown on and the reduced pose graph had
+already passed the node; served newest first, what is verified is where the robots
+are now, and the older candidates wait until the worker catches up.
 """
 
 from __future__ import annotations
@@ -226,7 +231,7 @@ class ConstraintBuilder:
         for kind in kinds:
             if self._queues[kind]:
                 self._last_kind = kind
-                return self._queues[kind].popleft()
+                return self._queues[kind].pop()  # the newest first
         return None
 
     def backlog(self) -> int:

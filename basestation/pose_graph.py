@@ -220,6 +220,9 @@ class PoseGraph(GaugeMixin, GpsMixin, ReductionMixin):
             noise = gtsam.noiseModel.Robust.Create(kernel_cls.Create(robust_k), noise)
         T = vec3(T_a_b, "T_a_b")
         factor = self._between(chain_a, key_a[1], chain_b, key_b[1], T, noise)
+        if self.reducing:
+            chain_a.constrained.add(key_a[1])
+            chain_b.constrained.add(key_b[1])
         robots = None
         if key_a[0] != key_b[0]:
             robots = (min(key_a[0], key_b[0]), max(key_a[0], key_b[0]))

@@ -44,6 +44,7 @@ from typing import TYPE_CHECKING
 
 import gtsam
 import numpy as np
+from scipy.spatial import cKDTree
 
 from basestation.pose_graph_state import Chain, FloatArray, PoseGraphState, pose2
 from common.geometry import se2_between, se2_compose, se2_inverse
@@ -64,6 +65,11 @@ REDUCE_BATCH_NODES = 100
 # aliases of the other's variables: an alias cannot be undone, so the robots' relative
 # placement must rest on several agreeing matches, not one PCM may still remove.
 ACROSS_MIN_CONSTRAINTS = 5
+# A node with a loop closure or inter-robot constraint within this many keyframes of its
+# chain is aliased onto the nearest passed variable close by, however many factors away:
+# its stretch is registered against the map there (else only variables two factors away).
+LINK_KEYFRAMES = 10
+SNAPSHOT_NEIGHBOURS = 8  # nearest variables looked at for one of an allowed robot
 
 
 def _arr(p: gtsam.Pose2) -> FloatArray:
@@ -110,6 +116,54 @@ def fuse(
     return se2_compose(z1, _arr(gtsam.Pose2.Expmap(step))), 0.5 * (cov + cov.T)
 
 
+def _dist2(a: FloatArray, b: FloatArray) -> float:
+    return float((a[0] - b[0]) ** 2 + (a[1] - b[1]) ** 2)
+
+
+def _nearest(
+    keys: list[int], poses: list[FloatArray], here: FloatArray
+) -> tuple[int, FloatArray] | None:
+    if not keys:
+        return None
+    best = min(range(len(keys)), key=lambda j: _dist2(poses[j], here))
+    return keys[best], poses[best]
+
+
+class _Snapshot:
+    """The variables' estimate at the start of a pass, and a k-d tree of those the
+    reduction has passed (they stay variables), for the nearest-variable queries."""
+
+    def __init__(self, values: gtsam.Values, chains: dict[str, Chain], gps: set[str]) -> None:
+        self.keys = np.fromiter(values.keys(), dtype=np.int64, count=values.size())
+        self.poses = np.asarray(gtsam.utilities.extractPose2(values), dtype=np.float64)
+        self.poses = self.poses.reshape(-1, 3)
+        passed = np.zeros(len(self.keys), dtype=bool)
+        chars, index = self.keys >> CHAR_SHIFT, self.keys & INDEX_MASK
+        for rid, chain in chains.items():
+            if rid not in gps:
+                passed |= (chars == ord(chain.char)) & (index < chain.reduce_next)
+        self.passed = np.flatnonzero(passed)
+        self.tree = cKDTree(self.poses[self.passed, :2]) if len(self.passed) else None
+
+    def pose(self, key: int) -> FloatArray:
+        return self.poses[int(np.searchsorted(self.keys, key))]
+
+    def nearest(
+        self, here: FloatArray, anchors: dict[int, tuple[str, Chain]]
+    ) -> tuple[int, FloatArray] | None:
+        """The nearest passed variable of the chains in ``anchors`` (among the
+        ``SNAPSHOT_NEIGHBOURS`` nearest passed variables of all robots)."""
+        if self.tree is None:
+            return None
+        k = min(SNAPSHOT_NEIGHBOURS, len(self.passed))
+        _, rows = self.tree.query(here[:2], k=k)
+        for row in np.atleast_1d(rows):
+            key = int(self.keys[self.passed[row]])
+            if key >> CHAR_SHIFT in anchors:
+                return key, self.poses[self.passed[row]]
+        return None
+
+
 class ReductionMixin(PoseGraphState):
     """Aliases per chain, factor adjacency, and the reduction pass after each update."""
 
@@ -139,10 +193,6 @@ class ReductionMixin(PoseGraphState):
     @property
     def reducing(self) -> bool:
         return self._adjacency is not None
-
-    def _variable_pose(self, key: int) -> FloatArray:
-        """Current estimate of one committed variable."""
-        return _arr(self._isam.calculateEstimatePose2(key))
 
     def reduction_stats(self) -> dict[str, int | bool]:
         """Nodes (keyframes), the variables iSAM2 holds for them, aliases, factors."""
@@ -203,6 +253,7 @@ class ReductionMixin(PoseGraphState):
         if sum(max(n, 0) for n in settled) < self._reduce_batch:
             return 0  # most updates only append; every so many, one does the reduction
         count = 0
+        snapshot = _Snapshot(self._isam.calculateEstimate(), self._chains, self._gps_robots)
         for robot_id, chain in self._chains.items():
             stop = chain.num_committed - self._reduce_lag
             if robot_id in self._gps_robots or stop <= chain.reduce_next:
@@ -219,22 +270,20 @@ class ReductionMixin(PoseGraphState):
                 fids = self._adjacency.get(key)
                 if not fids or any(self._factors[f].kind not in REDUCIBLE_KINDS for f in fids):
                     continue
+                here = snapshot.pose(key)
                 near = [  # variables the pass has gone past (they stay), of robots allowed
                     k
                     for k in self._two_hops(key, fids)
                     if (c := anchors.get(k >> CHAR_SHIFT)) is not None
                     and (k & INDEX_MASK) < c[1].reduce_next
                 ]
-                if not near:
+                anchor = _nearest(near, [snapshot.pose(k) for k in near], here)
+                if not self._close(anchor, here) and self._linked(chain, index):
+                    anchor = snapshot.nearest(here, anchors)
+                if anchor is None or not self._close(anchor, here):
                     continue
-                here = self._variable_pose(key)
-                poses = np.array([self._variable_pose(k) for k in near])
-                d2 = ((poses[:, :2] - here[:2]) ** 2).sum(axis=1)
-                best = int(np.argmin(d2))
-                if d2[best] > self._reduce_distance**2:
-                    continue
-                self._alias(chain, index, key, near[best], se2_between(poses[best], here))
-                other = anchors[near[best] >> CHAR_SHIFT][0]
+                self._alias(chain, index, key, anchor[0], se2_between(anchor[1], here))
+                other = anchors[anchor[0] >> CHAR_SHIFT][0]
                 tie = (min(robot_id, other), max(robot_id, other))
                 if other != robot_id and tie not in self._alias_ties:
                     self._alias_ties.add(tie)  # one component for good
@@ -244,6 +293,17 @@ class ReductionMixin(PoseGraphState):
                 chain.reduce_next = stop
         self.num_aliased += count
         return count
+
+    def _close(self, anchor: tuple[int, FloatArray] | None, here: FloatArray) -> bool:
+        return anchor is not None and _dist2(anchor[1], here) <= self._reduce_distance**2
+
+    def _linked(self, chain: Chain, index: int) -> bool:
+        """Whether a node of ``chain`` within ``LINK_KEYFRAMES`` of ``index`` has a loop
+        closure or inter-robot constraint: this stretch is registered against the map."""
+        return any(
+            i in chain.constrained
+            for i in range(index - LINK_KEYFRAMES, index + 1 + LINK_KEYFRAMES)
+        )
 
     def _anchor_chains(self, robot_id: str) -> dict[int, tuple[str, Chain]]:
         """Key character -> (robot, chain), for the chains whose (passed) variables

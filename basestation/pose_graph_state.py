@@ -63,6 +63,8 @@ class Chain:
     alias_key: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
     alias_offset: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
     reduce_next: int = 1  # first node the reduction pass has not looked at
+    # nodes with a loop closure or inter-robot constraint (reducing graphs only)
+    constrained: set[int] = field(default_factory=set)
 
     @property
     def size(self) -> int:

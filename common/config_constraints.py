@@ -36,7 +36,7 @@ class ConstraintConfig:
     min_overlap: float = 0.5  # fraction of points with a neighbour within max_corr_dist
     max_corr_dist_m: float = 0.2  # m, ICP correspondence distance
     max_candidates_per_s: float = 30.0  # verification budget of the worker (wall time)
-    max_queue: int = 500  # pending candidates; the oldest are dropped beyond this
+    max_queue: int = 500  # pending candidates per kind (newest served first); no new ones beyond
     robust_kernel: str = "huber"  # huber | cauchy | none
     robust_k: float = 1.345
     pcm_chi2: float = 11.345  # chi2(3 dof, 0.99): pairwise consistency threshold

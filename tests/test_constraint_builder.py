@@ -98,6 +98,15 @@ def test_inter_robot_and_loop_queues_take_turns() -> None:
     assert order == ["inter", "loop"] * 3 and builder._next_job() is None
 
 
+def test_the_newest_candidates_are_verified_first() -> None:
+    builder = ConstraintBuilder(ConstraintConfig(max_queue=5))
+    builder.close()  # no worker: the queue is read here
+    pts, origin = [np.zeros((1, 2))], [np.zeros(3)]
+    for k in range(3):
+        builder.submit(Job("loop", ("a", 100 + k), ("a", k), np.zeros(3), pts, pts[0], origin))
+    assert [builder._next_job().a[1] for _ in range(3)] == [102, 101, 100]
+
+
 def test_a_full_queue_has_no_room_and_counts_the_skip() -> None:
     builder = ConstraintBuilder(ConstraintConfig(max_queue=2))
     builder.close()

@@ -146,6 +146,32 @@ def test_a_pair_with_few_constraints_keeps_its_own_variables():
     np.testing.assert_allclose(graph.pose("b", 20) - graph.pose("a", 20), [0, 0.1, 0], atol=1e-3)
 
 
+def test_a_registered_revisit_is_aliased_onto_the_nearest_variable_however_far_in_the_graph():
+    """A slow lap (0.2 m steps), then a fast one (1 m steps) with a loop closure every
+    8 nodes: a fast node's graph neighbours are a metre away, the old variable beside
+    it is many factors away, yet it becomes an alias of that one."""
+    rng = np.random.default_rng(5)
+    graph = PoseGraph(reduce_distance_m=0.3, reduce_lag=5, reduce_batch_nodes=1)
+    graph.add_robot("a", [0, 0, 0])
+    slow = [circle(i) for i in range(LAP)]
+    fast = [circle(i) for i in range(0, LAP, 5)]
+    truth = slow + fast
+    for i, p in enumerate(truth):
+        d = None if i == 0 else se2_between(truth[i - 1], p) + rng.normal(0, [0.005, 0.005, 5e-4])
+        graph.add_node("a", i, d, None if i == 0 else ODOM_COV)
+        if i >= LAP and (i - LAP) % 8 == 0:
+            j = 5 * (i - LAP)  # the slow node at the same place
+            graph.add_constraint(("a", j), ("a", i), se2_between(slow[j], p), LOOP_COV)
+        graph.update()
+    chain = graph._chains["a"]
+    settled = range(LAP + 1, len(truth) - 5)
+    aliased = [i for i in settled if chain.alias_key[i] >= 0]
+    assert len(aliased) >= 0.8 * len(settled)  # two factors away: only beside a closure
+    assert all(chain.alias_key[i] & ((1 << 56) - 1) < LAP for i in aliased)  # slow lap's
+    err = np.linalg.norm(graph.poses("a")[:, :2] - np.array(truth)[:, :2], axis=1)
+    assert err.max() < 0.1
+
+
 def test_passes_wait_for_a_batch_of_settled_nodes():
     graph = PoseGraph(reduce_distance_m=0.5, reduce_lag=5, reduce_batch_nodes=30)
     graph.add_robot("a", [0, 0, 0])

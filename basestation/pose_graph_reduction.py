@@ -4,28 +4,25 @@ A robot that flies over mapped ground keeps sending keyframes; if every keyframe
 a variable, iSAM2 would grow by ~4 kB per keyframe forever (Johannsson et al. 2013,
 "Temporally scalable visual SLAM using a reduced pose graph"). Here, once the graph
 has ``after_nodes`` nodes, every committed node ``lag`` keyframes behind its chain's
-newest one (its loop closures have had time to arrive) is *aliased* onto the nearest
-variable node within ``max_distance_m`` (x-y, by the current estimate) that is at most
-two factors away in the graph, of the same robot or of a robot it shares at least
-``ACROSS_MIN_CONSTRAINTS`` inter-robot constraints with (passes run once
-``batch_nodes`` such nodes wait, oldest first, and alias onto nodes already passed):
-the node's variable is removed from iSAM2, its pose becomes
-``T_map_anchor * offset`` with the offset frozen from the current estimate, and every
-factor on it is moved onto the anchor (measurement and covariance transformed). The
-two-factor rule ties a node only to places the graph already links it to (its chain
-neighbours, or nodes a loop closure joined it to): a robot revisiting ground before any
-loop closure links it there is not tied to it by proximity alone. Odometry factors that
-end up between the same two variables are fused into one (information-weighted in the
-tangent space), so revisits add no factors either: the variables and factors grow with
-the area flown, not with the time flown. Once one node of a stretch is an alias of
-another robot's variable (through an inter-robot constraint), its successor's odometry
-factor ends on that variable, so the next node is two factors from the other robot's
-next variable: a robot flying another's ground is folded onto that robot's variables
-node by node, and a team of robots over one area holds one set of variables, not one
-per robot (with inter-robot constraints iSAM2's fill-in across robots otherwise grows
-with every robot's distance flown). An alias cannot be undone, so another robot's
-variables are used only once the pair's relative placement rests on several agreeing
-matches (``ACROSS_MIN_CONSTRAINTS``), not on one PCM may still remove.
+newest one (its loop closures have had time to arrive) is *aliased* onto a variable
+node within ``max_distance_m`` (x-y, by the current estimate) that the pass has
+already gone past (passes run once ``batch_nodes`` such nodes wait, oldest first):
+the nearest one at most two factors away in the graph (its chain neighbours, or
+nodes a loop closure or inter-robot constraint joined it to); failing that, if a
+node within ``LINK_KEYFRAMES`` of it on its chain has such a constraint (its stretch
+is registered against the map there), the nearest one however far in the graph.
+Without either, a robot revisiting ground is not tied to it by proximity alone.
+Candidates are variables of the node's own robot or of a robot it shares at least
+``ACROSS_MIN_CONSTRAINTS`` inter-robot constraints with: an alias cannot be undone, so
+the pair's relative placement must rest on several agreeing matches, not on one PCM
+may still remove; a node aliased onto another robot's variable ties the two robots
+into one component for good. The node's variable is removed from iSAM2, its pose
+becomes ``T_map_anchor * offset`` with the offset frozen from the current estimate,
+and every factor on it is moved onto the anchor (measurement and covariance
+transformed). Odometry factors that end up between the same two variables are fused
+into one (information-weighted in the tangent space), so revisits add no factors
+either: the variables and factors grow with the area flown, not with the time flown,
+and a team of robots over one area holds one set of variables, not one per robot.
 Freezing offsets costs accuracy (the relations inside a cluster are dropped), so the
 base station starts only on a large graph (``basestation.reduce_after_nodes``).
 

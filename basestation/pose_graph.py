@@ -284,7 +284,9 @@ class PoseGraph(GaugeMixin, GpsMixin, ReductionMixin):
             reordered = result.getBatchReorderTriggered()
             iterations = 1
             # a merge or a GPS batch moves whole chains: settle them within this update
-            gps = any(self._factors[fid].kind == "gps" for fid in new_ids)
+            gps = bool(self._gps_robots) and any(
+                self._factors[fid].kind == "gps" for fid in new_ids
+            )
             settle = self._settle_iterations if merged or gps else 0
             for _ in range(max(extra_iterations, settle)):
                 iterations += 1

@@ -24,9 +24,8 @@ FloatArray = NDArray[np.float64]
 FactorKind = Literal["odometry", "start", "gauge", "constraint", "gps"]  # start: known-start prior
 
 
-@dataclass(frozen=True)
-class UpdateStats:
-    """What one ``PoseGraph.update`` did."""
+class UpdateStats(NamedTuple):
+    """What one ``PoseGraph.update`` did (a tuple: built once per update, cheaply)."""
 
     wall_ms: float  # whole call: iSAM2 iterations plus estimate extraction
     solve_ms: float  # iSAM2 update() calls only

@@ -44,10 +44,11 @@ Result keys:
   the comparison behind seed 002's "iSAM2 2 ms vs. batch > 600 ms for 500 nodes".
 - ``reduced``: the largest size's feed again with the reduced pose graph on from the
   first node (basestation/pose_graph_reduction.py), one entry per ``reduce_distance_m``
-  in ``REDUCED_DISTANCES_M``: the update timings, ``variables`` and ``factors`` iSAM2
-  holds at the end, and ``offset_from_batch_optimum_m_mean`` / ``_max``: how far the
-  positions end from batch LM's optimum of the whole (unreduced) graph, the price of
-  the frozen offsets.
+  in ``REDUCED_DISTANCES_M``, and a last entry with the base station's own settings
+  (``basestation.reduce_distance_m`` from ``basestation.reduce_after_nodes`` nodes on):
+  the update timings, ``variables`` and ``factors`` iSAM2 holds at the end, and
+  ``offset_from_batch_optimum_m_mean`` / ``_max``: how far the positions end from batch
+  LM's optimum of the whole (unreduced) graph, the price of the frozen offsets.
 - ``chi2``: final chi2 (sum of squared whitened residuals) of the incrementally fed
   iSAM2 and of batch LM (from the same initial guesses), whole M3500 and Intel.
 - ``sim``: a simulated 3-robot run (``simulate_team``): noisy odometry, intra- and
@@ -184,25 +185,35 @@ def split_g2o(
 
 
 def new_pose_graph(
-    cfg: Config, track_changes: bool | None = None, reduce_distance_m: float = 0.0
+    cfg: Config,
+    track_changes: bool | None = None,
+    reduce_distance_m: float = 0.0,
+    reduce_after_nodes: int = 0,
 ) -> PoseGraph:
     """A PoseGraph set up as BaseStationNode sets up its own (``track_changes`` None: the
     base station's setting), except that every node stays a variable
     (``reduce_distance_m`` 0: batch and iSAM2 are compared on the file's whole graph) or,
-    with ``reduce_distance_m`` > 0, that the reduction runs from the first node on."""
+    with ``reduce_distance_m`` > 0, that the reduction runs from ``reduce_after_nodes``
+    nodes on (0: from the first node)."""
     b = dataclasses.replace(
-        cfg.basestation, reduce_distance_m=reduce_distance_m, reduce_after_nodes=0
+        cfg.basestation,
+        reduce_distance_m=reduce_distance_m,
+        reduce_after_nodes=reduce_after_nodes,
     )
     return PoseGraph.from_config(b, track_changes)
 
 
 def feed_pose_graph(
-    cfg: Config, feed: Feed, track_changes: bool | None = None, reduce_distance_m: float = 0.0
+    cfg: Config,
+    feed: Feed,
+    track_changes: bool | None = None,
+    reduce_distance_m: float = 0.0,
+    reduce_after_nodes: int = 0,
 ) -> FeedResult:
     """Feed node by node, one update each, timing update() and the correction query
-    (``track_changes`` None: the base station's setting; ``reduce_distance_m``: see
+    (``track_changes`` None: the base station's setting; ``reduce_*``: see
     ``new_pose_graph``)."""
-    graph = new_pose_graph(cfg, track_changes, reduce_distance_m)
+    graph = new_pose_graph(cfg, track_changes, reduce_distance_m, reduce_after_nodes)
     for robot_id, start in feed.starts.items():
         graph.add_robot(robot_id, start)
     update_ms, solve_ms, cpu_ms, reorders = [], [], [], 0
@@ -323,13 +334,17 @@ def bench_reduced(
     cfg: Config, data: G2oGraph, n_nodes: int, distances_m: Sequence[float]
 ) -> list[dict[str, Any]]:
     """The same 3-robot feed with the reduced pose graph on from the first node (one
-    entry per ``reduce_distance_m``): update timings, what iSAM2 holds, and how far the
-    positions end from batch LM's optimum of the whole graph (m, mean and max)."""
+    entry per ``reduce_distance_m``), then as the base station runs it (its own
+    ``reduce_distance_m`` from its ``reduce_after_nodes`` nodes on): update timings, what
+    iSAM2 holds, and how far the positions end from batch LM's optimum of the whole
+    graph (m, mean and max)."""
     feed = split_g2o(data, n_nodes)
     optimum = reference_poses(data, n_nodes)
+    b = cfg.basestation
+    settings = [(d, 0) for d in distances_m] + [(b.reduce_distance_m, b.reduce_after_nodes)]
     entries = []
-    for distance in distances_m:
-        fed = feed_pose_graph(cfg, feed, reduce_distance_m=distance)
+    for distance, after in settings:
+        fed = feed_pose_graph(cfg, feed, reduce_distance_m=distance, reduce_after_nodes=after)
         poses = np.concatenate([fed.graph.poses(r) for r in feed.starts])
         off = np.linalg.norm(poses[:, :2] - optimum[:, :2], axis=1)
         stats = fed.graph.reduction_stats()
@@ -337,6 +352,7 @@ def bench_reduced(
             {
                 "nodes": n_nodes,
                 "reduce_distance_m": distance,
+                "reduce_after_nodes": after,
                 "variables": stats["variables"],
                 "factors": stats["factors"],
                 **percentiles("isam2_update_ms", fed.update_ms),

@@ -294,10 +294,14 @@ class BaseStationConfig:
     # Reduced pose graph (basestation/pose_graph_reduction.py): once the graph has
     # reduce_after_nodes nodes, a node reduce_lag keyframes old becomes an alias of a variable
     # within reduce_distance_m (0: never), two factors away, of its robot or of one it shares
-    # several inter-robot constraints with: memory stays flat.
+    # several inter-robot constraints with: memory stays flat. From 2,000 nodes on: below,
+    # an update stays under ~1 ms unreduced and frozen offsets would only cost accuracy
+    # (Intel, 4,078 nodes: 0.0151 m unreduced, 0.0162 m reduced from the first node);
+    # city10000 from 2,000 nodes: p95 as low as reduced from the first node, offset from
+    # the batch optimum 0.019 m instead of 0.027 m; from 10,000 nodes: p95 21 ms.
     reduce_distance_m: float = 0.5
     reduce_lag: int = 20
-    reduce_after_nodes: int = 10000
+    reduce_after_nodes: int = 2000
     prior_sigma_xy_m: float = 0.01  # m, known start pose
     prior_sigma_yaw_rad: float = 0.001  # rad
     map_update_period_s: float = 2.0  # s wall between global map refreshes

@@ -77,8 +77,11 @@ def test_run_small(cfg: Config, shared_data: Path, tmp_path: Path) -> None:
     ate = sim["ate_rms_m"]
     assert ate["isam2"] < ate["odometry"]  # loop closures help
     assert (tmp_path / "M3500_200_update_ms.txt").is_file()
-    near, *_, far = result["reduced"]  # reduce_distance_m 0.5 ... 2.0 from the first node
+    near, *_, far, default = result["reduced"]  # 0.5 ... 2.0 m from the first node, default
     assert near["reduce_distance_m"] < far["reduce_distance_m"]
+    assert near["reduce_after_nodes"] == far["reduce_after_nodes"] == 0
+    assert default["reduce_after_nodes"] == Config().basestation.reduce_after_nodes > 200
+    assert default["variables"] == default["nodes"]  # 200 nodes: the default does not reduce
     assert far["variables"] < near["variables"] < near["nodes"] == 200
     for reduced in (near, far):  # frozen offsets cost little against the whole graph's optimum
         assert 0 < reduced["offset_from_batch_optimum_m_mean"] < 0.1

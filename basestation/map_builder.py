@@ -12,7 +12,7 @@ never spends O(all keyframes) at once however large the correction. A redrawn ti
 replaces the grid's cells only when complete. `finish()` completes every pending
 tile (the map written at shutdown is consistent with the final poses).
 
-Memory per keyframe: its key, current and last drawn pose and reach (~80 bytes in
+Memory per keyframe: its key, current and last drawn pose and reach (~70 bytes in
 numpy arrays, plus the key's index entry). The scans are not kept here when a
 `scan_source` is given (the base station's keyframe store: recent scans in memory,
 older ones read back from the database); they are fetched again, a few at a time,
@@ -76,7 +76,10 @@ class MapBuilder:
         self.cfg = cfg
         self.grid: OccupancyGrid | None = None
         self._rows: dict[str, np.ndarray] = {}  # robot -> row of each index (-1: none)
-        self._keys: list[NodeKey] = []  # row -> key
+        # row -> key, as numbers (a tuple per keyframe would cost ~90 bytes)
+        self._robot_ids: list[str] = []  # robot code -> robot id
+        self._key_robot = np.zeros(0, dtype=np.int32)  # row -> robot code
+        self._key_index = np.zeros(0, dtype=np.int64)  # row -> keyframe index
         self._source = scan_source
         self._held: list[Scan2D] = []  # row -> scan, without a scan_source
         self._pose = np.zeros((0, 3))  # latest pose given, [x, y, yaw] in map
@@ -115,7 +118,9 @@ class MapBuilder:
     def _scans_of(self, idx: Sequence[int]) -> list[Scan2D]:
         if self._source is None:
             return [self._held[i] for i in idx]
-        return self._source([self._keys[i] for i in idx])
+        robots, indices = self._key_robot[idx].tolist(), self._key_index[idx].tolist()
+        keys = zip(robots, indices, strict=True)
+        return self._source([(self._robot_ids[c], i) for c, i in keys])
 
     def _draw(
         self, grid: OccupancyGrid, idx: Sequence[int], scans: Sequence[Scan2D] | None = None
@@ -146,7 +151,7 @@ class MapBuilder:
         n, k = self._n, len(keys)
         if n + k > len(self._pose):  # amortized growth
             cap = max(2 * len(self._pose), n + k, 64)
-            for name in ("_pose", "_drawn", "_reach"):
+            for name in ("_pose", "_drawn", "_reach", "_key_robot", "_key_index"):
                 old = getattr(self, name)
                 new = np.zeros((cap, *old.shape[1:]), dtype=old.dtype)
                 new[:n] = old[:n]
@@ -158,7 +163,10 @@ class MapBuilder:
                 grown[: len(rows)] = rows
                 self._rows[key[0]] = rows = grown
             rows[key[1]] = n + j
-            self._keys.append(key)
+            if key[0] not in self._robot_ids:
+                self._robot_ids.append(key[0])
+            self._key_robot[n + j] = self._robot_ids.index(key[0])
+            self._key_index[n + j] = key[1]
             if self._source is None:
                 self._held.append(scan)
             self._reach[n + j] = self._reach_of(scan)

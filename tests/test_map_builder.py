@@ -74,6 +74,30 @@ def test_moved_keyframes_rerender_only_their_region_and_match_a_full_render() ->
     assert mb.update(keys, scans, moved) is False and mb.rerenders == tiles
 
 
+def test_a_builder_reading_scans_back_by_key_draws_what_one_holding_them_draws() -> None:
+    cfg = MapConfig()
+    rng = np.random.default_rng(5)
+    n = 40
+    keys = [("b", i // 2) if i % 2 else ("a", i // 2) for i in range(n)]  # two robots
+    by_key = {k: _scan(rng) for k in keys}
+    scans = [by_key[k] for k in keys]
+    poses = _line(rng, n)
+    asked: list[tuple[str, int]] = []
+
+    def source(wanted: list[tuple[str, int]]) -> list[Scan2D]:
+        asked.extend(wanted)
+        return [by_key[k] for k in wanted]
+
+    held, read = MapBuilder(cfg), MapBuilder(cfg, scan_source=source)
+    moved = poses.copy()
+    moved[25:, 1] += 0.4  # a correction: tiles are redrawn from scans read back
+    for mb in (held, read):
+        mb.update(keys, scans, poses)
+        assert mb.update(keys, scans, moved, budget_s=None) is True
+    assert asked and set(asked) <= set(keys) and {"a", "b"} <= {k[0] for k in asked}
+    np.testing.assert_array_equal(read.grid.log_odds, held.grid.log_odds)
+
+
 def test_budgeted_rerender_finishes_to_the_same_grid_as_an_unbudgeted_one() -> None:
     cfg = MapConfig()
     rng = np.random.default_rng(2)

@@ -129,13 +129,15 @@ class LoopClosureManager:
 
     def _settle(self, group: _Group) -> None:
         """Forget the matches that left the group's PCM window: their state is final (an
-        accepted one keeps its factor in the graph, and its id in `accepted`)."""
+        accepted one keeps its factor in the graph, finalized, and its id in `accepted`)."""
         if len(group.measurements) <= group.pcm.window:
             return
         window = group.pcm.ids
         for mid in [i for i in group.measurements if i not in window]:
             del group.measurements[mid]
-            group.in_graph.pop(mid, None)
+            fid = group.in_graph.pop(mid, None)
+            if fid is not None:  # never removed now: the graph may fuse it with its peers
+                self.graph.finalize_constraint(fid)
 
     def _reconcile(self, group: _Group, consistent: set[int]) -> None:
         m0 = next(iter(group.measurements.values()))

@@ -44,6 +44,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from basestation.pose_graph_state import Chain, FloatArray, PoseGraphState, pose2
+from common.errors import CollabSlamError
 from common.geometry import se2_between, se2_compose, se2_inverse
 
 logger = logging.getLogger(__name__)
@@ -183,9 +184,10 @@ class ReductionMixin(PoseGraphState):
         self.reduction_started = False
         self._anchors: set[int] = set()  # variables other nodes are aliased onto
         self.num_aliased = 0
+        self.num_fused = 0  # final constraints fused into another between the same variables
         if self._reduce_distance > 0.0:
             self._adjacency = {}
-            self._odometry_pair = {}
+            self._pairs = {}
 
     @property
     def reducing(self) -> bool:
@@ -200,6 +202,8 @@ class ReductionMixin(PoseGraphState):
             "variables": nodes - self.num_aliased,
             "aliased": self.num_aliased,
             "factors": sum(r.factor is not None for r in self._factors.values()),
+            "factor_records": len(self._factors),  # also constraints inside one cluster
+            "fused_constraints": self.num_fused,
         }
 
     # ----- resolving keyframes to variables -------------------------------------------
@@ -344,23 +348,54 @@ class ReductionMixin(PoseGraphState):
                 moved = None
             else:
                 moved = gtsam.BetweenFactorPose2(ka, kb, pose2(z), _noise_with(noise, cov))
-            if moved is None and record.kind == "odometry":
+            fusable = record.kind == "odometry" or record.final
+            if moved is None and fusable:  # inside one variable: carries nothing, for good
                 self._drop_factor(fid)
                 continue
-            if record.kind == "odometry" and moved is not None:
-                other = self._odometry_pair.get((min(ka, kb), max(ka, kb)))
+            if fusable and moved is not None:
+                other = self._pairs.get((record.final, min(ka, kb), max(ka, kb)))
                 if other is not None and other != fid:
                     moved = self._fused(other, ka, kb, z, cov)
                     self._drop_factor(other)
+                    self.num_fused += record.final
             self._replace_factor(fid, moved)
         self._adjacency.pop(key, None)
         if self._guesses.exists(key):
             self._guesses.erase(key)
 
+    def finalize_constraint(self, factor_id: int) -> None:
+        """Constraint ``factor_id`` will never be removed (it left PCM's window, so its
+        state is final): a reducing graph fuses it with the other final constraints between
+        the same two variables, now and whenever the reduction moves one onto another's
+        pair, so these grow with the pairs of places, not with the revisits. One inside a
+        rigid cluster is forgotten. Its robots stay connected (``components``). Without the
+        reduction nothing changes."""
+        record = self._factors.get(factor_id)
+        if record is None or record.kind != "constraint" or record.final:
+            raise CollabSlamError(f"no active constraint with id {factor_id} to finalize")
+        if not self.reducing:
+            return
+        if record.factor is None:
+            self._drop_factor(factor_id)
+            return
+        self._unlink(factor_id, record)
+        record.final = True
+        ka, kb = record.factor.keys()
+        other = self._pairs.get((True, min(ka, kb), max(ka, kb)))
+        if other is None:
+            self._link(factor_id, record)
+            return
+        noise = record.factor.noiseModel()
+        fused = self._fused(other, ka, kb, _arr(record.factor.measured()), _covariance(noise))
+        self._drop_factor(factor_id)
+        self._replace_factor(other, fused)
+        self.num_fused += 1
+
     def _fused(
         self, other: int, ka: int, kb: int, z: FloatArray, cov: FloatArray
     ) -> gtsam.BetweenFactorPose2:
-        """Odometry factor ``other`` (between the same two variables) fused with z."""
+        """Factor ``other`` (odometry or a final constraint, between the same two
+        variables) fused with z; ``other``'s robust kernel, if any, is kept."""
         factor = self._factors[other].factor
         z1, cov1 = _arr(factor.measured()), _covariance(factor.noiseModel())
         if self._factors[other].keys[0] != ka:  # stored the other way round: turn it

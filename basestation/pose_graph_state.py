@@ -79,7 +79,7 @@ class Chain:
         self.alias_offset = np.concatenate([self.alias_offset, np.zeros((cap - old, 3))])
 
 
-@dataclass
+@dataclass(slots=True)
 class FactorRecord:
     """An active factor (committed to iSAM2 or pending)."""
 
@@ -88,6 +88,19 @@ class FactorRecord:
     robots: tuple[str, str] | None = None  # the two robots of an inter-robot constraint
     isam_index: int | None = None  # slot inside iSAM2 once committed
     keys: tuple[int, ...] = ()  # the factor's variables (kept only by a reducing graph)
+    final: bool = False  # a constraint that will never be removed (fused with its peers)
+
+
+PairKey = tuple[bool, int, int]  # (final constraint, else odometry; smaller key, larger key)
+
+
+def pair_key(record: FactorRecord) -> PairKey | None:
+    """Where a reducing graph files a two-variable factor that may be fused with another
+    between the same variables: odometry, and final constraints (each with its kind)."""
+    if (record.kind != "odometry" and not record.final) or len(record.keys) != 2:
+        return None
+    a, b = record.keys
+    return (record.final, min(a, b), max(a, b))
 
 
 def vec3(value: ArrayLike, name: str) -> FloatArray:
@@ -132,9 +145,10 @@ class PoseGraphState:
     _next_id: int
     _prior_noise: gtsam.noiseModel.Base  # firm prior: known starts and gauge priors
     # reducing graphs only (else None): variable -> ids of its factors, and the odometry
-    # factor between two variables (sorted keys), for pose_graph_reduction
+    # factor or the final constraint between two variables (``pair_key``), for
+    # pose_graph_reduction
     _adjacency: dict[int, set[int]] | None = None
-    _odometry_pair: dict[tuple[int, int], int] | None = None
+    _pairs: dict[PairKey, int] | None = None
 
     def _chain(self, robot_id: str) -> Chain:
         try:
@@ -179,8 +193,9 @@ class PoseGraphState:
         record.keys = tuple(record.factor.keys())
         for key in record.keys:
             self._adjacency.setdefault(key, set()).add(factor_id)
-        if record.kind == "odometry" and self._odometry_pair is not None:
-            self._odometry_pair[(min(record.keys), max(record.keys))] = factor_id
+        pair = pair_key(record)
+        if pair is not None and self._pairs is not None:
+            self._pairs[pair] = factor_id
 
     def _unlink(self, factor_id: int, record: FactorRecord) -> None:
         if self._adjacency is None or not record.keys:
@@ -191,8 +206,7 @@ class PoseGraphState:
                 fids.discard(factor_id)
                 if not fids:  # an aliased node's key: no factor left on it
                     del self._adjacency[key]
-        if record.kind == "odometry" and self._odometry_pair is not None:
-            pair = (min(record.keys), max(record.keys))
-            if self._odometry_pair.get(pair) == factor_id:
-                del self._odometry_pair[pair]
+        pair = pair_key(record)
+        if pair is not None and self._pairs is not None and self._pairs.get(pair) == factor_id:
+            del self._pairs[pair]
         record.keys = ()

@@ -38,6 +38,7 @@ def _setup(
     cfg: ConstraintConfig | None = None,
     third: bool = False,
     third_known: bool = True,
+    graph: PoseGraph | None = None,
 ):
     """Robots a (known start) and b (floating); with `third`, c too (known start: on
     a's map, unless not `third_known`), flying the square from 1 m to the side of b's
@@ -48,7 +49,7 @@ def _setup(
     if third:
         truth["c"] = _truth(START_B + [1.0, 0.0, 0.0], deltas)
         starts.append(("c", truth["c"][0] if third_known else None))
-    graph = PoseGraph()
+    graph = graph or PoseGraph()
     for rid, start in starts:
         graph.add_robot(rid, start)
         graph.add_node(rid, 0, None, None)
@@ -369,6 +370,25 @@ def test_matches_leaving_the_pcm_window_keep_their_state() -> None:
         "inter_robot_constraints": len(pairs) - 1,
         "rejected_by_pcm": 1,
     }
+    assert graph.is_anchored("b") and _max_error(graph, truth) < 0.3
+
+
+def test_matches_leaving_the_pcm_window_are_fused_between_the_same_places() -> None:
+    """A reducing graph: matches that left the window are final, and those between the
+    same two nodes become one factor (the accepted count stays what it was)."""
+    rng = np.random.default_rng(8)
+    reducing = PoseGraph(reduce_distance_m=0.3, reduce_after_nodes=10**6)  # no aliases
+    graph, manager, truth = _setup(rng, ConstraintConfig(pcm_window=3), graph=reducing)
+    pairs = [(2, 2), (7, 8), (10, 10)] + [(15, 14)] * 6
+    for i, j in pairs:
+        T = se2_compose(_true_T(truth, ("a", i), ("b", j)), rng.normal(0, 0.01, 3))
+        manager.add(("a", i), ("b", j), T, LC_COV, "inter")
+        graph.update(extra_iterations=2)
+    constraints = [f for f in graph._factors.values() if f.kind == "constraint"]
+    # 3 final at distinct places, the 3 final (15, 14) ones as one, the last 3 (window)
+    assert len(constraints) == 3 + 1 + 3
+    assert graph.reduction_stats()["fused_constraints"] == 2
+    assert manager.counts()["inter_robot_constraints"] == len(pairs)
     assert graph.is_anchored("b") and _max_error(graph, truth) < 0.3
 
 

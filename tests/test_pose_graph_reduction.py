@@ -9,6 +9,7 @@ import pytest
 from basestation.pose_graph import PoseGraph
 from basestation.pose_graph_reduction import fuse, moved_measurement
 from basestation.pose_graph_state import pose2
+from common.errors import CollabSlamError
 from common.geometry import se2_between, se2_compose
 
 ODOM_COV = np.diag([1e-4, 1e-4, 1e-5])
@@ -296,3 +297,87 @@ def test_a_late_gps_fix_on_reduced_nodes_is_dropped():
     assert graph.gps_stats()["gps_dropped_reduced"] == 1
     assert graph.gps_stats()["gps_factors"] == 0
     np.testing.assert_allclose(graph.pose("a", 39)[:2], [3.9, 0.0], atol=1e-6)
+
+
+def test_final_constraints_between_the_same_two_nodes_are_one_factor():
+    """Gaussian constraints (no kernel) fused exactly enough: same optimum, one factor."""
+    truth = [np.array([0.5 * i, 0.0, 0.0]) for i in range(10)]
+    measured = ([4.5, 0.0, 0.0], [4.52, -0.01, 0.003], [4.49, 0.02, -0.002])
+    graphs = []
+    for finalize in (False, True):
+        graph = PoseGraph(reduce_distance_m=0.3, reduce_after_nodes=1000)  # none aliased
+        graph.add_robot("a", truth[0])
+        for i in range(10):
+            d = None if i == 0 else [0.51, 0.0, 0.001]  # drifting odometry
+            graph.add_node("a", i, d, None if i == 0 else ODOM_COV)
+        ids = [graph.add_constraint(("a", 0), ("a", 9), z, LOOP_COV, robust=None) for z in measured]
+        graph.update()
+        if finalize:
+            for fid in ids:
+                graph.finalize_constraint(fid)
+            graph.update(extra_iterations=3)
+            with pytest.raises(CollabSlamError):
+                graph.remove_constraint(ids[1])  # fused into the first: no longer its own
+        graphs.append(graph)
+    plain, fused = graphs
+    loops = [r for r in fused._factors.values() if r.kind == "constraint"]
+    assert len(loops) == 1 and fused.reduction_stats()["fused_constraints"] == 2
+    np.testing.assert_allclose(fused.poses("a"), plain.poses("a"), atol=2e-4)
+
+
+def fly_with_window(graph: PoseGraph, laps: int, window: int | None) -> np.ndarray:
+    """fly_laps, with each loop closure tied to the lap-0 node 2 m further on (so its two
+    ends stay apart, on two variables), and finalized ``window`` nodes after it was added
+    (None: never), as LoopClosureManager finalizes the matches that leave PCM's window."""
+    rng = np.random.default_rng(4)
+    truth = [circle(i) for i in range(laps * LAP)]
+    added: list[tuple[int, int]] = []  # (node, factor id)
+    for i, p in enumerate(truth):
+        d = None if i == 0 else se2_between(truth[i - 1], p) + rng.normal(0, [0.01, 0.01, 0.001])
+        graph.add_node("a", i, d, None if i == 0 else ODOM_COV)
+        if i >= LAP and i % 5 == 0:
+            j = (i + 10) % LAP
+            T = se2_between(truth[j], p) + rng.normal(0, [0.01, 0.01, 0.001])
+            added.append((i, graph.add_constraint(("a", j), ("a", i), T, LOOP_COV)))
+        while window is not None and added and added[0][0] <= i - window:
+            graph.finalize_constraint(added.pop(0)[1])
+        graph.update()
+    return np.array(truth)
+
+
+def test_final_constraints_grow_with_the_places_not_with_the_revisits():
+    graphs = {}
+    for window in (None, 40):
+        graph = PoseGraph(
+            heads_last=True, reduce_distance_m=0.5, reduce_lag=10, reduce_batch_nodes=1
+        )
+        graph.add_robot("a", [0, 0, 0])
+        truth = fly_with_window(graph, 6, window)
+        graphs[window] = graph
+    kept, final = graphs[None], graphs[40]
+    n_loops = 5 * LAP // 5  # one every 5 nodes from lap 1 on
+
+    def constraints(g: PoseGraph) -> int:
+        return sum(r.kind == "constraint" and r.factor is not None for r in g._factors.values())
+
+    # 5 laps of matches between the same places: final ones fold onto a lap's worth of pairs
+    assert constraints(kept) > 0.8 * n_loops
+    assert constraints(final) < 0.45 * n_loops  # 62 of 157
+    assert final.reduction_stats()["fused_constraints"] > 0.5 * n_loops
+    assert final.reduction_stats()["factor_records"] < kept.reduction_stats()["factor_records"]
+    err = {w: np.linalg.norm(g.poses("a")[:, :2] - truth[:, :2], axis=1) for w, g in graphs.items()}
+    assert err[40].max() < 0.2 and err[40].mean() < 1.2 * err[None].mean()
+
+
+def test_a_constraint_is_finalized_once():
+    graph = PoseGraph(reduce_distance_m=0.5)
+    graph.add_robot("a", [0, 0, 0])
+    for i in range(3):
+        graph.add_node("a", i, None if i == 0 else [1.0, 0, 0], None if i == 0 else ODOM_COV)
+    fid = graph.add_constraint(("a", 0), ("a", 2), [2.0, 0, 0], LOOP_COV)
+    graph.update()
+    graph.finalize_constraint(fid)
+    with pytest.raises(CollabSlamError):
+        graph.finalize_constraint(fid)
+    with pytest.raises(CollabSlamError):
+        graph.finalize_constraint(10_000)

@@ -21,6 +21,7 @@ from __future__ import annotations
 import bisect
 import logging
 from collections import deque
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -79,7 +80,7 @@ class GpsFixQueue:
         return len(self._pending.get(robot_id, ()))
 
     def ready(
-        self, robot_id: str, node_stamps: list[float], flush: bool = False
+        self, robot_id: str, node_stamps: Sequence[float], flush: bool = False
     ) -> list[BracketedFix]:
         """Pop every fix of ``robot_id`` that two nodes now bracket (stamps increasing),
         if a batch is due (``flush``: whether or not)."""

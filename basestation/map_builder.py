@@ -12,7 +12,7 @@ never spends O(all keyframes) at once however large the correction. A redrawn ti
 replaces the grid's cells only when complete. `finish()` completes every pending
 tile (the map written at shutdown is consistent with the final poses).
 
-Memory per keyframe: its key, current and last drawn pose and reach (~70 bytes in
+Memory per keyframe: its key, current and last drawn pose and reach (~56 bytes in
 numpy arrays, plus the key's index entry). The scans are not kept here when a
 `scan_source` is given (the base station's keyframe store: recent scans in memory,
 older ones read back from the database); they are fetched again, a few at a time,
@@ -79,11 +79,13 @@ class MapBuilder:
         # row -> key, as numbers (a tuple per keyframe would cost ~90 bytes)
         self._robot_ids: list[str] = []  # robot code -> robot id
         self._key_robot = np.zeros(0, dtype=np.int32)  # row -> robot code
-        self._key_index = np.zeros(0, dtype=np.int64)  # row -> keyframe index
+        self._key_index = np.zeros(0, dtype=np.int32)  # row -> keyframe index
         self._source = scan_source
         self._held: list[Scan2D] = []  # row -> scan, without a scan_source
         self._pose = np.zeros((0, 3))  # latest pose given, [x, y, yaw] in map
-        self._drawn = np.zeros((0, 3))  # pose it was last drawn (or marked) at
+        # pose it was last drawn (or marked) at; float32: only compared with the pose (moves
+        # of a centimetre and more), and a box around it redrawn
+        self._drawn = np.zeros((0, 3), np.float32)
         self._reach = np.zeros(0, dtype=np.float32)  # farthest ray end (m)
         self._n = 0
         self._angles: dict[tuple[float, float, int], np.ndarray] = {}

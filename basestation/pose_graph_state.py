@@ -11,6 +11,7 @@ covariances 3x3 in the node's body frame (m^2 / rad^2).
 
 from __future__ import annotations
 
+from array import array
 from dataclasses import dataclass, field
 from typing import Literal, NamedTuple
 
@@ -56,11 +57,14 @@ class Chain:
     pending: list[FloatArray] = field(default_factory=list)  # initial guesses not yet inside
     gauge_factor: int | None = None  # factor id of this chain's gauge prior, if any
     start_sigmas: FloatArray | None = None  # loose start prior (GPS: virtual ENU origin)
-    stamps: list[float] | None = field(default_factory=list)  # node stamps; None: unstamped
+    # node stamps (s; float64 in an array: 8 bytes a node, not a 32-byte float object each);
+    # None: unstamped
+    stamps: array[float] | None = field(default_factory=lambda: array("d"))
     # reduced pose graph (pose_graph_reduction): node i is an alias of variable
-    # alias_key[i] (-1: its own variable) at T_anchor_node = alias_offset[i]
+    # alias_key[i] (-1: its own variable) at T_anchor_node = alias_offset[i] (float32: an
+    # offset is at most a few metres, 1e-7 of it is far below the map's resolution)
     alias_key: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
-    alias_offset: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+    alias_offset: np.ndarray = field(default_factory=lambda: np.zeros((0, 3), np.float32))
     reduce_next: int = 1  # first node the reduction pass has not looked at
     # nodes with a loop closure or inter-robot constraint (reducing graphs only)
     constrained: set[int] = field(default_factory=set)
@@ -76,7 +80,8 @@ class Chain:
             return
         cap = max(n, 2 * old, 64)
         self.alias_key = np.concatenate([self.alias_key, np.full(cap - old, -1, np.int64)])
-        self.alias_offset = np.concatenate([self.alias_offset, np.zeros((cap - old, 3))])
+        grown = np.zeros((cap - old, 3), np.float32)
+        self.alias_offset = np.concatenate([self.alias_offset, grown])
 
 
 @dataclass(slots=True)

@@ -6,6 +6,7 @@ import gtsam
 import numpy as np
 import pytest
 
+from basestation.loop_closure_manager import invert_with_covariance
 from basestation.pose_graph import PoseGraph
 from basestation.pose_graph_reduction import fuse, moved_measurement
 from basestation.pose_graph_state import pose2
@@ -311,6 +312,9 @@ def test_final_constraints_between_the_same_two_nodes_are_one_factor():
             d = None if i == 0 else [0.51, 0.0, 0.001]  # drifting odometry
             graph.add_node("a", i, d, None if i == 0 else ODOM_COV)
         ids = [graph.add_constraint(("a", 0), ("a", 9), z, LOOP_COV, robust=None) for z in measured]
+        # the same relation measured the other way round (node 0 seen from node 9)
+        z, cov = invert_with_covariance(np.array([4.51, 0.01, 0.002]), LOOP_COV)
+        ids.append(graph.add_constraint(("a", 9), ("a", 0), z, cov, robust=None))
         graph.update()
         if finalize:
             for fid in ids:
@@ -321,7 +325,7 @@ def test_final_constraints_between_the_same_two_nodes_are_one_factor():
         graphs.append(graph)
     plain, fused = graphs
     loops = [r for r in fused._factors.values() if r.kind == "constraint"]
-    assert len(loops) == 1 and fused.reduction_stats()["fused_constraints"] == 2
+    assert len(loops) == 1 and fused.reduction_stats()["fused_constraints"] == 3
     np.testing.assert_allclose(fused.poses("a"), plain.poses("a"), atol=2e-4)
 
 

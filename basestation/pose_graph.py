@@ -228,13 +228,16 @@ class PoseGraph(GaugeMixin, GpsMixin, ReductionMixin):
             robots = (min(key_a[0], key_b[0]), max(key_a[0], key_b[0]))
             self._pair_count[robots] += 1
             self._topology_changed()
-        return self._add_factor(factor, "constraint", robots)
+        fid = self._add_factor(factor, "constraint", robots)
+        if robust is not None:
+            self._factors[fid].kernel = (robust, robust_k)
+        return fid
 
     def remove_constraint(self, factor_id: int) -> None:
         """Remove a constraint returned by ``add_constraint`` at the next update."""
         record = self._factors.get(factor_id)
-        if record is None or record.kind != "constraint":
-            raise CollabSlamError(f"no active constraint with id {factor_id}")
+        if record is None or record.kind != "constraint" or record.final:
+            raise CollabSlamError(f"no active constraint with id {factor_id} (or a final one)")
         if record.robots is not None:
             self._pair_count[record.robots] -= 1
             self._topology_changed()

@@ -355,7 +355,8 @@ class ReductionMixin(PoseGraphState):
             if fusable and moved is not None:
                 other = self._pairs.get((record.final, min(ka, kb), max(ka, kb)))
                 if other is not None and other != fid:
-                    moved = self._fused(other, ka, kb, z, cov)
+                    moved = self._fused(other, ka, kb, z, cov, record.count)
+                    record.count += self._factors[other].count
                     self._drop_factor(other)
                     self.num_fused += record.final
             self._replace_factor(fid, moved)
@@ -374,6 +375,7 @@ class ReductionMixin(PoseGraphState):
         if record is None or record.kind != "constraint" or record.final:
             raise CollabSlamError(f"no active constraint with id {factor_id} to finalize")
         if not self.reducing:
+            record.final = True
             return
         if record.factor is None:
             self._drop_factor(factor_id)
@@ -386,20 +388,33 @@ class ReductionMixin(PoseGraphState):
             self._link(factor_id, record)
             return
         noise = record.factor.noiseModel()
-        fused = self._fused(other, ka, kb, _arr(record.factor.measured()), _covariance(noise))
+        z, cov = _arr(record.factor.measured()), _covariance(noise)
+        fused = self._fused(other, ka, kb, z, cov, record.count)
         self._drop_factor(factor_id)
         self._replace_factor(other, fused)
+        self._factors[other].count += record.count
         self.num_fused += 1
 
     def _fused(
-        self, other: int, ka: int, kb: int, z: FloatArray, cov: FloatArray
+        self, other: int, ka: int, kb: int, z: FloatArray, cov: FloatArray, count: int
     ) -> gtsam.BetweenFactorPose2:
         """Factor ``other`` (odometry or a final constraint, between the same two
-        variables) fused with z; ``other``'s robust kernel, if any, is kept."""
-        factor = self._factors[other].factor
+        variables) fused with z, itself ``count`` fused measurements. A robust kernel of
+        width k becomes k sqrt(n) for the n measurements in all: n agreeing residuals r
+        then cost what n separate factors did (huber_k(r) n = huber_{k sqrt n}(r sqrt n)),
+        where keeping k would down-weight them once sqrt(n) r passes k."""
+        record = self._factors[other]
+        factor = record.factor
         z1, cov1 = _arr(factor.measured()), _covariance(factor.noiseModel())
-        if self._factors[other].keys[0] != ka:  # stored the other way round: turn it
+        if record.keys[0] != ka:  # stored the other way round: turn it
             ad = _adjoint(z1)
             z1, cov1 = se2_inverse(z1), ad @ cov1 @ ad.T
         zf, covf = fuse(z1, cov1, z, cov)
-        return gtsam.BetweenFactorPose2(ka, kb, pose2(zf), _noise_with(factor.noiseModel(), covf))
+        gauss = gtsam.noiseModel.Gaussian.Covariance(0.5 * (covf + covf.T))
+        noise: gtsam.noiseModel.Base = gauss
+        if record.kernel is not None:
+            name, k = record.kernel
+            kernel = getattr(gtsam.noiseModel.mEstimator, name.capitalize())
+            width = k * np.sqrt(record.count + count)
+            noise = gtsam.noiseModel.Robust.Create(kernel.Create(width), gauss)
+        return gtsam.BetweenFactorPose2(ka, kb, pose2(zf), noise)

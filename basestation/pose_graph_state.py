@@ -59,7 +59,7 @@ class Chain:
     start_sigmas: FloatArray | None = None  # loose start prior (GPS: virtual ENU origin)
     # node stamps (s; float64 in an array: 8 bytes a node, not a 32-byte float object each);
     # None: unstamped
-    stamps: array[float] | None = field(default_factory=lambda: array("d"))
+    stamps: array | None = field(default_factory=lambda: array("d"))
     # reduced pose graph (pose_graph_reduction): node i is an alias of variable
     # alias_key[i] (-1: its own variable) at T_anchor_node = alias_offset[i] (float32: an
     # offset is at most a few metres, 1e-7 of it is far below the map's resolution)
@@ -94,6 +94,8 @@ class FactorRecord:
     isam_index: int | None = None  # slot inside iSAM2 once committed
     keys: tuple[int, ...] = ()  # the factor's variables (kept only by a reducing graph)
     final: bool = False  # a constraint that will never be removed (fused with its peers)
+    kernel: tuple[str, float] | None = None  # a constraint's robust kernel and width k
+    count: int = 1  # measurements fused into it (a final constraint's kernel: k sqrt(count))
 
 
 PairKey = tuple[bool, int, int]  # (final constraint, else odometry; smaller key, larger key)

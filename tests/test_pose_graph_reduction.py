@@ -385,3 +385,25 @@ def test_a_constraint_is_finalized_once():
         graph.finalize_constraint(fid)
     with pytest.raises(CollabSlamError):
         graph.finalize_constraint(10_000)
+
+
+def test_fused_robust_constraints_weigh_what_they_did_apart():
+    """Huber constraints far outside their kernel's quadratic zone: n fused ones (width
+    k sqrt(n)) pull exactly as the n separate ones did, not sqrt(n) times less."""
+    graphs = []
+    for finalize in (False, True):
+        graph = PoseGraph(reduce_distance_m=0.3, reduce_after_nodes=1000)
+        graph.add_robot("a", [0, 0, 0])
+        for i in range(10):
+            d = None if i == 0 else [0.5, 0.0, 0.02]  # 0.5 rad of drift by node 9
+            graph.add_node("a", i, d, None if i == 0 else ODOM_COV)
+        z = [4.5, 0.0, 0.0]
+        ids = [graph.add_constraint(("a", 0), ("a", 9), z, LOOP_COV) for _ in range(4)]
+        graph.update(extra_iterations=5)
+        if finalize:
+            for fid in ids:
+                graph.finalize_constraint(fid)
+            graph.update(extra_iterations=10)
+            assert sum(r.kind == "constraint" for r in graph._factors.values()) == 1
+        graphs.append(graph)
+    np.testing.assert_allclose(graphs[1].poses("a"), graphs[0].poses("a"), atol=1e-4)

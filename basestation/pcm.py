@@ -74,11 +74,13 @@ def _log(T: FloatArray) -> FloatArray:
     """SE(2) logarithms [v_x, v_y, omega] (..., 3) of T (..., 3) (gtsam's Pose2::Logmap)."""
     T = np.asarray(T, dtype=np.float64)
     w = wrap_angle(T[..., 2])
+    # half * cot(half) as half / tan(half): no cancellation for small angles (the form
+    # with 1 - cos(w) lost its digits there, and divided by zero below ~1e-8 rad: an
+    # infinite chi2 that rejected a perfect match)
     small = np.abs(w) < 1e-10
     half = 0.5 * w
-    ws = np.where(small, 1.0, w)
-    a = np.where(small, 1.0, 0.5 * ws * np.sin(ws) / (1.0 - np.cos(ws)))  # half * cot(half)
-    half = np.where(small, 0.0, half)
+    hs = np.where(small, 1.0, half)
+    a = np.where(small, 1.0, hs / np.tan(hs))
     x, y = T[..., 0], T[..., 1]
     return np.stack([a * x + half * y, -half * x + a * y, w], axis=-1)
 

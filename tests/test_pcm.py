@@ -267,3 +267,23 @@ def test_incremental_pcm_keeps_a_bounded_window(world):
     assert len(pcm.accepted) == window - 1  # the last wrong one is out
     with pytest.raises(CollabSlamError):
         IncrementalPcm(window=0)
+
+
+@pytest.mark.parametrize("yaw", [0.0, 1e-12, 3e-9, 1e-6, 9e-5, 1.1e-4, 0.3, -2.0, 3.14159])
+def test_se2_log_is_finite_and_exact_for_any_small_rotation(yaw: float) -> None:
+    """_log(T) = [a x + h y, -h x + a y, w] with h = w / 2, a = h cot(h): for small
+    angles against the series of h cot(h) (exact in float64 there), for large ones
+    against gtsam's Logmap."""
+    import gtsam
+
+    from basestation.pcm import _log
+
+    T = np.array([0.7, -0.4, yaw])
+    xi = _log(T)
+    if abs(yaw) < 1e-3:
+        h = 0.5 * yaw
+        a = 1.0 - h * h / 3.0 - h**4 / 45.0
+        expected = np.array([a * 0.7 + h * -0.4, -h * 0.7 + a * -0.4, yaw])
+    else:
+        expected = np.asarray(gtsam.Pose2.Logmap(gtsam.Pose2(*T)))
+    np.testing.assert_allclose(xi, expected, rtol=1e-14, atol=1e-15)

@@ -55,6 +55,11 @@ from protocol import Path as PathMsg
 
 log = logging.getLogger(__name__)
 
+# s of tile redraws between two heap trims when the outputs are written: finishing every
+# tile of a long mission at once left the redraw threads' freed temporaries in glibc's
+# arenas (resident, not live)
+OUTPUT_REDRAW_CHUNK_S = 1.0
+
 
 class BaseStationNode:
     def __init__(self, cfg: Config, bus: Bus, scenario: Scenario | None) -> None:
@@ -467,7 +472,9 @@ class BaseStationNode:
         out.mkdir(parents=True, exist_ok=True)
         self._map_dirty = True
         self.refresh_map()
-        self.map.finish()  # the written map is drawn at the final poses everywhere
+        while self.map.pending:  # the written map is drawn at the final poses everywhere
+            self.map.work(OUTPUT_REDRAW_CHUNK_S)
+            self.heap.trim()  # the redraws' freed temporaries, back to the system
         trajs = self.slam.trajectories()
         for rid, traj in trajs.items():
             write_tum(out / "trajectories" / f"{rid}.tum", traj, wgs84_origin=self.wgs84_origin)

@@ -41,10 +41,15 @@ class HeapTrimmer:
 
     def maybe_trim(self) -> bool:
         """Trim if the period has passed since the last trim; True if it trimmed."""
-        now = time.monotonic()
-        if self._trim is None or now - self._last < self.period_s:
+        if time.monotonic() - self._last < self.period_s:
             return False
-        self._last = now
+        return self.trim()
+
+    def trim(self) -> bool:
+        """Trim now (e.g. between the chunks of a long burst of work); True if it did."""
+        if self._trim is None:
+            return False
+        self._last = time.monotonic()
         self._trim(0)
         self.trims += 1
         return True

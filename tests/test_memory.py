@@ -32,3 +32,10 @@ def test_trim_at_most_once_per_period() -> None:
     trimmer._last = time.monotonic() - 3601.0
     assert trimmer.maybe_trim() and not trimmer.maybe_trim()
     assert trimmer.trims == 1
+
+
+def test_trim_now_restarts_the_period() -> None:
+    trimmer = HeapTrimmer(period_s=3600.0)
+    assert trimmer.trim() and trimmer.trims == 1  # whatever the period
+    trimmer._last -= 3599.0
+    assert not trimmer.maybe_trim()  # the forced trim started a new period

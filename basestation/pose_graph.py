@@ -42,6 +42,7 @@ from basestation.pose_graph_state import (
     UpdateStats,
     gaussian_noise,
     pose2,
+    pose_array,
     vec3,
 )
 from common.config import BaseStationConfig
@@ -52,6 +53,7 @@ logger = logging.getLogger(__name__)
 
 ROBOT_KEY_ALPHABET = "abcdefghijklmnopqrstuvwxyz"
 ROBUST_KERNELS = ("huber", "cauchy")
+GUESS_MERGE_BATCH = 64  # updates whose initial guesses are merged at once
 
 
 class PoseGraph(GaugeMixin, GpsMixin, ReductionMixin):
@@ -98,7 +100,8 @@ class PoseGraph(GaugeMixin, GpsMixin, ReductionMixin):
         self._change_epsilon = change_epsilon
         self._settle_iterations = settle_iterations
         self._track_changes = track_changes
-        self._heads_last = heads_last
+        # heads_last: every chain's newest node, kept up to date by update()
+        self._heads = gtsam.KeyGroupMap() if heads_last else None
         self._chains = {}
         self._factors = {}
         self._pending_ids = []
@@ -106,6 +109,7 @@ class PoseGraph(GaugeMixin, GpsMixin, ReductionMixin):
         self._next_id = 0
         self._init_gauges()
         self._guesses = gtsam.Values()  # every initial guess handed to iSAM2 (for batch)
+        self._new_guesses: list[gtsam.Values] = []  # the latest updates' (merged in batches)
         self._estimate = np.zeros((0, 3))  # committed poses, rows in key order
         self._estimate_valid = True  # False: recompute on the next full-estimate query
         self._init_gps(gps_weighting, max_pending_gps_fixes, gps_batch_period_s)
@@ -164,14 +168,14 @@ class PoseGraph(GaugeMixin, GpsMixin, ReductionMixin):
         if index != chain.size:
             raise CollabSlamError(f"robot {robot_id!r}: expected node {chain.size}, got {index}")
         self._check_stamp(robot_id, chain, stamp)
-        guess = None if initial_guess is None else vec3(initial_guess, "initial_guess")
+        guess = None if initial_guess is None else pose2(vec3(initial_guess, "initial_guess"))
         key = gtsam.symbol(chain.char, index)
         if index == 0:
             if delta is not None:
                 raise CollabSlamError("the first node of a chain takes no delta")
             start = chain.T_map_first
             if guess is None:
-                guess = np.zeros(3) if start is None else start
+                guess = gtsam.Pose2() if start is None else pose2(start)
             if start is not None:
                 noise = self._prior_noise
                 if chain.start_sigmas is not None:
@@ -184,8 +188,8 @@ class PoseGraph(GaugeMixin, GpsMixin, ReductionMixin):
                 raise CollabSlamError("nodes after the first need delta and covariance")
             d = vec3(delta, "delta")
             noise = gaussian_noise(covariance)
-            if guess is None:
-                guess = se2_compose(self.pose(robot_id, index - 1), d)
+            if guess is None:  # gtsam's compose: no numpy between two iSAM2 updates
+                guess = self._pose2(robot_id, chain, index - 1).compose(pose2(d))
             factor = self._between(chain, index - 1, chain, index, d, noise)
             self._add_factor(factor, "odometry")
         chain.pending.append(guess)
@@ -227,7 +231,8 @@ class PoseGraph(GaugeMixin, GpsMixin, ReductionMixin):
         if key_a[0] != key_b[0]:
             robots = (min(key_a[0], key_b[0]), max(key_a[0], key_b[0]))
             self._pair_count[robots] += 1
-            self._topology_changed()
+            if self._pair_count[robots] == 1:  # the grouping depends on which pairs are tied
+                self._topology_changed()
         fid = self._add_factor(factor, "constraint", robots)
         if robust is not None:
             self._factors[fid].kernel = (robust, robust_k)
@@ -240,7 +245,8 @@ class PoseGraph(GaugeMixin, GpsMixin, ReductionMixin):
             raise CollabSlamError(f"no active constraint with id {factor_id} (or a final one)")
         if record.robots is not None:
             self._pair_count[record.robots] -= 1
-            self._topology_changed()
+            if self._pair_count[record.robots] == 0:
+                self._topology_changed()
         self._drop_factor(factor_id)
 
     # ----- solving ------------------------------------------------------------------
@@ -252,104 +258,126 @@ class PoseGraph(GaugeMixin, GpsMixin, ReductionMixin):
         """
         t_start = time.perf_counter()
         merged = self._reconcile_gauges() if self._topology_dirty else False
+        factors, pending_ids = self._factors, self._pending_ids
+        if len(pending_ids) > 1:
+            pending_ids = dict.fromkeys(pending_ids)  # a moved factor may come twice
         new_ids = [
             fid
-            for fid in dict.fromkeys(self._pending_ids)  # a moved factor may come twice
-            if fid in self._factors and self._factors[fid].factor is not None
+            for fid in pending_ids
+            if (record := factors.get(fid)) is not None and record.factor is not None
         ]
         removals = self._pending_removals
         if not new_ids and not removals and extra_iterations == 0:
             return UpdateStats(0.0, 0.0, 0, 0, 0, 0, frozenset(), frozenset())
         graph = gtsam.NonlinearFactorGraph()
         for fid in new_ids:
-            graph.add(self._factors[fid].factor)
+            graph.add(factors[fid].factor)
         values = gtsam.Values()
         new_nodes: dict[str, int] = {}
+        heads = self._heads  # None: iSAM2's default, the keys of the new factors go last
         for robot_id, chain in self._chains.items():
             if chain.pending:
-                for i, guess in enumerate(chain.pending, start=chain.num_committed):
+                size = chain.num_committed
+                for guess in chain.pending:
                     # the keyword skips pybind's failed array conversions (~3x faster)
-                    values.insert(gtsam.symbol(chain.char, i), pose2=pose2(guess))
+                    values.insert(chain.key_base + size, pose2=guess)
+                    size += 1
                 new_nodes[robot_id] = len(chain.pending)
-
-        heads = None  # None: iSAM2's default, the keys of the new factors go last
-        if self._heads_last:
-            heads = gtsam.KeyGroupMap()
-            for chain in self._chains.values():
-                if chain.size:
-                    heads.insert2(gtsam.symbol(chain.char, chain.size - 1), 1)
+                if heads is not None:  # the chain's newest node replaces its old head
+                    if chain.num_committed:
+                        heads.erase(chain.key_base + chain.num_committed - 1)
+                    heads.insert2(chain.key_base + size - 1, 1)
 
         t_solve = time.perf_counter()
         try:
             result = self._isam.update(graph, values, removals, constrainedKeys=heads)
-            for fid, slot in zip(new_ids, result.getNewFactorsIndices(), strict=True):
-                self._factors[fid].isam_index = slot
-            reordered = result.getBatchReorderTriggered()
-            iterations = 1
+            iterations, reordered = 1, result.getBatchReorderTriggered()
             # a merge or a GPS batch moves whole chains: settle them within this update
-            gps = bool(self._gps_robots) and any(
-                self._factors[fid].kind == "gps" for fid in new_ids
+            settle = merged or (
+                self._gps_robots and any(factors[fid].kind == "gps" for fid in new_ids)
             )
-            settle = self._settle_iterations if merged or gps else 0
-            for _ in range(max(extra_iterations, settle)):
-                iterations += 1
-                extra = self._isam.update(  # force: even between relinearization skips
-                    constrainedKeys=heads, force_relinearize=True
-                )
-                reordered = reordered or extra.getBatchReorderTriggered()
-                if extra.getVariablesRelinearized() == 0:
-                    break
-            if settle:  # back-substitute now (lazy in gtsam: it would land in the next update)
-                self._isam.getDelta()
+            if settle or extra_iterations:
+                iterations, reordered = self._iterate(extra_iterations, settle, reordered)
         except RuntimeError as exc:  # e.g. gtsam's IndeterminantLinearSystemException
             raise CollabSlamError(
                 f"iSAM2 update failed, the pose graph is unusable: {exc}"
             ) from exc
         solve_ms = (time.perf_counter() - t_solve) * 1e3
+        for fid, slot in zip(new_ids, result.getNewFactorsIndices(), strict=True):
+            factors[fid].isam_index = slot
 
-        self._guesses.insert(values)
+        # Merged into the big Values in batches, not between the update and the reads of
+        # the new estimate that follow it: its map would evict iSAM2's tree from the caches.
+        self._new_guesses.append(values)
+        if len(self._new_guesses) >= GUESS_MERGE_BATCH:
+            self._committed_guesses()
         self._pending_ids, self._pending_removals = [], []
-        old_estimate, old_counts = self._estimate, [c.num_committed for c in self._chains.values()]
-        for chain in self._chains.values():
-            chain.num_committed, chain.pending = chain.size, []
-        self._estimate_valid = False
-        changed = None
+        changed, chains = None, self._chains
         if self._track_changes:  # then the previous estimate is always valid
+            old_estimate, old_counts = self._estimate, [c.num_committed for c in chains.values()]
+        for robot_id, count in new_nodes.items():
+            chain = chains[robot_id]
+            chain.num_committed, chain.pending = chain.num_committed + count, []
+        self._estimate_valid = False
+        if self._track_changes:
             changed = self._changed_robots(old_estimate, self._full_estimate(), old_counts)
-        self._reduce()  # its moved factors go to iSAM2 with the next update
+        if self.reducing:
+            self._reduce()  # its moved factors go to iSAM2 with the next update
         stats = UpdateStats(
-            wall_ms=(time.perf_counter() - t_start) * 1e3,
-            solve_ms=solve_ms,
-            iterations=iterations,
-            num_new_factors=len(new_ids),
-            num_removed_factors=len(removals),
-            num_new_nodes=sum(new_nodes.values()),
-            changed_robots=changed,
-            robots_with_new_nodes=frozenset(new_nodes),
-            batch_reordered=reordered,
-        )
-        logger.debug(
-            "iSAM2 update: %d factors, %d removed, %d nodes, %d iterations, %.2f ms (solve %.2f)",
-            stats.num_new_factors,
-            stats.num_removed_factors,
-            stats.num_new_nodes,
-            iterations,
-            stats.wall_ms,
+            (time.perf_counter() - t_start) * 1e3,  # wall_ms
             solve_ms,
+            iterations,
+            len(new_ids),  # num_new_factors
+            len(removals),  # num_removed_factors
+            sum(new_nodes.values()),  # num_new_nodes
+            changed,  # changed_robots
+            frozenset(new_nodes),  # robots_with_new_nodes
+            reordered,  # batch_reordered
         )
+        if logger.isEnabledFor(logging.DEBUG):
+            logger.debug(
+                "iSAM2 update: %d factors, %d removed, %d nodes, %d iterations, %.2f ms "
+                "(solve %.2f)",
+                *stats[3:6],
+                iterations,
+                stats.wall_ms,
+                solve_ms,
+            )
         return stats
+
+    def _iterate(self, extra: int, settle: bool, reordered: bool) -> tuple[int, bool]:
+        """``extra`` more iSAM2 iterations, or the settle iterations if more; they stop
+        early once no variable is relinearized. Returns (iterations in all, reordered)."""
+        iterations = 1
+        for _ in range(max(extra, self._settle_iterations if settle else 0)):
+            iterations += 1
+            result = self._isam.update(  # force: even between relinearization skips
+                constrainedKeys=self._heads, force_relinearize=True
+            )
+            reordered = reordered or result.getBatchReorderTriggered()
+            if result.getVariablesRelinearized() == 0:
+                break
+        if settle:  # back-substitute now (lazy in gtsam: it would land in the next update)
+            self._isam.getDelta()
+        return iterations, reordered
 
     # ----- queries ------------------------------------------------------------------
     def pose(self, robot_id: str, index: int) -> FloatArray:
         """T_map_node of one node (its initial guess while it waits for ``update``)."""
-        chain = self._node_chain(robot_id, index)
-        if index >= chain.num_committed:
-            return chain.pending[index - chain.num_committed].copy()
+        chain = self._chains.get(robot_id)
+        committed = 0 if chain is None else chain.num_committed
+        if chain is None or not 0 <= index < committed + len(chain.pending):
+            self._node_chain(robot_id, index)  # raises the error
+        if index >= committed:
+            return pose_array(chain.pending[index - committed])
         if self._estimate_valid:
             return self._estimate[self._offset(robot_id) + index].copy()
-        key, offset = self._resolve(chain, index)
-        p = self._isam.calculateEstimatePose2(key)  # O(1)-ish
-        pose = np.array([p.x(), p.y(), p.theta()])
+        offset = None
+        if index < len(chain.alias_key) and chain.alias_key[index] >= 0:
+            key, offset = self._resolve(chain, index)
+        else:  # most queries: a chain's newest node, for its correction
+            key = chain.key_base + index
+        pose = pose_array(self._isam.calculateEstimatePose2(key))  # O(1)-ish
         return pose if offset is None else se2_compose(pose, offset)
 
     def poses(self, robot_id: str) -> FloatArray:
@@ -357,7 +385,9 @@ class PoseGraph(GaugeMixin, GpsMixin, ReductionMixin):
         chain = self._chain(robot_id)
         offset = self._offset(robot_id)
         committed = self._full_estimate()[offset : offset + chain.num_committed]
-        return np.vstack([committed, *chain.pending]) if chain.pending else committed.copy()
+        if not chain.pending:
+            return committed.copy()
+        return np.vstack([committed, *(pose_array(p) for p in chain.pending)])
 
     def num_nodes(self, robot_id: str | None = None) -> int:
         if robot_id is None:
@@ -368,7 +398,8 @@ class PoseGraph(GaugeMixin, GpsMixin, ReductionMixin):
         return list(self._chains)
 
     def latest_index(self, robot_id: str) -> int | None:
-        size = self._chain(robot_id).size
+        chain = self._chains.get(robot_id) or self._chain(robot_id)  # the latter raises
+        size = chain.num_committed + len(chain.pending)
         return size - 1 if size else None
 
     def marginal_covariance(self, robot_id: str, index: int) -> FloatArray:
@@ -400,7 +431,7 @@ class PoseGraph(GaugeMixin, GpsMixin, ReductionMixin):
         if start == "current":
             return GtsamProblem(graph, self._isam.calculateEstimate())
         if start == "guess":
-            return GtsamProblem(graph, gtsam.Values(self._guesses))
+            return GtsamProblem(graph, gtsam.Values(self._committed_guesses()))
         raise CollabSlamError(f"start must be 'guess' or 'current', got {start!r}")
 
     def _split(self, values: gtsam.Values) -> dict[str, FloatArray]:
@@ -418,6 +449,21 @@ class PoseGraph(GaugeMixin, GpsMixin, ReductionMixin):
         if not 0 <= index < chain.size:
             raise CollabSlamError(f"robot {robot_id!r} has no node {index}")
         return chain
+
+    def _committed_guesses(self) -> gtsam.Values:
+        """The initial guess of every variable iSAM2 holds (merges the latest first)."""
+        for values in self._new_guesses:
+            self._guesses.insert(values)
+        self._new_guesses = []
+        return self._guesses
+
+    def _pose2(self, robot_id: str, chain: Chain, index: int) -> gtsam.Pose2:
+        """A node's pose as a gtsam Pose2 (a chain's newest nodes: without numpy)."""
+        if index >= chain.num_committed:
+            return chain.pending[index - chain.num_committed]
+        if index < len(chain.alias_key) and chain.alias_key[index] >= 0:
+            return pose2(self.pose(robot_id, index))
+        return self._isam.calculateEstimatePose2(chain.key_base + index)
 
     def _offset(self, robot_id: str) -> int:
         offset = 0

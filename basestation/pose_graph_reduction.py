@@ -166,13 +166,14 @@ class ReductionMixin(PoseGraphState):
     """Aliases per chain, factor adjacency, and the reduction pass after each update."""
 
     if TYPE_CHECKING:  # provided by PoseGraph
-        _guesses: gtsam.Values
         _isam: gtsam.ISAM2
         _gps_robots: set[str]
         _pair_count: Counter[tuple[str, str]]
         _alias_ties: set[tuple[str, str]]
 
         def _topology_changed(self) -> None: ...
+
+        def _committed_guesses(self) -> gtsam.Values: ...
 
     def _init_reduction(
         self, max_distance_m: float, lag: int, after_nodes: int, batch_nodes: int
@@ -361,8 +362,9 @@ class ReductionMixin(PoseGraphState):
                     self.num_fused += record.final
             self._replace_factor(fid, moved)
         self._adjacency.pop(key, None)
-        if self._guesses.exists(key):
-            self._guesses.erase(key)
+        guesses = self._committed_guesses()
+        if guesses.exists(key):
+            guesses.erase(key)
 
     def finalize_constraint(self, factor_id: int) -> None:
         """Constraint ``factor_id`` will never be removed (it left PCM's window, so its

@@ -11,6 +11,7 @@ covariances 3x3 in the node's body frame (m^2 / rad^2).
 
 from __future__ import annotations
 
+import math
 from array import array
 from dataclasses import dataclass, field
 from typing import Literal, NamedTuple
@@ -54,7 +55,7 @@ class Chain:
     char: str
     T_map_first: FloatArray | None  # known start, or None if the chain floats
     num_committed: int = 0  # nodes already inside iSAM2
-    pending: list[FloatArray] = field(default_factory=list)  # initial guesses not yet inside
+    pending: list[gtsam.Pose2] = field(default_factory=list)  # initial guesses not yet inside
     gauge_factor: int | None = None  # factor id of this chain's gauge prior, if any
     start_sigmas: FloatArray | None = None  # loose start prior (GPS: virtual ENU origin)
     # node stamps (s; float64 in an array: 8 bytes a node, not a 32-byte float object each);
@@ -68,6 +69,10 @@ class Chain:
     reduce_next: int = 1  # first node the reduction pass has not looked at
     # nodes with a loop closure or inter-robot constraint (reducing graphs only)
     constrained: set[int] = field(default_factory=set)
+    key_base: int = field(init=False)  # node i's key is key_base + i (gtsam.symbol(char, i))
+
+    def __post_init__(self) -> None:
+        self.key_base = gtsam.symbol(self.char, 0)
 
     @property
     def size(self) -> int:
@@ -113,7 +118,9 @@ def pair_key(record: FactorRecord) -> PairKey | None:
 def vec3(value: ArrayLike, name: str) -> FloatArray:
     """``value`` as a finite ``[x, y, yaw]`` array; CollabSlamError naming ``name`` if not."""
     arr = np.asarray(value, dtype=np.float64)
-    if arr.shape != (3,) or not np.all(np.isfinite(arr)):
+    # one sum of python floats: NaN and inf survive it (validation in plain Python leaves
+    # the CPU caches to iSAM2, whose update runs right after, see pose_graph.py)
+    if arr.shape != (3,) or not math.isfinite(sum(arr.tolist())):
         raise CollabSlamError(f"{name} must be a finite [x, y, yaw] array, got {value!r}")
     return arr
 
@@ -121,21 +128,30 @@ def vec3(value: ArrayLike, name: str) -> FloatArray:
 def gaussian_noise(covariance: ArrayLike) -> gtsam.noiseModel.Gaussian:
     """A gtsam noise model from a finite, symmetric, positive definite 3x3 covariance."""
     cov = np.asarray(covariance, dtype=np.float64)
-    if cov.shape != (3, 3) or not np.all(np.isfinite(cov)):
+    if cov.shape != (3, 3):
         raise CollabSlamError(f"covariance must be a finite 3x3 matrix, got shape {cov.shape}")
-    if np.abs(cov - cov.T).max() > 1e-9 * np.abs(cov).max():
+    (a, b, c), (d, e, f), (g, h, i) = cov.tolist()
+    if not math.isfinite(a + b + c + d + e + f + g + h + i):
+        raise CollabSlamError("covariance must be a finite 3x3 matrix, got NaN or inf")
+    largest = max(abs(a), abs(b), abs(c), abs(d), abs(e), abs(f), abs(g), abs(h), abs(i))
+    if max(abs(b - d), abs(c - g), abs(f - h)) > 1e-9 * largest:
         raise CollabSlamError("covariance must be symmetric")
-    try:
-        np.linalg.cholesky(cov)
-    except np.linalg.LinAlgError as exc:
-        raise CollabSlamError("covariance must be positive definite") from exc
-    return gtsam.noiseModel.Gaussian.Covariance(0.5 * (cov + cov.T))
+    b, c, f = 0.5 * (b + d), 0.5 * (c + g), 0.5 * (f + h)
+    det = a * (e * i - f * f) - b * (b * i - f * c) + c * (b * f - e * c)
+    if not (a > 0 and a * e - b * b > 0 and det > 0):  # Sylvester: leading minors > 0
+        raise CollabSlamError("covariance must be positive definite")
+    return gtsam.noiseModel.Gaussian.Covariance(np.array(((a, b, c), (b, e, f), (c, f, i))))
 
 
 def pose2(T: FloatArray) -> gtsam.Pose2:
     """``[x, y, yaw]`` as a gtsam Pose2."""
     x, y, yaw = T.tolist()  # python floats: pybind picks the overload at once
     return gtsam.Pose2(x, y, yaw)
+
+
+def pose_array(p: gtsam.Pose2) -> FloatArray:
+    """A gtsam Pose2 as ``[x, y, yaw]``."""
+    return np.array((p.x(), p.y(), p.theta()))
 
 
 class PoseGraphState:

@@ -210,8 +210,11 @@ def test_invalid_input_raises() -> None:
         np.diag([1.0, 1.0, -1.0]),
         np.array([[1.0, 0.5, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]]),
         np.diag([1.0, np.nan, 1.0]),
+        np.diag([1.0, np.inf, 1.0]),
         np.eye(2),
         np.zeros((3, 3)),
+        np.array([[1.0, 2.0, 0.0], [2.0, 1.0, 0.0], [0.0, 0.0, 1.0]]),  # 2x2 minor < 0
+        np.array([[1.0, 0.9, 0.9], [0.9, 1.0, -0.9], [0.9, -0.9, 1.0]]),  # only det < 0
     ]
     for cov in bad_covs:
         with pytest.raises(CollabSlamError):

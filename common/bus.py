@@ -46,7 +46,13 @@ def zenoh_config(zc: ZenohConfig) -> zenoh.Config:
         "scouting/multicast/enabled": zc.multicast_scouting,
         "scouting/gossip/enabled": zc.gossip_scouting,
     }
-    if zc.listen:
+    if zc.listen or not zc.config_file:
+        # [] listens nowhere. Zenoh's own default for a peer is every interface on a random
+        # port, and gossip then tells the others to connect there: a base station restarted
+        # after a crash opened a second link to each agent while the agent was reconnecting
+        # to it, and the pair sometimes ended with the agent's acks and keyframes lost for
+        # good (1 in 8 runs of test_basestation_recovery). It also let a peer bypass a
+        # relayed link (simulation/link_relay.py) by connecting to the agent directly.
         settings["listen/endpoints"] = zc.listen
     if zc.connect:
         settings["connect/endpoints"] = zc.connect

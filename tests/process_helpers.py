@@ -35,11 +35,15 @@ def synthetic_keyframe(
     )
 
 
-def stored_keyframes(db: Path) -> int:
-    """Keyframes in a base station's database (read-only; 0 while it does not exist)."""
+def stored_keyframes(db: Path, robot_id: str | None = None) -> int:
+    """Keyframes in a base station's database, all or one robot's (read-only; 0 while
+    it does not exist)."""
+    query, args = "SELECT count(*) FROM keyframes", ()
+    if robot_id is not None:
+        query, args = query + " WHERE robot_id = ?", (robot_id,)
     try:
         with sqlite3.connect(f"file:{db}?mode=ro", uri=True, timeout=5) as con:
-            return int(con.execute("SELECT count(*) FROM keyframes").fetchone()[0])
+            return int(con.execute(query, args).fetchone()[0])
     except sqlite3.Error:
         return 0
 

@@ -56,10 +56,16 @@ def test_basestation_killed_and_restarted_loses_nothing(tmp_path: Path) -> None:
             g.spawn(r.robot_id, agent_command(common, r.robot_id, sim_ep, base_ep))
             for r in scenario.robots
         ]
+        robots = [r.robot_id for r in scenario.robots]
         for kill in range(2):  # killed and restarted once, then run on a little
-            before = stored_keyframes(db)
+            # every robot's link must be up before the kill (its loss is checked below)
+            before = {r: stored_keyframes(db, r) for r in robots}
             wait_for(
-                lambda b=before: stored_keyframes(db) >= b + 20, 60, "keyframes", g, [sim, *agents]
+                lambda b=before: all(stored_keyframes(db, r) >= b[r] + 10 for r in robots),
+                60,
+                "keyframes of every robot",
+                g,
+                [sim, *agents],
             )
             if kill == 1:
                 break

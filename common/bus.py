@@ -54,6 +54,12 @@ def zenoh_config(zc: ZenohConfig) -> zenoh.Config:
         # good (1 in 8 runs of test_basestation_recovery). It also let a peer bypass a
         # relayed link (simulation/link_relay.py) by connecting to the agent directly.
         settings["listen/endpoints"] = zc.listen
+    if zc.listen and not zc.config_file:
+        # A process that listens (base station, simulator) only accepts links; the others
+        # connect to it. Were it to connect to peers that gossip names (e.g. a restarted
+        # base station to the simulator) while they reconnect to it, the pair would get
+        # two links at once (tests/test_links.py).
+        settings["scouting/gossip/autoconnect"] = {"router": [], "peer": []}
     if zc.connect:
         settings["connect/endpoints"] = zc.connect
     for key, value in settings.items():

@@ -15,7 +15,8 @@ Ordering: with ``heads_last`` every chain's newest node is constrained to the en
 iSAM2's elimination order (the root of the Bayes tree), so when robots take turns the
 next node of any robot re-eliminates the root clique only; the solution is the same.
 
-Parts: ``pose_graph_state`` (chain and factor records), ``pose_graph_gauge`` (robot
+Parts: ``pose_graph_state`` (chain and factor records), ``pose_graph_estimate`` (all
+poses as arrays, aliases resolved, which robots moved), ``pose_graph_gauge`` (robot
 components; one gauge prior per floating component, removed when components merge),
 ``pose_graph_gps`` (GPS fixes queued until their nodes exist, then ``gps_factor``s,
 seed 000 §III), ``isam2_params`` (ISAM2Params and the options from the config).
@@ -32,9 +33,10 @@ from numpy.typing import ArrayLike
 
 from basestation.gps_factor import GpsWeighting
 from basestation.isam2_params import make_isam2_params, pose_graph_options
+from basestation.pose_graph_estimate import EstimateMixin
 from basestation.pose_graph_gauge import GaugeMixin
 from basestation.pose_graph_gps import GpsMixin
-from basestation.pose_graph_reduction import CHAR_SHIFT, REDUCE_BATCH_NODES, ReductionMixin
+from basestation.pose_graph_reduction import REDUCE_BATCH_NODES, ReductionMixin
 from basestation.pose_graph_state import (
     Chain,
     FloatArray,
@@ -47,7 +49,7 @@ from basestation.pose_graph_state import (
 )
 from common.config import BaseStationConfig
 from common.errors import CollabSlamError
-from common.geometry import se2_compose, se2_inverse, wrap_angle
+from common.geometry import se2_compose, se2_inverse
 
 logger = logging.getLogger(__name__)
 
@@ -56,7 +58,7 @@ ROBUST_KERNELS = ("huber", "cauchy")
 GUESS_MERGE_BATCH = 64  # updates whose initial guesses are merged at once
 
 
-class PoseGraph(GaugeMixin, GpsMixin, ReductionMixin):
+class PoseGraph(EstimateMixin, GaugeMixin, GpsMixin, ReductionMixin):
     """Pose chains of several robots plus constraints between any two nodes, on iSAM2.
 
     Not thread-safe: build, update and query it from one thread. Changes (nodes,
@@ -464,58 +466,3 @@ class PoseGraph(GaugeMixin, GpsMixin, ReductionMixin):
         if index < len(chain.alias_key) and chain.alias_key[index] >= 0:
             return pose2(self.pose(robot_id, index))
         return self._isam.calculateEstimatePose2(chain.key_base + index)
-
-    def _offset(self, robot_id: str) -> int:
-        offset = 0
-        for rid, chain in self._chains.items():
-            if rid == robot_id:
-                return offset
-            offset += chain.num_committed
-        raise CollabSlamError(f"unknown robot {robot_id!r}")
-
-    def _full_estimate(self) -> FloatArray:
-        """All committed poses (one O(n) calculateEstimate, cached until the next update)."""
-        if not self._estimate_valid:
-            self._estimate = self._extract(self._isam.calculateEstimate())
-            self._estimate_valid = True
-        return self._estimate
-
-    def _extract(self, values: gtsam.Values) -> FloatArray:
-        """Every committed node's pose, chain after chain in index order."""
-        # Keys sort by (character, index), so rows come chain after chain in index order.
-        rows = np.asarray(gtsam.utilities.extractPose2(values), dtype=np.float64).reshape(-1, 3)
-        expected = sum(c.num_committed for c in self._chains.values())
-        if not self.reducing:
-            if rows.shape[0] != expected:
-                raise CollabSlamError(f"estimate has {rows.shape[0]} poses, expected {expected}")
-            return rows
-        keys = np.fromiter(values.keys(), dtype=np.int64, count=values.size())
-        out = []
-        for chain in self._chains.values():
-            n = chain.num_committed
-            chain.grow_aliases(n)
-            aliases = chain.alias_key[:n]
-            own = (ord(chain.char) << CHAR_SHIFT) + np.arange(n, dtype=np.int64)
-            src = np.where(aliases >= 0, aliases, own)
-            at = np.minimum(np.searchsorted(keys, src), max(len(keys) - 1, 0))
-            if n and (len(keys) == 0 or np.any(keys[at] != src)):
-                raise CollabSlamError(f"estimate misses nodes of chain {chain.char!r}")
-            poses = rows[at] if n else np.zeros((0, 3))
-            mask = aliases >= 0
-            poses[mask] = se2_compose(poses[mask], chain.alias_offset[:n][mask])
-            out.append(poses)
-        return np.vstack(out) if out else np.zeros((0, 3))
-
-    def _changed_robots(
-        self, old: FloatArray, new: FloatArray, old_counts: list[int]
-    ) -> frozenset[str]:
-        changed, old_off, new_off = set(), 0, 0
-        for (robot_id, chain), n_old in zip(self._chains.items(), old_counts, strict=True):
-            if n_old:
-                diff = new[new_off : new_off + n_old] - old[old_off : old_off + n_old]
-                diff[:, 2] = wrap_angle(diff[:, 2])
-                if np.abs(diff).max() > self._change_epsilon:
-                    changed.add(robot_id)
-            old_off += n_old
-            new_off += chain.num_committed
-        return frozenset(changed)

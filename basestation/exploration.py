@@ -77,6 +77,8 @@ class ExplorationManager:
     detour_factor: float = 1.5
     detour_slack_m: float = 3.0  # m
     detours_refused: int = 0
+    near_frontier_m: float = 1.5  # m of travel: a frontier this close to a robot ...
+    near_frontier_cost_m: float = 5.0  # ... costs this much more (m of travel) for it
     _failures: list[tuple[NDArray[np.float64], int]] = field(default_factory=list)
     _stopped: set[str] = field(default_factory=set)
 
@@ -356,6 +358,9 @@ class ExplorationManager:
         D = travel_distances(
             grid, np.array([poses[r][:2] for r in robots]), F, self.planner.robot_radius_m
         )
+        # a frontier right next to a robot lies in its blind sector or in another robot's
+        # shadow: it goes once the robot turns or the other moves, not worth a trip now
+        D = np.where(D < self.near_frontier_m, D + self.near_frontier_cost_m, D)
         spread = np.zeros(len(F))
         for g in busy:  # frontiers near where another robot is heading: it will see them
             spread += self.w_spread * np.maximum(0.0, self.spread_radius_m - np.hypot(*(F - g).T))

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from basestation.exploration import ExplorationManager, _along, _Task
-from basestation.frontiers import FrontierDetector
+from basestation.frontiers import Frontier, FrontierDetector
 from basestation.goal_assigner import GoalAssigner
 from basestation.map_history import MapHistory, read_map_history
 from basestation.path_planner import PathPlanner
@@ -308,3 +308,19 @@ def test_paths_are_planned_shortest_way_first_then_by_id() -> None:
     tie = {"r0": np.array([4.0, 4.0]), "r1": np.array([4.0, 1.0])}
     P_tie = {"r1": np.array([1.0, 1.0, 0.0]), "r0": np.array([1.0, 4.0, 0.0])}
     assert ex._planning_order(["r1", "r0"], tie, g, P_tie) == ["r0", "r1"]
+
+
+def test_a_frontier_right_next_to_a_robot_is_taken_last() -> None:
+    """A frontier within `near_frontier_m` of a robot (in its laser's blind sector, or in
+    another robot's shadow at the start) costs `near_frontier_cost_m` more for it: it
+    takes a real one 4 m ahead first, and the near one once nothing else is left."""
+    g = GridMap(np.zeros((200, 200), np.int8), 0.05, (0.0, 0.0, 0.0))
+    ex = ExplorationManager()
+    near, far = np.array([2.0, 2.6]), np.array([6.0, 2.0])
+    ex.frontiers = [Frontier(near, near, 20), Frontier(far, far, 20)]
+    P = {"a": np.array([2.0, 2.0, 0.0])}
+    goal = ex._goals(P, g)["a"]
+    assert goal is not None and np.allclose(goal, far)
+    ex.frontiers = ex.frontiers[:1]
+    goal = ex._goals(P, g)["a"]
+    assert goal is not None and np.allclose(goal, near)

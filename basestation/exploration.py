@@ -79,6 +79,8 @@ class ExplorationManager:
     detours_refused: int = 0
     near_frontier_m: float = 1.5  # m of travel: a frontier this close to a robot ...
     near_frontier_cost_m: float = 5.0  # ... costs this much more (m of travel) for it
+    strict_detector: FrontierDetector = field(default_factory=FrontierDetector)
+    cleanup: bool = False  # the frontiers are those of the strict map (see `step`)
     _failures: list[tuple[NDArray[np.float64], int]] = field(default_factory=list)
     _stopped: set[str] = field(default_factory=set)
 
@@ -88,17 +90,35 @@ class ExplorationManager:
         poses: dict[str, ArrayLike],
         touched: list[Box] | None = None,
         blocked: set[str] | frozenset[str] = frozenset(),
+        strict: GridMap | None = None,
     ) -> dict[str, NDArray[np.float64] | None]:
         """New paths (map frame, (N, 2)) for the robots that need one; None tells a
         robot to stop (nothing left for it). Robots not in the result keep theirs.
-        `blocked`: robots whose own safety guard holds them (they get a new path)."""
+        `blocked`: robots whose own safety guard holds them (they get a new path).
+
+        `grid` calls a cell free once it was seen free more often than hit (one look);
+        `strict`, if given, is the map as published, whose free cells were seen free
+        several times (four with the default map_server thresholds). Once `grid` has no
+        frontier left, the frontiers of `strict` are cleaned up before exploration is
+        `done`: areas only glimpsed (behind a drone's blind sector at the start, through
+        a door in passing) are looked at again. Each such frontier is visited once: one
+        still there when a robot reaches it is given up."""
         self.frontiers = [
             f for f in self._approachable(self.detector.update(grid, touched), grid)
             if not self._given_up(f.goal)
         ]  # fmt: skip
+        self.cleanup = not self.frontiers and strict is not None
+        if self.cleanup:  # what the published map still lacks (see `strict`)
+            assert strict is not None
+            self.frontiers = [
+                f for f in self._approachable(self.strict_detector.update(strict), grid)
+                if not self._given_up(f.goal)
+            ]  # fmt: skip
         P = {r: np.asarray(p, dtype=np.float64)[:3] for r, p in poses.items()}
         pm = PlanningMap(grid, self.planner.inflation_m)
         need = [r for r in P if r in blocked or self._needs_new_path(r, P, pm)]
+        if self.cleanup:  # the ones just given up by the robots standing at them
+            self.frontiers = [f for f in self.frontiers if not self._given_up(f.goal)]
         for r in set(self.tasks) - set(P):
             self.release(r)
         self.done = not self.frontiers and bool((grid.data == 0).any())  # not before a map
@@ -378,6 +398,10 @@ class ExplorationManager:
             return True
         pose = P[r]
         if np.hypot(*(pose[:2] - t.goal)) < self.goal_reached_m:
+            if self.cleanup and any(
+                np.hypot(*(f.goal - t.goal)) < self.frontier_gone_m for f in self.frontiers
+            ):  # looked at from where it is and still there: it stays as it is
+                self._failed(t.goal, self.max_failures)
             return True
         if not any(np.hypot(*(f.goal - t.goal)) < self.frontier_gone_m for f in self.frontiers):
             return True  # explored meanwhile, or no longer a frontier
@@ -393,12 +417,12 @@ class ExplorationManager:
             for g, n in self._failures
         )
 
-    def _failed(self, goal: NDArray[np.float64]) -> None:
+    def _failed(self, goal: NDArray[np.float64], count: int = 1) -> None:
         for k, (g, n) in enumerate(self._failures):
             if np.hypot(*(goal - g)) < self.frontier_gone_m:
-                self._failures[k] = (g, n + 1)
+                self._failures[k] = (g, n + count)
                 return
-        self._failures.append((goal.copy(), 1))
+        self._failures.append((goal.copy(), count))
 
     def restore_task(self, robot: str, path: ArrayLike) -> None:
         """After a restart: the robot is following `path` ((N, 2), map frame) to its end."""
@@ -416,6 +440,7 @@ def make_explorer(cfg: Config) -> ExplorationManager:
     e = cfg.exploration
     return ExplorationManager(
         detector=FrontierDetector(e.frontier_radius_m, min_group_cells=e.min_frontier_cells),
+        strict_detector=FrontierDetector(e.frontier_radius_m, min_group_cells=e.min_frontier_cells),
         assigner=GoalAssigner(AssignmentWeights(e.w_distance, e.w_heading, e.w_previous)),
         planner=PathPlanner(
             e.inflation_m, e.robot_clearance_m, e.planning_time_s, check_budget=e.planning_checks

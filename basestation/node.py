@@ -308,7 +308,7 @@ class BaseStationNode:
         out: list[tuple[str, bytes]] = []
         batch = Batch()
         t0 = time.perf_counter()
-        paths = self.explorer.step(grid, poses, blocked=blocked)
+        paths = self.explorer.step(grid, poses, blocked=blocked, strict=self.map.gridmap())
         self._explore_ms.append((time.perf_counter() - t0) * 1e3)
         for rid, path in paths.items():
             self._path_id += 1

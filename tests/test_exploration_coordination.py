@@ -324,3 +324,31 @@ def test_a_frontier_right_next_to_a_robot_is_taken_last() -> None:
     ex.frontiers = ex.frontiers[:1]
     goal = ex._goals(P, g)["a"]
     assert goal is not None and np.allclose(goal, near)
+
+
+def test_what_the_published_map_still_lacks_is_looked_at_once_before_done() -> None:
+    """With no frontier left on the exploration grid (a cell is free after one look), the
+    strict map's frontiers (the published map: free after several looks) are visited
+    before exploration is done; one still there when the robot reaches it is given up."""
+    data = np.zeros((200, 200), np.int8)  # 10 x 10 m room, walls all round
+    data[:2, :] = data[-2:, :] = data[:, :2] = data[:, -2:] = 100
+    grid = GridMap(data, 0.05, (0.0, 0.0, 0.0))
+    weak = data.copy()
+    weak[140:160, 140:160] = -1  # 7-8 m: seen once only (behind the start, in passing)
+    strict = GridMap(weak, 0.05, (0.0, 0.0, 0.0))
+    ex = ExplorationManager()
+    P = {"a": np.array([2.0, 2.0, 0.0])}
+    assert ex.step(grid, P) == {"a": None} and ex.done  # without the strict map: done
+    ex = ExplorationManager()
+    out = ex.step(grid, P, strict=strict)
+    path = out["a"]
+    assert ex.cleanup and not ex.done and path is not None
+    goal = ex.tasks["a"].goal
+    assert 6.5 <= goal[0] <= 8.5 and 6.5 <= goal[1] <= 8.5
+    visits = 0  # each edge of the patch is a frontier: each is looked at from its goal
+    while not ex.done and visits < 10:
+        P["a"] = np.array([*ex.tasks["a"].goal, 0.0])  # there: the map still lacks it
+        out = ex.step(grid, P, strict=strict)
+        visits += 1
+    assert ex.done and not ex.frontiers and out == {"a": None}
+    assert 1 <= visits <= 4 and len(ex._failures) == visits

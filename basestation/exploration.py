@@ -10,9 +10,10 @@ assigned jointly (eq. 3, `GoalAssigner`) and each path is planned with RRT*
 (`PathPlanner`) around the other robots and their paths, unless they make it a long
 detour (then the robot waits or goes elsewhere). A frontier the map itself kept a
 robot from reaching `max_failures` times is given up (one only blocked by other
-robots for now is not). When no frontier is left, `done` is True (exploration
-halts) until a new map brings more; a robot that goes silent is `release`d and its
-goal becomes free.
+robots for now is not). When no frontier is left (first those of the exploration
+grid, then those of the published map, visited once each: `step`), `done` is True
+(exploration halts) until a new map brings more; a robot that goes silent is
+`release`d and its goal becomes free.
 
 Pure logic over numpy arrays: the base station node feeds it and sends the paths,
 transformed into each robot's `odom` frame (`common.geometry.map_to_odom`).

@@ -80,7 +80,9 @@ def build_summary(
 
 
 def _coverage_over_time(out: Path, world_yaml: Path, sim_end_s: float | None) -> dict[str, Any]:
-    """time_to_95_s and the coverage curve of the reachable free area, from the base
+    """time_to_95_s and the coverage curve of the reachable free area (`map_coverage`:
+    free, or wall surface within a cell or two of a real wall; `time_to_95_free_only_s`
+    counts free cells only, as this metric did before), from the base
     station's map history (lock-step exploration runs only). The final map, which
     holds every keyframe taken before the simulation stopped, is the curve's last
     point at the end time: the snapshot before it lags the robots by the keyframes
@@ -94,8 +96,11 @@ def _coverage_over_time(out: Path, world_yaml: Path, sim_end_s: float | None) ->
     if sim_end_s is not None and (out / "map.yaml").is_file():
         if not history or sim_end_s > history[-1][0]:
             history.append((float(sim_end_s), read_map(out / "map.yaml")))
-    t, c = coverage_curve(history, world, reachable_free(world, starts))
+    region = reachable_free(world, starts)
+    t, c = coverage_curve(history, world, region)
+    _, c_free = coverage_curve(history, world, region, wall_tolerance_m=0.0)
     return {
         "time_to_95_s": time_to_coverage(t, c, 0.95),
+        "time_to_95_free_only_s": time_to_coverage(t, c_free, 0.95),
         "coverage_curve": [[float(a), round(float(b), 4)] for a, b in zip(t, c, strict=True)],
     }

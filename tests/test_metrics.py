@@ -105,6 +105,26 @@ def test_coverage() -> None:
         map_coverage(world, empty)
 
 
+def test_coverage_counts_the_wall_surface_but_not_a_wall_where_there_is_none() -> None:
+    world = _world()
+    m, wall = int(1 / RES), int(6 / RES)  # margin cells; the inner wall's first column
+    n_free = np.count_nonzero(world.free_mask())
+    thick = world.data.copy()
+    thick[m : m + int(3 / RES), wall - 2 : wall] = 100  # 2 cells of surface, up to the door
+    drawn = GridMap(thick, RES, world.origin)
+    lost = np.count_nonzero(world.free_mask() & ~drawn.free_mask())
+    assert lost > 0
+    assert map_coverage(drawn, world) == 1.0  # seen, and right within the tolerance
+    assert map_coverage(drawn, world, wall_tolerance_m=0.0) == pytest.approx(1 - lost / n_free)
+
+    ghost = world.data.copy()
+    ghost[m + 20 : m + 40, m + 20 : m + 40] = 100  # a wall in the middle of a room
+    cov = map_coverage(GridMap(ghost, RES, world.origin), world)
+    assert cov == pytest.approx(1 - 400 / n_free)
+    with pytest.raises(CollabSlamError, match="wall_tolerance_m"):
+        map_coverage(world, world, wall_tolerance_m=-0.1)
+
+
 def test_accuracy_perfect_shifted_and_resampled() -> None:
     world = _world()
     assert map_accuracy(world, world) == 1.0

@@ -1,4 +1,5 @@
-"""MapHistory: snapshots of the free cells over sim time, bounded for long missions."""
+"""MapHistory: snapshots of the free and occupied cells over sim time, bounded for long
+missions."""
 
 from __future__ import annotations
 
@@ -11,9 +12,12 @@ from common.map_io import GridMap
 
 
 def _grid(k: int) -> GridMap:
-    """A 6 x 10 grid whose first k cells (row-major) are free, the rest unknown."""
+    """A 6 x 10 grid whose first k cells (row-major) are free, the last one occupied
+    (uncertain, 70, from k = 5 on), the rest unknown."""
     data = np.full(60, -1, dtype=np.int8)
     data[:k] = 0
+    if k >= 5:
+        data[-1] = 70
     return GridMap(data.reshape(6, 10), 0.05, (1.0, 2.0, 0.0))
 
 
@@ -26,6 +30,25 @@ def test_unbounded_keeps_every_snapshot(tmp_path: Path) -> None:
     back = read_map_history(tmp_path / "h.npz")
     assert [t for t, _ in back] == [float(k) for k in range(30)]
     assert int((back[17][1].data == 0).sum()) == 17
+    assert back[17][1].occupied_mask().sum() == 1 and back[17][1].data[-1, -1] == 100
+    assert not back[4][1].occupied_mask().any()
+    assert np.array_equal(back[17][1].known_mask(), _grid(17).known_mask())
+
+
+def test_a_file_of_free_cells_only_still_reads(tmp_path: Path) -> None:
+    """Files written before the occupied cells were kept: free and unknown."""
+    bits = np.packbits(np.r_[np.ones(3, bool), np.zeros(57, bool)])
+    np.savez_compressed(
+        tmp_path / "old.npz",
+        stamps=np.array([2.0]),
+        shapes=np.array([[6, 10]]),
+        origins=np.array([[1.0, 2.0]]),
+        lengths=np.array([len(bits)]),
+        bits=bits,
+        resolution=np.array(0.05),
+    )
+    ((t, g),) = read_map_history(tmp_path / "old.npz")
+    assert t == 2.0 and int((g.data == 0).sum()) == 3 and int((g.data == -1).sum()) == 57
 
 
 def test_bounded_history_thins_to_an_even_stride(tmp_path: Path) -> None:

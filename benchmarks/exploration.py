@@ -84,28 +84,35 @@ def run_mission(
     }
 
 
-def _mean_time(rows: list[dict[str, Any]], n: int, max_sim_time: float) -> float | None:
-    """Mean time to 95 % over the seeds (a run that never got there counts as max time)."""
-    ts = [r["time_to_95_s"] or max_sim_time for r in rows if r["robots"] == n]
-    return float(np.mean(ts)) if ts else None
+def _times(rows: list[dict[str, Any]], n: int, max_sim_time: float) -> list[float]:
+    """Times to 95 % of the n-robot runs (a run that never got there counts as max time)."""
+    return [r["time_to_95_s"] or max_sim_time for r in rows if r["robots"] == n]
 
 
 def speedups(
     result: dict[str, list[dict[str, Any]]], counts: list[int], max_sim_time: float
 ) -> dict[str, Any]:
-    """Team speed-ups over one drone (same strategy) and ours over the baseline."""
+    """Team speed-ups over one drone (same strategy) and ours over the baseline, on the
+    means over the seeds and on the medians (one run that got stuck, a baseline's
+    deadlock, moves the mean by its whole max time)."""
     out: dict[str, Any] = {}
-    for name, rows in result.items():
-        t1 = _mean_time(rows, 1, max_sim_time)
+    for stat, f in (("mean", np.mean), ("median", np.median)):
+        sep = "" if stat == "mean" else "median_"
+        for name, rows in result.items():
+            t = {n: float(f(ts)) if (ts := _times(rows, n, max_sim_time)) else None for n in counts}
+            t1 = _times(rows, 1, max_sim_time)
+            t1 = float(f(t1)) if t1 else None
+            for n in counts:
+                out[f"{name}_{stat}_time_to_95_s_{n}"] = t[n]
+                if t1 and t[n] and n > 1:
+                    out[f"{name}_{sep}speedup_{n}"] = round(t1 / t[n], 3)
         for n in counts:
-            tn = _mean_time(rows, n, max_sim_time)
-            out[f"{name}_mean_time_to_95_s_{n}"] = tn
-            if t1 and tn and n > 1:
-                out[f"{name}_speedup_{n}"] = round(t1 / tn, 3)
-    for n in counts:
-        a, b = out.get(f"ours_mean_time_to_95_s_{n}"), out.get(f"baseline_mean_time_to_95_s_{n}")
-        if a and b:
-            out[f"ours_faster_than_baseline_pct_{n}"] = round(100.0 * (b - a) / b, 1)
+            a, b = (
+                out.get(f"ours_{stat}_time_to_95_s_{n}"),
+                out.get(f"baseline_{stat}_time_to_95_s_{n}"),
+            )
+            if a and b:
+                out[f"ours_faster_than_baseline_{sep}pct_{n}"] = round(100.0 * (b - a) / b, 1)
     return out
 
 

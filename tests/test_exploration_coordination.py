@@ -243,6 +243,12 @@ def test_bench_speedups_from_rows() -> None:
     assert s["ours_speedup_3"] == 3.0
     assert s["baseline_speedup_3"] == 0.6  # never reached: counted as the max sim time
     assert s["ours_faster_than_baseline_pct_3"] == 80.0
+    rows["ours"] += [{"robots": 3, "time_to_95_s": 30.0}, {"robots": 3, "time_to_95_s": None}]
+    rows["baseline"] += [{"robots": 3, "time_to_95_s": 40.0}, {"robots": 3, "time_to_95_s": 50.0}]
+    s = speedups(rows, [1, 3], max_sim_time=100.0)
+    assert s["ours_mean_time_to_95_s_3"] == 50.0 and s["ours_median_time_to_95_s_3"] == 30.0
+    assert s["ours_median_speedup_3"] == 2.0 and s["baseline_median_time_to_95_s_3"] == 50.0
+    assert s["ours_faster_than_baseline_median_pct_3"] == 40.0
 
 
 def _door_floor() -> GridMap:

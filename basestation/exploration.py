@@ -31,6 +31,7 @@ from basestation.frontiers import Box, Frontier, FrontierDetector
 from basestation.goal_assigner import AssignmentWeights, GoalAssigner
 from basestation.path_planner import PathPlanner, PlanningMap, path_length
 from basestation.travel_distance import travel_distances
+from basestation.visibility import seen_from, viewpoints
 from common.config import Config
 from common.map_io import GridMap
 
@@ -80,10 +81,14 @@ class ExplorationManager:
     detours_refused: int = 0
     near_frontier_m: float = 1.5  # m of travel: a frontier this close to a robot ...
     near_frontier_cost_m: float = 5.0  # ... costs this much more (m of travel) for it
+    seen_range_m: float = 6.0  # m: another robot's path sees frontiers this far ...
+    seen_fov_deg: float = 270.0  # ... in this field of view around its flight direction ...
+    seen_cost_m: float = 5.0  # ... and those cost this much more (0: off)
     strict_detector: FrontierDetector = field(default_factory=FrontierDetector)
     cleanup: bool = False  # the frontiers are those of the strict map (see `step`)
     _failures: list[tuple[NDArray[np.float64], int]] = field(default_factory=list)
     _stopped: set[str] = field(default_factory=set)
+    _unplanned: set[str] = field(default_factory=set)  # this step's robots still to plan
 
     def step(
         self,
@@ -145,14 +150,18 @@ class ExplorationManager:
             return {}
         for r in need:
             self.tasks.pop(r, None)
-        goals = self._goals({r: P[r] for r in need}, grid)
+        goals = self._goals({r: P[r] for r in need}, grid, P)
         need = self._planning_order(need, goals, grid, P)
-        out = {r: self._plan(r, goals.get(r), grid, P) for r in need}
+        self._unplanned = set(need)
+        out = {}
+        for r in need:
+            self._unplanned.discard(r)
+            out[r] = self._plan(r, goals.get(r), grid, P)
         if self.coordinated and any(p is not None for p in out.values()):
             # robots planned before another got its path saw that one as standing still:
             # now it is on its way (judged in time), the way may be open
             for r in [r for r in need if out[r] is None]:
-                out[r] = self._plan(r, self._goals({r: P[r]}, grid).get(r), grid, P)
+                out[r] = self._plan(r, self._goals({r: P[r]}, grid, P).get(r), grid, P)
         if self.coordinated:  # robots left without a frontier move up behind the others
             for r in [r for r in need if out[r] is None]:
                 out[r] = self._support(r, grid, P)
@@ -161,7 +170,7 @@ class ExplorationManager:
             for r in [r for r in P if r not in out and r in self.tasks]:
                 if self._conflict(r, self._remaining(r, P[r]), P):
                     self.tasks.pop(r)
-                    out[r] = self._plan(r, self._goals({r: P[r]}, grid).get(r), grid, P)
+                    out[r] = self._plan(r, self._goals({r: P[r]}, grid, P).get(r), grid, P)
         for r, path in out.items():
             task = self.tasks.get(r)
             log.debug(
@@ -264,7 +273,7 @@ class ExplorationManager:
             tried.append(goal)
             if not self.coordinated or len(tried) > self.alternatives:
                 return None
-            goal = self._goals({r: P[r]}, grid, exclude=tried).get(r)
+            goal = self._goals({r: P[r]}, grid, P, exclude=tried).get(r)
         return None
 
     def _path_among_others(
@@ -300,8 +309,10 @@ class ExplorationManager:
         in_way = [o for o in P if o != r and not self.planner.clear_of(grid, alone, [P[o][:2]])]
         if (not in_way or not discs) and not self._conflict(r, alone, P):
             return alone  # the others were not in the way after all (or RRT* went round)
-        if not all(o in self.tasks and not self.tasks[o].support for o in in_way):
-            return path  # one in the way stays there (no goal of its own): go round
+        if not all(
+            o in self._unplanned or (o in self.tasks and not self.tasks[o].support) for o in in_way
+        ):  # one in the way stays there (no goal of its own): go round; one that gets
+            return path  # its path later in this step is not judged yet: wait for it
         self.detours_refused += 1
         return None
 
@@ -336,8 +347,9 @@ class ExplorationManager:
         at cruise speed, over the next `horizon_s`. Points within the clearance of r's
         own start are not judged (robots that are already close move apart), except its
         end, where it will hover. The others are also checked `lag_s` behind their
-        schedule: one slowed by a turn or still speeding up must not be caught up by a
-        robot following it."""
+        schedule (one slowed by a turn or still speeding up must not be caught up by a
+        robot following it) and `lag_s` ahead of it (r itself slowed: one that got to
+        the end of its path early must not be passed within the clearance)."""
         t = np.arange(0.0, self.horizon_s, 0.1)
         mine = _along(path, self.speed_mps * t)
         near_start = np.hypot(*(mine - P[r][:2]).T) <= self.planner.robot_clearance_m
@@ -346,7 +358,7 @@ class ExplorationManager:
         for o, q in P.items():
             if o == r:
                 continue
-            for lag in (0.0, self.lag_s) if o in self.tasks else (None,):
+            for lag in (0.0, self.lag_s, -self.lag_s) if o in self.tasks else (None,):
                 theirs = (
                     q[:2] if lag is None
                     else _along(self._remaining(o, q), self.speed_mps * np.maximum(t - lag, 0.0))
@@ -360,11 +372,14 @@ class ExplorationManager:
         self,
         poses: dict[str, NDArray[np.float64]],
         grid: GridMap,
+        P: dict[str, NDArray[np.float64]],
         exclude: list[NDArray[np.float64]] | None = None,
     ) -> dict[str, NDArray[np.float64] | None]:
+        """Goals for the robots in `poses` (eq. 3, jointly; P: every robot's pose)."""
         if not self.coordinated:
             return self.assigner.nearest(poses, [f.goal for f in self.frontiers])
-        busy = [t.goal for r, t in self.tasks.items() if r not in poses and not t.support]
+        flying = [r for r, t in self.tasks.items() if r not in poses and not t.support]
+        busy = [self.tasks[r].goal for r in flying]
         # a frontier this close to another robot's goal is that robot's to see
         near = self.busy_radius_factor * self.planner.robot_clearance_m
         candidates = [
@@ -385,6 +400,15 @@ class ExplorationManager:
         spread = np.zeros(len(F))
         for g in busy:  # frontiers near where another robot is heading: it will see them
             spread += self.w_spread * np.maximum(0.0, self.spread_radius_m - np.hypot(*(F - g).T))
+        if self.seen_cost_m > 0.0 and flying:  # ... or in sight of its way there
+            seen = np.zeros(len(F), dtype=bool)
+            for r in (r for r in flying if r in P):
+                points, headings = viewpoints(self._remaining(r, P[r]), 0.5)
+                fov = np.radians(self.seen_fov_deg)
+                seen |= seen_from(grid, points, headings, F, self.seen_range_m, fov)
+            spread += self.seen_cost_m * seen
+            if seen.any():
+                log.debug("in sight of %s's way: %s", flying, np.round(F[seen], 1).tolist())
         return self.assigner.assign(poses, candidates, dict(zip(robots, D, strict=True)), spread)
 
     def _remaining(self, robot: str, pose: NDArray[np.float64]) -> NDArray[np.float64]:
@@ -450,6 +474,9 @@ def make_explorer(cfg: Config) -> ExplorationManager:
         w_spread=e.w_spread,
         speed_mps=cfg.agent.cruise_speed_mps,
         spread_radius_m=e.spread_radius_m,
+        seen_range_m=e.seen_range_m,
+        seen_fov_deg=e.seen_fov_deg,
+        seen_cost_m=e.seen_cost_m,
     )
 
 

@@ -353,6 +353,11 @@ class ExplorationConfig:
     # robot is flying to costs w_spread per m inside (that robot will likely see it).
     w_spread: float = 1.0  # per m
     spread_radius_m: float = 5.0  # m
+    # ... and one in line of sight of the rest of its path, within seen_range_m and the
+    # laser's field of view around its flight direction, costs seen_cost_m (0: off).
+    seen_range_m: float = 6.0  # m
+    seen_fov_deg: float = 270.0  # deg
+    seen_cost_m: float = 5.0  # m of travel
     inflation_m: float = 0.35  # m, no-collision zone around obstacles
     robot_clearance_m: float = 1.0  # m, disc around other robots and their paths
     # RRT* work per path: validity checks (~0.2 s here), so plans do not depend on the

@@ -261,10 +261,17 @@ def _door_floor() -> GridMap:
     return GridMap(data, 0.05, (0.0, 0.0, 0.0))
 
 
-@pytest.mark.parametrize("b", ["leaving_the_door", "coming_through_the_door", "idle_in_the_door"])
+@pytest.mark.parametrize(
+    "b", ["leaving_the_door", "coming_through_the_door", "idle_in_the_door", "planned_next"]
+)
 def test_a_robot_in_the_door_is_followed_or_waited_for_not_flown_around(b: str) -> None:
+    """planned_next: b stands in the door with no path yet, but gets one later in this
+    step (the start of a mission: every robot needs one): it will move, so a waits for
+    it instead of flying round the wall (`step` tries a again after b)."""
     g = _door_floor()
     m = ExplorationManager(planner=PathPlanner(0.35, 1.0, 0.2))
+    if b == "planned_next":
+        m._unplanned = {"b"}
     goal = np.array([5.0, 8.0])
     P = {"a": np.array([2.6, 1.3, np.pi / 2])}
     if b == "coming_through_the_door":  # head-on: a's way is b's route (to 1.3 m short of a)
@@ -285,7 +292,8 @@ def test_a_robot_in_the_door_is_followed_or_waited_for_not_flown_around(b: str) 
         assert path is not None and float(np.hypot(*np.diff(path, axis=0).T).sum()) < 9.0
         assert m.detours_refused == 0 and not m._conflict("a", path, P)
         return
-    # b comes head-on: the way round the wall's end is refused, a waits or goes elsewhere
+    # b comes head-on (or is planned next): the way round the wall's end is refused, a
+    # waits or goes elsewhere
     assert path is None
     assert m.detours_refused >= 1 and m.unreachable == 1
     assert not m._failures  # the map itself does not block the goal: not given up
@@ -325,10 +333,10 @@ def test_a_frontier_right_next_to_a_robot_is_taken_last() -> None:
     near, far = np.array([2.0, 2.6]), np.array([6.0, 2.0])
     ex.frontiers = [Frontier(near, near, 20), Frontier(far, far, 20)]
     P = {"a": np.array([2.0, 2.0, 0.0])}
-    goal = ex._goals(P, g)["a"]
+    goal = ex._goals(P, g, P)["a"]
     assert goal is not None and np.allclose(goal, far)
     ex.frontiers = ex.frontiers[:1]
-    goal = ex._goals(P, g)["a"]
+    goal = ex._goals(P, g, P)["a"]
     assert goal is not None and np.allclose(goal, near)
 
 
@@ -358,3 +366,33 @@ def test_what_the_published_map_still_lacks_is_looked_at_once_before_done() -> N
         visits += 1
     assert ex.done and not ex.frontiers and out == {"a": None}
     assert 1 <= visits <= 4 and len(ex._failures) == visits
+
+
+def test_a_robot_running_late_does_not_pass_close_to_where_another_stops() -> None:
+    """o flies 5 m east and hovers at (5, 0); r's way north passes 0.6 m from there,
+    on schedule before o arrives (2.2 m apart at the closest). Flown 1.2 s late (a
+    turn, speeding up), r would meet o already hovering: a conflict."""
+    m = ExplorationManager()
+    P = {"o": np.array([0.0, 0.0, 0.0]), "r": np.array([5.6, -2.5, np.pi / 2])}
+    m.tasks["o"] = _Task(np.array([5.0, 0.0]), np.array([[0.0, 0.0], [5.0, 0.0]]))
+    path = np.array([[5.6, -2.5], [5.6, 8.0]])
+    assert m._conflict("r", path, P)
+    m.lag_s = 0.0  # on schedule only: they keep 2.2 m apart
+    assert not m._conflict("r", path, P)
+
+
+def test_a_frontier_another_robot_will_see_on_its_way_is_left_to_it() -> None:
+    """o flies along y = 1 m; frontier A (3 m ahead of r) lies in sight of o's way, B
+    (3.5 m behind r) does not: r takes B, and A without the visibility cost."""
+    g = GridMap(np.zeros((200, 200), np.int8), 0.05, (0.0, 0.0, 0.0))
+    ex = ExplorationManager()
+    a, b = np.array([5.0, 2.0]), np.array([5.0, 8.5])
+    ex.frontiers = [Frontier(a, a, 20), Frontier(b, b, 20)]
+    P = {"o": np.array([1.0, 1.0, 0.0]), "r": np.array([5.0, 5.0, -np.pi / 2])}
+    ex.tasks["o"] = _Task(np.array([9.0, 1.0]), np.array([[1.0, 1.0], [9.0, 1.0]]))
+    goal = ex._goals({"r": P["r"]}, g, P)["r"]
+    assert goal is not None and np.allclose(goal, b)
+    ex.seen_cost_m = 0.0
+    ex.assigner.release("r")  # no previous goal to stay near
+    goal = ex._goals({"r": P["r"]}, g, P)["r"]
+    assert goal is not None and np.allclose(goal, a)

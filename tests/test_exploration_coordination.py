@@ -396,3 +396,22 @@ def test_a_frontier_another_robot_will_see_on_its_way_is_left_to_it() -> None:
     ex.assigner.release("r")  # no previous goal to stay near
     goal = ex._goals({"r": P["r"]}, g, P)["r"]
     assert goal is not None and np.allclose(goal, a)
+
+
+def test_a_path_planned_before_another_robot_held_is_checked_again() -> None:
+    """b got its path earlier in the step while a was to fly away; a then holds where
+    it is, 0.6 m beside b's path: b is re-planned (around a, or holds), not left to
+    fly past it."""
+    g = GridMap(np.zeros((200, 200), np.int8), 0.05, (0.0, 0.0, 0.0))
+    m = ExplorationManager(planner=PathPlanner(0.35, 1.0, 0.2))
+    m.frontiers = [Frontier(np.array([8.0, 5.0]), np.array([8.0, 5.0]), 20)]
+    P = {"a": np.array([5.0, 5.6, 0.0]), "b": np.array([2.0, 5.0, 0.0])}
+    straight = np.array([[2.0, 5.0], [8.0, 5.0]])
+    m.tasks["b"] = _Task(np.array([8.0, 5.0]), straight)
+    out: dict[str, np.ndarray | None] = {"b": straight, "a": None}
+    assert m._conflict("b", straight, P)
+    m._recheck(out, g, P)
+    assert out["b"] is None or not np.array_equal(out["b"], straight)
+    if out["b"] is not None:
+        assert not m._conflict("b", out["b"], P)
+        assert m.planner.clear_of(g, out["b"], [P["a"][:2]])

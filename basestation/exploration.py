@@ -30,6 +30,7 @@ from numpy.typing import ArrayLike, NDArray
 from basestation.frontiers import Box, Frontier, FrontierDetector
 from basestation.goal_assigner import AssignmentWeights, GoalAssigner
 from basestation.path_planner import PathPlanner, PlanningMap, path_length
+from basestation.path_schedule import points_along, schedule_conflict
 from basestation.travel_distance import travel_distances
 from basestation.visibility import seen_from, viewpoints
 from common.config import Config
@@ -252,7 +253,7 @@ class ExplorationManager:
                 continue  # none, or only the long way round another robot
             length = path_length(path)
             for cut in np.arange(length - keep, self.support_min_m - 1e-9, -0.5):
-                prefix = _along(path, np.linspace(0.0, cut, max(2, int(cut / 0.25) + 1)))
+                prefix = points_along(path, np.linspace(0.0, cut, max(2, int(cut / 0.25) + 1)))
                 end = prefix[-1]
                 if any(np.hypot(*(end - g)) < keep for g in others):
                     continue
@@ -358,31 +359,18 @@ class ExplorationManager:
     def _conflict(
         self, r: str, path: NDArray[np.float64], P: dict[str, NDArray[np.float64]]
     ) -> bool:
-        """Whether robot r flying `path` (from where it is) would come within the robot
-        clearance of another robot flying the rest of its own path (or hovering), both
-        at cruise speed, over the next `horizon_s`. Points within the clearance of r's
-        own start are not judged (robots that are already close move apart), except its
-        end, where it will hover. The others are also checked `lag_s` behind their
-        schedule (one slowed by a turn or still speeding up must not be caught up by a
-        robot following it) and `lag_s` ahead of it (r itself slowed: one that got to
-        the end of its path early must not be passed within the clearance)."""
-        t = np.arange(0.0, self.horizon_s, 0.1)
-        mine = _along(path, self.speed_mps * t)
-        near_start = np.hypot(*(mine - P[r][:2]).T) <= self.planner.robot_clearance_m
-        near_start &= self.speed_mps * t < path_length(path)  # where it will hover is judged
-        keep = self.planner.robot_clearance_m * self.conflict_margin
-        for o, q in P.items():
-            if o == r:
-                continue
-            for lag in (0.0, self.lag_s, -self.lag_s) if o in self.tasks else (None,):
-                theirs = (
-                    q[:2] if lag is None
-                    else _along(self._remaining(o, q), self.speed_mps * np.maximum(t - lag, 0.0))
-                )  # fmt: skip
-                d = np.hypot(*(mine - theirs).T)
-                if np.any((d < keep) & ~near_start):
-                    return True
-        return False
+        """Whether robot r flying `path` would come too close to another robot flying the
+        rest of its own path (or hovering), in time (`schedule_conflict`): within the
+        robot clearance x `conflict_margin`, over `horizon_s`, the others also `lag_s`
+        behind and ahead of their schedule."""
+        others = [
+            self._remaining(o, q) if o in self.tasks else q[:2] for o, q in P.items() if o != r
+        ]
+        c = self.planner.robot_clearance_m
+        return schedule_conflict(
+            path, P[r], others, self.speed_mps, self.horizon_s, c, c * self.conflict_margin,
+            self.lag_s,
+        )  # fmt: skip
 
     def _goals(
         self,
@@ -494,12 +482,3 @@ def make_explorer(cfg: Config) -> ExplorationManager:
         seen_fov_deg=e.seen_fov_deg,
         seen_cost_m=e.seen_cost_m,
     )
-
-
-def _along(path: NDArray[np.float64], s: NDArray[np.float64]) -> NDArray[np.float64]:
-    """Points at arc lengths `s` (m) along a polyline; its end beyond its length."""
-    seg = np.hypot(*np.diff(path, axis=0).T)
-    cum = np.concatenate([[0.0], np.cumsum(seg)])
-    if cum[-1] <= 0.0:
-        return np.repeat(path[:1], len(s), axis=0)
-    return np.column_stack([np.interp(s, cum, path[:, 0]), np.interp(s, cum, path[:, 1])])

@@ -6,11 +6,12 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from basestation.exploration import ExplorationManager, _along, _Task
+from basestation.exploration import ExplorationManager, _Task
 from basestation.frontiers import Frontier, FrontierDetector
 from basestation.goal_assigner import GoalAssigner
 from basestation.map_history import MapHistory, read_map_history
 from basestation.path_planner import PathPlanner
+from basestation.path_schedule import points_along
 from basestation.travel_distance import travel_distances
 from benchmarks.exploration import speedups
 from common.errors import CollabSlamError
@@ -68,7 +69,7 @@ def test_frontier_goal_beside_a_wall_is_moved_out_of_the_inflation() -> None:
 
 def test_along_interpolates_by_arc_length_and_holds_the_end() -> None:
     path = np.array([[0.0, 0.0], [2.0, 0.0], [2.0, 2.0]])
-    pts = _along(path, np.array([0.0, 1.0, 3.0, 10.0]))
+    pts = points_along(path, np.array([0.0, 1.0, 3.0, 10.0]))
     np.testing.assert_allclose(pts, [[0, 0], [1, 0], [2, 1], [2, 2]])
 
 

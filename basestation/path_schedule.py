@@ -1,0 +1,60 @@
+"""Robots flying their paths over time: where they are, and whether two come too close.
+
+Exploration judges paths in time, not only in space: a robot may follow another through
+a door it is leaving, but must not meet it head-on, catch it up, or pass within the
+clearance of where it hovers. Every robot is flown along its path at cruise speed from
+where it is now (one at the end of its path stays there).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numpy.typing import NDArray
+
+from basestation.path_planner import path_length
+
+
+def points_along(path: NDArray[np.float64], s: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Points at arc lengths `s` (m) along a polyline; its end beyond its length."""
+    seg = np.hypot(*np.diff(path, axis=0).T)
+    cum = np.concatenate([[0.0], np.cumsum(seg)])
+    if cum[-1] <= 0.0:
+        return np.repeat(path[:1], len(s), axis=0)
+    return np.column_stack([np.interp(s, cum, path[:, 0]), np.interp(s, cum, path[:, 1])])
+
+
+def schedule_conflict(
+    path: NDArray[np.float64],
+    start: NDArray[np.float64],
+    others: list[NDArray[np.float64]],
+    speed_mps: float,
+    horizon_s: float,
+    clearance_m: float,
+    keep_m: float,
+    lag_s: float,
+) -> bool:
+    """Whether a robot at `start` flying `path` would come within `keep_m` of another
+    over the next `horizon_s`: each of `others` is a hovering robot ((2,) point) or the
+    rest of a flying robot's path ((N, 2), from where it is). Points within
+    `clearance_m` of the robot's own start are not judged (robots already close move
+    apart), except its end, where it will hover. Flying others are also checked
+    `lag_s` behind their schedule (one slowed by a turn or still speeding up must not
+    be caught up) and `lag_s` ahead of it (this robot itself late: one that got to the
+    end of its path early must not be passed within the clearance)."""
+    t = np.arange(0.0, horizon_s, 0.1)
+    mine = points_along(path, speed_mps * t)
+    near_start = np.hypot(*(mine - start[:2]).T) <= clearance_m
+    near_start &= speed_mps * t < path_length(path)  # where it will hover is judged
+    for other in others:
+        if other.ndim == 1:
+            positions = [other[:2]]
+        else:
+            positions = [
+                points_along(other, speed_mps * np.maximum(t - lag, 0.0))
+                for lag in (0.0, lag_s, -lag_s)
+            ]
+        for theirs in positions:
+            d = np.hypot(*(mine - theirs).T)
+            if np.any((d < keep_m) & ~near_start):
+                return True
+    return False

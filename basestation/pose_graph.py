@@ -102,12 +102,15 @@ class PoseGraph(EstimateMixin, GaugeMixin, GpsMixin, ReductionMixin):
         self._change_epsilon = change_epsilon
         self._settle_iterations = settle_iterations
         self._track_changes = track_changes
-        # heads_last: every chain's newest node, kept up to date by update()
+        # heads_last: every chain's newest node (committed or pending), kept by add_node
         self._heads = gtsam.KeyGroupMap() if heads_last else None
         self._chains = {}
         self._factors = {}
         self._pending_ids = []
         self._pending_removals = []
+        self._pending_graph, self._pending_graph_ids, self._pending_stale = None, [], False
+        self._pending_values: gtsam.Values | None = None  # the pending nodes' guesses
+        self._pending_nodes: dict[str, int] = {}  # robot id -> its pending nodes
         self._next_id = 0
         self._init_gauges()
         self._guesses = gtsam.Values()  # every initial guess handed to iSAM2 (for batch)
@@ -195,6 +198,15 @@ class PoseGraph(EstimateMixin, GaugeMixin, GpsMixin, ReductionMixin):
             factor = self._between(chain, index - 1, chain, index, d, noise)
             self._add_factor(factor, "odometry")
         chain.pending.append(guess)
+        self._pending_nodes[robot_id] = len(chain.pending)
+        # the next update's values and heads are kept as nodes come, not built in update()
+        if self._pending_values is None:
+            self._pending_values = gtsam.Values()
+        self._pending_values.insert(key, pose2=guess)  # keyword: skips pybind's array tries
+        if self._heads is not None:  # the chain's newest node replaces its old head
+            if index:
+                self._heads.erase(key - 1)
+            self._heads.insert2(key, 1)
         if stamp is None:
             chain.stamps = None
         elif chain.stamps is not None:
@@ -260,39 +272,31 @@ class PoseGraph(EstimateMixin, GaugeMixin, GpsMixin, ReductionMixin):
         """
         t_start = time.perf_counter()
         merged = self._reconcile_gauges() if self._topology_dirty else False
-        factors, pending_ids = self._factors, self._pending_ids
-        if len(pending_ids) > 1:
-            pending_ids = dict.fromkeys(pending_ids)  # a moved factor may come twice
-        new_ids = [
-            fid
-            for fid in pending_ids
-            if (record := factors.get(fid)) is not None and record.factor is not None
-        ]
+        factors = self._factors
+        if self._pending_stale:  # a pending factor was dropped or replaced: build anew
+            new_ids = [
+                fid
+                for fid in dict.fromkeys(self._pending_ids)  # a moved factor may come twice
+                if (record := factors.get(fid)) is not None and record.factor is not None
+            ]
+            graph = gtsam.NonlinearFactorGraph()
+            for fid in new_ids:
+                graph.add(factors[fid].factor)
+        else:
+            new_ids = self._pending_graph_ids
+            graph = self._pending_graph
+            if graph is None:
+                graph = gtsam.NonlinearFactorGraph()
         removals = self._pending_removals
         if not new_ids and not removals and extra_iterations == 0:
             return UpdateStats(0.0, 0.0, 0, 0, 0, 0, frozenset(), frozenset())
-        graph = gtsam.NonlinearFactorGraph()
-        for fid in new_ids:
-            graph.add(factors[fid].factor)
-        values = gtsam.Values()
-        new_nodes: dict[str, int] = {}
-        heads = self._heads  # None: iSAM2's default, the keys of the new factors go last
-        for robot_id, chain in self._chains.items():
-            if chain.pending:
-                size = chain.num_committed
-                for guess in chain.pending:
-                    # the keyword skips pybind's failed array conversions (~3x faster)
-                    values.insert(chain.key_base + size, pose2=guess)
-                    size += 1
-                new_nodes[robot_id] = len(chain.pending)
-                if heads is not None:  # the chain's newest node replaces its old head
-                    if chain.num_committed:
-                        heads.erase(chain.key_base + chain.num_committed - 1)
-                    heads.insert2(chain.key_base + size - 1, 1)
+        values = self._pending_values if self._pending_values is not None else gtsam.Values()
+        new_nodes = self._pending_nodes
 
         t_solve = time.perf_counter()
         try:
-            result = self._isam.update(graph, values, removals, constrainedKeys=heads)
+            # heads None: iSAM2's default, the keys of the new factors go last
+            result = self._isam.update(graph, values, removals, constrainedKeys=self._heads)
             iterations, reordered = 1, result.getBatchReorderTriggered()
             # a merge or a GPS batch moves whole chains: settle them within this update
             settle = merged or (
@@ -310,10 +314,14 @@ class PoseGraph(EstimateMixin, GaugeMixin, GpsMixin, ReductionMixin):
 
         # Merged into the big Values in batches, not between the update and the reads of
         # the new estimate that follow it: its map would evict iSAM2's tree from the caches.
-        self._new_guesses.append(values)
-        if len(self._new_guesses) >= GUESS_MERGE_BATCH:
-            self._committed_guesses()
+        if new_nodes:
+            self._new_guesses.append(values)
+            self._pending_values = None
+            if len(self._new_guesses) >= GUESS_MERGE_BATCH:
+                self._committed_guesses()
         self._pending_ids, self._pending_removals = [], []
+        self._pending_graph, self._pending_graph_ids, self._pending_stale = None, [], False
+        self._pending_nodes = {}
         changed, chains = None, self._chains
         if self._track_changes:  # then the previous estimate is always valid
             old_estimate, old_counts = self._estimate, [c.num_committed for c in chains.values()]
@@ -367,20 +375,18 @@ class PoseGraph(EstimateMixin, GaugeMixin, GpsMixin, ReductionMixin):
     def pose(self, robot_id: str, index: int) -> FloatArray:
         """T_map_node of one node (its initial guess while it waits for ``update``)."""
         chain = self._chains.get(robot_id)
-        committed = 0 if chain is None else chain.num_committed
-        if chain is None or not 0 <= index < committed + len(chain.pending):
+        if chain is None or not 0 <= index < chain.num_committed + len(chain.pending):
             self._node_chain(robot_id, index)  # raises the error
-        if index >= committed:
-            return pose_array(chain.pending[index - committed])
+        if index >= chain.num_committed:
+            return pose_array(chain.pending[index - chain.num_committed])
         if self._estimate_valid:
             return self._estimate[self._offset(robot_id) + index].copy()
-        offset = None
         if index < len(chain.alias_key) and chain.alias_key[index] >= 0:
             key, offset = self._resolve(chain, index)
-        else:  # most queries: a chain's newest node, for its correction
-            key = chain.key_base + index
-        pose = pose_array(self._isam.calculateEstimatePose2(key))  # O(1)-ish
-        return pose if offset is None else se2_compose(pose, offset)
+            return se2_compose(pose_array(self._isam.calculateEstimatePose2(key)), offset)
+        # most queries: a chain's newest node, for its correction, right after an update
+        p = self._isam.calculateEstimatePose2(chain.key_base + index)  # O(1)-ish
+        return np.array((p.x(), p.y(), p.theta()))
 
     def poses(self, robot_id: str) -> FloatArray:
         """(N, 3) poses of a chain in index order (pending nodes: their initial guess)."""

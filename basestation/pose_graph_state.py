@@ -159,12 +159,19 @@ class PoseGraphState:
 
     ``PoseGraph.__init__`` sets every attribute; factors added here wait in
     ``_pending_ids`` (removals in ``_pending_removals``) until ``PoseGraph.update``.
+    The next update's factor graph is built as they come (``_pending_graph``, its
+    factors' ids in ``_pending_graph_ids``), as a gtsam user builds it between two
+    updates; a pending factor dropped or replaced before the update makes it stale
+    (``update`` then builds it again from ``_pending_ids``).
     """
 
     _chains: dict[str, Chain]  # registration order = key-character order
     _factors: dict[int, FactorRecord]  # active factors (committed or pending)
     _pending_ids: list[int]
     _pending_removals: list[int]  # iSAM2 slots
+    _pending_graph: gtsam.NonlinearFactorGraph | None  # None: no factor since the update
+    _pending_graph_ids: list[int]
+    _pending_stale: bool
     _next_id: int
     _prior_noise: gtsam.noiseModel.Base  # firm prior: known starts and gauge priors
     # reducing graphs only (else None): variable -> ids of its factors, and the odometry
@@ -190,14 +197,25 @@ class PoseGraphState:
         record = FactorRecord(factor, kind, robots)
         self._factors[fid] = record
         self._pending_ids.append(fid)
+        self._add_pending(fid, factor)
         self._link(fid, record)
         return fid
+
+    def _add_pending(self, factor_id: int, factor: gtsam.NonlinearFactor | None) -> None:
+        if factor is None:
+            return
+        if self._pending_graph is None:
+            self._pending_graph = gtsam.NonlinearFactorGraph()
+        self._pending_graph.add(factor)
+        self._pending_graph_ids.append(factor_id)
 
     def _drop_factor(self, factor_id: int) -> None:
         record = self._factors.pop(factor_id)
         self._unlink(factor_id, record)
         if record.isam_index is not None:
             self._pending_removals.append(record.isam_index)
+        elif record.factor is not None:  # still pending: in the update's graph
+            self._pending_stale = True
 
     def _replace_factor(self, factor_id: int, factor: gtsam.NonlinearFactor | None) -> None:
         """Swap an active factor for another (same id, same kind) at the next update."""
@@ -207,6 +225,9 @@ class PoseGraphState:
             self._pending_removals.append(record.isam_index)
             record.isam_index = None
             self._pending_ids.append(factor_id)
+            self._add_pending(factor_id, factor)
+        else:  # still pending (or inert: then one with a factor would have to be added)
+            self._pending_stale = True
         record.factor = factor
         self._link(factor_id, record)
 

@@ -136,6 +136,17 @@ def test_removing_a_constraint_restores_the_estimate() -> None:
     pending = graph.add_constraint(("a", 20), ("a", 0), np.zeros(3), LC_COV)
     graph.remove_constraint(pending)
     assert graph.update().num_new_factors == 0
+    # ... also when it waits next to a new node and another constraint: those two go in
+    # (the update's factor graph, built as the factors came, is built again without it)
+    graph.add_node("a", 21, np.array([1.0, 0.0, 0.0]), ODO_COV)
+    kept = graph.add_constraint(("a", 20), ("a", 21), np.array([1.0, 0, 0]), LC_COV, robust=None)
+    dropped = graph.add_constraint(("a", 20), ("a", 0), np.zeros(3), LC_COV)
+    graph.remove_constraint(dropped)
+    stats = graph.update(extra_iterations=5)
+    assert (stats.num_new_factors, stats.num_new_nodes) == (2, 1)  # odometry and kept
+    assert_pose_close(graph.poses("a")[:21], before, 1e-3, 1e-4)  # no loop closed
+    graph.remove_constraint(kept)  # its iSAM2 slot was read from this update
+    assert graph.update().num_removed_factors == 1
 
 
 @pytest.mark.parametrize("first_start", [np.array([1.0, 2.0, 0.5]), None])

@@ -30,22 +30,30 @@ def schedule_conflict(
     speed_mps: float,
     horizon_s: float,
     clearance_m: float,
-    keep_m: float,
+    keep_m: float | list[float],
     lag_s: float,
 ) -> bool:
     """Whether a robot at `start` flying `path` would come within `keep_m` of another
     over the next `horizon_s`: each of `others` is a hovering robot ((2,) point) or the
-    rest of a flying robot's path ((N, 2), from where it is). Points within
-    `clearance_m` of the robot's own start are not judged (robots already close move
-    apart), except its end, where it will hover. Flying others are also checked
-    `lag_s` behind their schedule (one slowed by a turn or still speeding up must not
-    be caught up) and `lag_s` ahead of it (this robot itself late: one that got to the
-    end of its path early must not be passed within the clearance)."""
+    rest of a flying robot's path ((N, 2), from where it is); `keep_m` one distance for
+    all or one per other. Points within `clearance_m` of the robot's own start are
+    held to less (robots already close must be able to move apart): not closer than
+    the clearance, or than the other is now if it is closer already; its end, where
+    it will hover, is judged in full. Flying others are also checked `lag_s` behind
+    their schedule (one slowed by a turn or still speeding up must not be caught up)
+    and `lag_s` ahead of it (this robot itself late: one that got to the end of its
+    path early must not be passed within the clearance)."""
     t = np.arange(0.0, horizon_s, 0.1)
     mine = points_along(path, speed_mps * t)
     near_start = np.hypot(*(mine - start[:2]).T) <= clearance_m
     near_start &= speed_mps * t < path_length(path)  # where it will hover is judged
-    for other in others:
+    keeps = [keep_m] * len(others) if np.isscalar(keep_m) else keep_m
+    for other, keep in zip(others, keeps, strict=True):
+        now = other[:2] if other.ndim == 1 else other[0]
+        # near the start: two drones starting 1.5 m apart came within 0.91 m, both
+        # still within the clearance of their starts, and then held each other forever
+        near_keep = min(clearance_m, float(np.hypot(*(start[:2] - now))) - 0.05)
+        limit = np.where(near_start, min(near_keep, keep), keep)
         if other.ndim == 1:
             positions = [other[:2]]
         else:
@@ -54,7 +62,6 @@ def schedule_conflict(
                 for lag in (0.0, lag_s, -lag_s)
             ]
         for theirs in positions:
-            d = np.hypot(*(mine - theirs).T)
-            if np.any((d < keep_m) & ~near_start):
+            if np.any(np.hypot(*(mine - theirs).T) < limit):
                 return True
     return False

@@ -117,6 +117,20 @@ def test_a_robot_arriving_next_to_where_another_starts_is_judged() -> None:
     assert m._conflict("a", np.array([[7.58, 8.5], [7.58, 9.0]]), P)  # not closer
 
 
+def test_robots_close_at_the_start_may_move_apart_but_not_closer() -> None:
+    """Points within the clearance of a robot's own start are held to the clearance,
+    not to the full keep: random:1, seed 5, two drones starting 1.5 m apart both flew
+    toward the one door, came within 0.91 m (every point near their starts) and then
+    held each other for the rest of the mission."""
+    m = _mgr()
+    P = {"a": np.array([0.0, 0.0, 0.0]), "b": np.array([1.5, 0.0, 0.0])}  # b hovers
+    assert not m._conflict("a", np.array([[0.0, 0.0], [-3.0, 2.0]]), P)  # away from b
+    assert m._conflict("a", np.array([[0.0, 0.0], [0.7, 0.3], [-3.0, 2.0]]), P)  # 0.85 m
+    P["b"] = np.array([0.8, 0.0, 0.0])  # closer than the clearance already
+    assert not m._conflict("a", np.array([[0.0, 0.0], [-3.0, 0.0]]), P)  # moving apart
+    assert m._conflict("a", np.array([[0.0, 0.0], [0.2, 0.5], [-3.0, 2.0]]), P)  # closer
+
+
 def test_a_follower_keeps_its_distance_from_a_leader_running_late() -> None:
     m = _mgr()
     P = {"a": np.array([0.0, 0.0, 0.0]), "b": np.array([1.8, 0.0, 0.0])}

@@ -3,18 +3,13 @@
 Waypoints are [x, y] (or [x, y, z, yaw]) in the robot's `odom` frame. The
 follower flies straight at each waypoint at cruise speed, turning to face the
 direction of travel (the laser looks forward), slows down for the last one,
-and holds `altitude_m`. A multirotor need not face where it flies: it flies while
-it turns, at full speed while the way lies within `full_speed_heading_deg` of the
-nose, slower up to `max_heading_deg` (kept inside the laser's field of view, so the
-safety guard sees what is ahead), and turns on the spot beyond. It only computes
-commands; the vehicle limits itself.
+and holds `altitude_m`. It only computes commands; the vehicle limits itself.
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-from common.config import AgentConfig
 from common.geometry import wrap_angle
 
 
@@ -26,30 +21,14 @@ class PathFollower:
         yaw_gain: float,
         max_accel: float,
         altitude_m: float,
-        full_speed_heading_deg: float = 45.0,
-        max_heading_deg: float = 100.0,
     ) -> None:
         self.cruise_speed = cruise_speed
         self.tolerance = tolerance
         self.yaw_gain = yaw_gain
         self.max_accel = max_accel
         self.altitude_m = altitude_m
-        self.full_speed_heading = np.radians(full_speed_heading_deg)
-        self.max_heading = np.radians(max_heading_deg)
         self.waypoints = np.zeros((0, 2))
         self.index = 0
-
-    @classmethod
-    def from_config(cls, a: AgentConfig) -> PathFollower:
-        return cls(
-            a.cruise_speed_mps,
-            a.waypoint_tolerance_m,
-            a.yaw_gain,
-            a.max_accel_mps2,
-            a.cruise_altitude_m,
-            a.full_speed_heading_deg,
-            a.max_heading_deg,
-        )
 
     def set_path(self, waypoints_odom: np.ndarray, keep_progress: bool = False) -> None:
         self.waypoints = np.asarray(waypoints_odom, dtype=np.float64)[:, :2]
@@ -80,9 +59,8 @@ class PathFollower:
         )
         heading_err = float(wrap_angle(np.arctan2(d[1], d[0]) - yaw))
         speed = min(self.cruise_speed, np.sqrt(2.0 * self.max_accel * 0.5 * remaining))
-        # Fly while turning (full speed near the nose, none beyond max_heading).
-        off = (self.max_heading - abs(heading_err)) / (self.max_heading - self.full_speed_heading)
-        speed *= min(max(off, 0.0), 1.0)
+        # Turn first when the target is well off the nose, then fly.
+        speed *= max(0.0, np.cos(heading_err)) ** 2
         c, s = np.cos(yaw), np.sin(yaw)
         v_odom = speed * d / max(dist, 1e-9)
         vx = c * v_odom[0] + s * v_odom[1]

@@ -206,12 +206,6 @@ class AgentConfig:
     cruise_altitude_m: float = 1.0  # m above ground
     max_accel_mps2: float = 1.0  # m/s^2, used to slow down before the last waypoint
     yaw_gain: float = 1.5  # 1/s, heading controller gain
-    # The follower flies while it turns toward its path: full speed while the way lies
-    # within full_speed_heading_deg of the nose, slower up to max_heading_deg (inside the
-    # laser's field of view, so the safety guard sees ahead), on the spot beyond. Turning
-    # first (cos^2 of the heading error) cost rooms15 explorations 1-3 s per new path.
-    full_speed_heading_deg: float = 45.0  # deg
-    max_heading_deg: float = 100.0  # deg
     # Safety guard on every command (agent/safety_guard.py): the speed along the commanded
     # direction is capped so the drone stops before any point of the live scan within
     # vehicle_radius_m + safety_margin_m of its track.

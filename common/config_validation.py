@@ -126,10 +126,6 @@ def _validate_agent(cfg: Config) -> None:
         ),
     )
     _non_negative_fields("agent", a, ("safety_margin_m", "safety_reaction_s"))
-    if not 0.0 <= a.full_speed_heading_deg < a.max_heading_deg <= 180.0:
-        raise ConfigError(
-            "agent.full_speed_heading_deg / max_heading_deg: expected 0 <= full < max <= 180"
-        )
     if not 0.0 < a.outbox_warn_fraction <= 1.0:
         raise ConfigError("agent.outbox_warn_fraction: expected a value in (0, 1]")
     _positive_fields("agent.smoothing", a.smoothing, ("s", "duration_s"))

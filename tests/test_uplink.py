@@ -11,7 +11,6 @@ from agent.keyframe_selector import KeyframeSelector
 from agent.outbox import Outbox
 from agent.path_follower import PathFollower
 from basestation.keyframe_store import KeyframeStore
-from common.config import Config
 from common.geometry import pose4_to_pose7
 from protocol import Keyframe, Scan2D
 
@@ -195,18 +194,3 @@ def test_path_follower_reaches_waypoints() -> None:
     assert f.done
     assert np.hypot(pose[0] - 2.0, pose[1] - 2.0) < 0.3
     assert f.command(pose)[:2] == (0.0, 0.0)
-
-
-def test_path_follower_flies_while_it_turns_but_not_into_the_blind_sector() -> None:
-    f = PathFollower.from_config(Config().agent)  # full speed to 45 deg, none from 100 deg
-    for heading_deg, moving in ((0, True), (60, True), (90, True), (110, False), (180, False)):
-        f.set_path(np.array([[5.0, 0.0]]))
-        yaw = np.radians(heading_deg)
-        vx, vy, _, wz = f.command(np.array([0.0, 0.0, 1.0, yaw]))
-        assert (np.hypot(vx, vy) > 0.1) == moving, heading_deg
-        # the command is along the path (odom +x), whatever the body's heading
-        c, s = np.cos(yaw), np.sin(yaw)
-        if moving:
-            assert np.allclose([c * vx - s * vy, s * vx + c * vy], [np.hypot(vx, vy), 0.0])
-        if 0 < heading_deg < 180:
-            assert wz < 0  # turning toward the path

@@ -131,6 +131,20 @@ def test_robots_close_at_the_start_may_move_apart_but_not_closer() -> None:
     assert m._conflict("a", np.array([[0.0, 0.0], [0.2, 0.5], [-3.0, 2.0]]), P)  # closer
 
 
+def test_a_robot_held_in_this_step_is_judged_where_it_will_stop() -> None:
+    """random:1, seed 5: a drone flying at ~0.8 m/s was held, and one planned in the same
+    step passed where it had been; it stopped 0.5 m on, 0.88 m from the other."""
+    m = _mgr()
+    P = {"a": np.array([0.0, 0.0, 0.0]), "b": np.array([1.3, -0.6, np.pi / 2])}
+    m.tasks["b"] = _Task(np.array([1.3, 5.0]), np.array([[1.3, -0.6], [1.3, 5.0]]))
+    m._note_stopping(P)  # as `step` does at its start
+    a_path = np.array([[0.0, 0.0], [0.5, 0.2], [0.5, 3.0]])
+    m.tasks.pop("b")  # b is held in this step
+    assert m._conflict("a", a_path, P)  # b stops near (1.3, -0.1), a passes at 0.85 m
+    m._note_stopping(P)  # the next step: b hovers where it is
+    assert not m._conflict("a", a_path, P)
+
+
 def test_a_follower_keeps_its_distance_from_a_leader_running_late() -> None:
     m = _mgr()
     P = {"a": np.array([0.0, 0.0, 0.0]), "b": np.array([1.8, 0.0, 0.0])}

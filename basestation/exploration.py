@@ -374,10 +374,8 @@ class ExplorationManager:
         """Whether robot r flying `path` would come too close to another robot flying the
         rest of its own path (or hovering), in time (`schedule_conflict`): within the
         robot clearance x `conflict_margin`, over `horizon_s`, the others also `lag_s`
-        behind and ahead of their schedule. One that was flying at the start of this
-        step and has lost its path in it is flown on for `stop_distance_m`: the hold
-        reaches it at the next tick (random:1: a drone held at 0.8 m/s stopped 0.5 m on,
-        0.88 m from one planned past where it had been)."""
+        behind and ahead of their schedule. One flying at the start of this step that
+        lost its path in it is flown on for `stop_distance_m` (docs: Exploration)."""
         others = [
             self._remaining(o, q) if o in self.tasks else self._stopping.get(o, q[:2])
             for o, q in P.items()

@@ -144,6 +144,10 @@ class KeyframeStore:
         """These keyframes are committed to the database (their scans may leave memory)."""
         self.scan_archive.saved(keys)
 
+    def total_keyframes(self) -> int:
+        """Keyframes admitted, all robots."""
+        return sum(len(r.stamps) for r in list(self.robots.values()))
+
     def robot(self, robot_id: str) -> RobotKeyframes:
         if robot_id not in self.robots:
             self.robots[robot_id] = RobotKeyframes(robot_id)

@@ -115,7 +115,7 @@ class BaseStationNode:
         self._lost: list[str] = []  # agents whose token went away, for run()'s thread
         self._epoch_reserved = 0
         self.recovered: dict[str, Any] = {}
-        self.heap = HeapTrimmer()
+        self.heap = HeapTrimmer(count=lambda: self.slam.store.total_keyframes())
 
     # --- persistence --------------------------------------------------------------------
     def recover(self) -> None:
@@ -435,6 +435,7 @@ class BaseStationNode:
             "intake_pauses": self.intake_pauses,
             "inbox_drops": self.inbox.drops,  # full inbox: sent again by the agents
             "heap_trims": self.heap.trims,
+            "memory_series": self.heap.series_json(),  # after each trim: where the RSS is
             "rejected_messages": dict(self.bus.rejected),
             "correction_epoch": self.epoch,
             "links": {k: dict(v) for k, v in self.links.items()},

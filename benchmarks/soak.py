@@ -317,6 +317,7 @@ def _result(
         "sim_s": s.sim,
         "keyframes_acked_series": s.acked,
         "update_ms": update_ms,
+        **_memory_breakdown(base.get("memory_series"), s.t0_unix, half, end),
         "update_counts": [[round(r[0] + shift, 2), int(r[1])] for r in rows],
         "update_period_s": series.get("period_s"),
         "isam2_updates": base.get("isam2_updates"),
@@ -352,3 +353,31 @@ def _rss_per_keyframe(
     if len(pts) < 3 or np.ptp(pts[:, 0]) <= 0.0:
         return None
     return float(np.polyfit(pts[:, 0], pts[:, 1], 1)[0] * 1000.0)
+
+
+def _memory_breakdown(
+    series: dict[str, Any] | None, t0_unix: float, t0: float, t1: float
+) -> dict[str, Any]:
+    """The base station's own memory samples (`HeapTrimmer`: one per heap trim) on the
+    bench clock, and each column's slope per 1000 keyframes admitted over [t0, t1]:
+    whether the RSS grows with live heap (malloc's in use), fragmentation (free but not
+    given back), malloc's own mappings (large arrays) or Python's objects."""
+    if not series or not series.get("rows"):
+        return {}
+    cols = series["columns"]
+    shift = series["t0_unix"] - t0_unix
+    rows = [[r[0] + shift, *r[1:]] for r in series["rows"]]
+    count = cols.index("count")
+    slopes: dict[str, float | None] = {}
+    for k, name in enumerate(cols[1:count], start=1):
+        pts = np.array(
+            [[r[count], r[k]] for r in rows if t0 <= r[0] <= t1 and None not in (r[k], r[count])]
+        ).reshape(-1, 2)
+        ok = len(pts) >= 3 and np.ptp(pts[:, 0]) > 0.0
+        slopes[name] = (
+            round(float(np.polyfit(pts[:, 0], pts[:, 1], 1)[0] * 1000.0), 4) if ok else None
+        )
+    return {
+        "basestation_memory": {"columns": cols, "rows": rows},
+        "basestation_memory_per_1000_keyframes_second_half": slopes,
+    }

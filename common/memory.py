@@ -5,6 +5,13 @@ glibc keeps what they freed in per-thread arenas: the resident size of a long-ru
 process then creeps up with the work done, not with what it holds. `HeapTrimmer`
 calls glibc's ``malloc_trim(0)`` at most once per period, which returns every free
 page of every arena. Elsewhere (macOS, musl) it does nothing.
+
+After every trim it also notes where the process's memory is (`memory_sample`): the
+resident size, glibc's heap in use and free (``mallinfo2``, every arena; blocks that
+malloc mapped on their own counted apart) and Python's allocated blocks, with an
+optional count from the caller (the base station: keyframes admitted), so a soak can
+tell live data from fragmentation and from what Python itself holds
+(`HeapTrimmer.series_json`, in basestation.json).
 """
 
 from __future__ import annotations
@@ -12,7 +19,11 @@ from __future__ import annotations
 import ctypes
 import ctypes.util
 import logging
+import os
+import sys
 import time
+from collections.abc import Callable
+from typing import Any
 
 log = logging.getLogger(__name__)
 
@@ -30,12 +41,58 @@ def _malloc_trim() -> ctypes._CFuncPtr | None:  # type: ignore[name-defined]
     return fn
 
 
+class _MallInfo2(ctypes.Structure):
+    _fields_ = [
+        (name, ctypes.c_size_t)
+        for name in ("arena", "ordblks", "smblks", "hblks", "hblkhd", "usmblks", "fsmblks",
+                     "uordblks", "fordblks", "keepcost")
+    ]  # fmt: skip
+
+
+def _mallinfo2() -> Callable[[], _MallInfo2] | None:
+    name = ctypes.util.find_library("c")
+    try:
+        fn = ctypes.CDLL(name).mallinfo2 if name else None  # glibc >= 2.33
+    except (OSError, AttributeError):
+        return None
+    if fn is not None:
+        fn.argtypes, fn.restype = [], _MallInfo2
+    return fn
+
+
+_MALLINFO2 = _mallinfo2()
+MEMORY_COLUMNS = [
+    "t_s", "rss_mb", "heap_in_use_mb", "heap_free_mb", "malloc_mmap_mb", "py_blocks_k", "count",
+]  # fmt: skip
+
+
+def memory_sample() -> list[float]:
+    """[rss_mb, heap_in_use_mb, heap_free_mb, malloc_mmap_mb, py_blocks_k] of this
+    process now (the heap columns NaN without glibc's mallinfo2)."""
+    try:
+        with open("/proc/self/statm") as f:
+            rss = int(f.read().split()[1]) * os.sysconf("SC_PAGE_SIZE") / 2**20
+    except OSError:
+        rss = float("nan")
+    heap = [float("nan")] * 3
+    if _MALLINFO2 is not None:
+        m = _MALLINFO2()
+        heap = [m.uordblks / 2**20, m.fordblks / 2**20, m.hblkhd / 2**20]
+    return [rss, *heap, sys.getallocatedblocks() / 1000.0]
+
+
 class HeapTrimmer:
-    def __init__(self, period_s: float = TRIM_PERIOD_S) -> None:
+    def __init__(
+        self, period_s: float = TRIM_PERIOD_S, count: Callable[[], int] | None = None
+    ) -> None:
         self.period_s = period_s
         self._trim = _malloc_trim()
         self._last = time.monotonic()
         self.trims = 0
+        self._t0 = self._last
+        self._t0_unix = time.time()
+        self._count = count
+        self.series: list[list[float]] = []  # a MEMORY_COLUMNS row after every trim
         if self._trim is None:
             log.debug("no malloc_trim here: freed heap memory stays with the process")
 
@@ -52,4 +109,13 @@ class HeapTrimmer:
         self._last = time.monotonic()
         self._trim(0)
         self.trims += 1
+        count = float(self._count()) if self._count is not None else float("nan")
+        row = [self._last - self._t0, *memory_sample(), count]
+        self.series.append([round(v, 3) for v in row])
         return True
+
+    def series_json(self) -> dict[str, Any]:
+        """{"t0_unix", "columns", "rows"}: the samples, t_s in wall seconds since t0_unix
+        (NaN, where a column is unknown, as null)."""
+        rows = [[None if v != v else v for v in r] for r in self.series]
+        return {"t0_unix": self._t0_unix, "columns": MEMORY_COLUMNS, "rows": rows}

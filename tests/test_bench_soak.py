@@ -88,5 +88,9 @@ def test_bench_runs_a_tiny_soak(cfg: Config, tmp_path: Path) -> None:
     assert res["update_ms"] and all(p50 <= p95 <= mx for _, p50, p95, mx in res["update_ms"])
     assert res["keyframes_in_graph"] == res["keyframes_sent"] > 20
     assert res["map_accuracy"] > 0.9
+    mem = res["basestation_memory"]  # the base station's own samples, after its heap trims
+    rows = [dict(zip(mem["columns"], r, strict=True)) for r in mem["rows"]]
+    assert rows and all(r["rss_mb"] > 10.0 and r["py_blocks_k"] > 10.0 for r in rows)
+    assert rows[-1]["count"] == res["keyframes_in_graph"]
     assert Path(res["plot"]).stat().st_size > 10_000
     json.dumps(res)

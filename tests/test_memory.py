@@ -39,3 +39,21 @@ def test_trim_now_restarts_the_period() -> None:
     assert trimmer.trim() and trimmer.trims == 1  # whatever the period
     trimmer._last -= 3599.0
     assert not trimmer.maybe_trim()  # the forced trim started a new period
+
+
+def test_each_trim_notes_where_the_memory_is() -> None:
+    n = [0]
+    trimmer = HeapTrimmer(period_s=3600.0, count=lambda: n[0])
+    assert trimmer.series_json()["rows"] == []
+    n[0] = 7
+    held = [bytearray(64 * 1024) for _ in range(200)]  # ~13 MB in glibc's heap
+    assert trimmer.trim()
+    cols = trimmer.series_json()["columns"]
+    row = dict(zip(cols, trimmer.series_json()["rows"][-1], strict=True))
+    assert row["count"] == 7 and row["t_s"] >= 0.0
+    assert row["rss_mb"] > 13.0 and row["py_blocks_k"] > 0.0
+    assert row["heap_in_use_mb"] > 12.0, row  # glibc (Linux): the blocks just made
+    del held
+    assert trimmer.trim()
+    after = dict(zip(cols, trimmer.series_json()["rows"][-1], strict=True))
+    assert after["heap_in_use_mb"] < row["heap_in_use_mb"] - 12.0, (row, after)

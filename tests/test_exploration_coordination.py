@@ -118,14 +118,19 @@ def test_a_robot_arriving_next_to_where_another_starts_is_judged() -> None:
 
 
 def test_robots_close_at_the_start_may_move_apart_but_not_closer() -> None:
-    """Points within the clearance of a robot's own start are held to the clearance,
-    not to the full keep: random:1, seed 5, two drones starting 1.5 m apart both flew
+    """Points within the clearance of a robot's own start are held to the clearance (and
+    a margin), not to the full keep: random:1, seed 5, two drones starting 1.5 m apart both flew
     toward the one door, came within 0.91 m (every point near their starts) and then
     held each other for the rest of the mission."""
     m = _mgr()
+    m.conflict_margin = 1.5  # as configured: 1.5 m kept, beyond the starts
     P = {"a": np.array([0.0, 0.0, 0.0]), "b": np.array([1.5, 0.0, 0.0])}  # b hovers
     assert not m._conflict("a", np.array([[0.0, 0.0], [-3.0, 2.0]]), P)  # away from b
     assert m._conflict("a", np.array([[0.0, 0.0], [0.7, 0.3], [-3.0, 2.0]]), P)  # 0.85 m
+    # 1.09 m: a margin over the clearance for what the drones overshoot (random:1 s11:
+    # 1.003 m when 1.0 was allowed)
+    assert m._conflict("a", np.array([[0.0, 0.0], [0.45, 0.3], [-3.0, 2.0]]), P)
+    assert not m._conflict("a", np.array([[0.0, 0.0], [0.25, 0.3], [-3.0, 2.0]]), P)  # 1.29 m
     P["b"] = np.array([0.8, 0.0, 0.0])  # closer than the clearance already
     assert not m._conflict("a", np.array([[0.0, 0.0], [-3.0, 0.0]]), P)  # moving apart
     assert m._conflict("a", np.array([[0.0, 0.0], [0.2, 0.5], [-3.0, 2.0]]), P)  # closer

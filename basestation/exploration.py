@@ -1,22 +1,17 @@
 """Multi-robot exploration on the global map (seed 002 §1.2): frontiers -> goals -> paths.
 
 `ExplorationManager.step` takes the latest global grid (and the boxes the map changed
-in), every robot's pose in `map` and returns, per robot, a new path in `map` when it
+in), every robot's pose in `map` and returns a new path in `map` for each robot that
 needs one: it has none, reached its goal, its goal is no longer a frontier, or the
-map or another robot now blocks its path. A frontier goal inside the inflation (by a
-wall or a door jamb) is first moved out of it (`PathPlanner.approachable`);
-frontiers (`FrontierDetector`) that no robot can reach are skipped; goals are
-assigned jointly (eq. 3, `GoalAssigner`) and each path is planned with RRT*
-(`PathPlanner`) around the other robots and their paths, unless they make it a long
-detour (then the robot waits or goes elsewhere). A frontier the map itself kept a
-robot from reaching `max_failures` times is given up (one only blocked by other
-robots for now is not). When no frontier is left (first those of the exploration
-grid, then those of the published map, visited once each: `step`), `done` is True
-(exploration halts) until a new map brings more; a robot that goes silent is
-`release`d and its goal becomes free.
-
-Pure logic over numpy arrays: the base station node feeds it and sends the paths,
-transformed into each robot's `odom` frame (`common.geometry.map_to_odom`).
+map or another robot now blocks its path. Frontier goals (`FrontierDetector`) are
+moved out of the inflation (`PathPlanner.approachable`), assigned jointly (eq. 3,
+`GoalAssigner`) and planned with RRT* (`PathPlanner`) around the other robots and
+their paths, unless that makes a long detour (the robot waits or goes elsewhere). A
+frontier the map itself kept a robot from reaching `max_failures` times is given up.
+When no frontier is left (those of the exploration grid, then those of the published
+map: `step`), `done` is True until a new map brings more; a robot that goes silent is
+`release`d. Pure logic over numpy arrays: the base station node feeds it and sends
+the paths in each robot's `odom` frame (`common.geometry.map_to_odom`).
 """
 
 from __future__ import annotations
@@ -28,7 +23,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from basestation.frontiers import Box, Frontier, FrontierDetector
-from basestation.goal_assigner import AssignmentWeights, GoalAssigner
+from basestation.goal_assigner import AssignmentWeights, GoalAssigner, own_ground
 from basestation.path_planner import PathPlanner, PlanningMap, path_length
 from basestation.path_schedule import points_along, schedule_conflict
 from basestation.travel_distance import travel_distances
@@ -75,6 +70,8 @@ class ExplorationManager:
     # m a robot that loses its path in a step may still fly on it while it stops (v^2 / 2a
     # at cruise speed): others planned in that step see it there, not where it was
     stop_distance_m: float = 0.5
+    w_own: float = 0.5  # cost per m a frontier is closer to a robot than to all others
+    own_cap_m: float = 10.0  # m, up to this much
     support_min_m: float = 1.0  # m, shortest move worth sending an idle robot
     busy_radius_factor: float = 2.0  # frontiers within this x clearance of a busy goal: taken
     goal_shift_m: float = 1.0  # m a frontier goal may move to get out of the inflation
@@ -410,12 +407,14 @@ class ExplorationManager:
             return self.assigner.assign(poses, [])
         F = np.array(candidates)
         robots = sorted(poses)
-        D = travel_distances(
-            grid, np.array([poses[r][:2] for r in robots]), F, self.planner.robot_radius_m
-        )
-        # a frontier right next to a robot lies in its blind sector or in another robot's
-        # shadow: it goes once the robot turns or the other moves, not worth a trip now
+        names = sorted(P)  # every robot from where it will be (a flying one: its goal)
+        at = [self.tasks[o].goal if o in self.tasks and o not in poses else P[o][:2] for o in names]
+        D_all = travel_distances(grid, np.array(at), F, self.planner.robot_radius_m)
+        rows = [names.index(r) for r in robots]
+        D = D_all[rows]  # a frontier right next to a robot lies in its blind sector or in
+        # another's shadow: it goes once the robot turns or the other moves, not worth a trip
         D = np.where(D < self.near_frontier_m, D + self.near_frontier_cost_m, D)
+        D -= self.w_own * own_ground(D_all, D, rows, self.own_cap_m)  # closer to it than others
         spread = np.zeros(len(F))
         for g in busy:  # frontiers near where another robot is heading: it will see them
             spread += self.w_spread * np.maximum(0.0, self.spread_radius_m - np.hypot(*(F - g).T))
@@ -496,4 +495,6 @@ def make_explorer(cfg: Config) -> ExplorationManager:
         seen_range_m=e.seen_range_m,
         seen_fov_deg=e.seen_fov_deg,
         seen_cost_m=e.seen_cost_m,
+        w_own=e.w_own,
+        own_cap_m=e.own_cap_m,
     )

@@ -57,6 +57,22 @@ def assignment_costs(
     return np.where(np.isfinite(cost), cost, UNREACHABLE_COST)
 
 
+def own_ground(
+    everyone: NDArray[np.float64], mine: NDArray[np.float64], rows: list[int], cap_m: float
+) -> NDArray[np.float64]:
+    """(len(rows), frontiers) m by which each frontier is closer to robot `rows[k]`
+    (its distances `mine[k]`) than to every other robot (`everyone`: all robots' travel
+    distances, one row each), up to `cap_m`; 0 where another is as close. A side room
+    a robot passes is its to take now, not left for a far one to come back for."""
+    out = np.zeros_like(mine)
+    if len(everyone) < 2:
+        return out
+    for k, i in enumerate(rows):
+        others = np.delete(everyone, i, axis=0).min(axis=0)
+        out[k] = np.nan_to_num(np.clip(others - mine[k], 0.0, cap_m))
+    return out
+
+
 class GoalAssigner:
     def __init__(self, weights: AssignmentWeights | None = None) -> None:
         self.weights = weights or AssignmentWeights()

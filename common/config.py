@@ -358,6 +358,10 @@ class ExplorationConfig:
     seen_range_m: float = 6.0  # m
     seen_fov_deg: float = 270.0  # deg
     seen_cost_m: float = 5.0  # m of travel
+    # Own ground: a frontier closer to a robot than to every other (those flying: from
+    # their goals) costs it w_own per m of that lead less, up to own_cap_m (0: off).
+    w_own: float = 0.5
+    own_cap_m: float = 10.0  # m
     inflation_m: float = 0.35  # m, no-collision zone around obstacles
     robot_clearance_m: float = 1.0  # m, disc around other robots and their paths
     # RRT* work per path: validity checks (~0.2 s here), so plans do not depend on the

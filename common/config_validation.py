@@ -62,7 +62,9 @@ def validate(cfg: Config) -> None:
         cfg.exploration,
         ("period_s", "frontier_radius_m", "planning_time_s", "planning_checks", "seen_range_m"),
     )
-    _non_negative_fields("exploration", cfg.exploration, ("seen_cost_m", "seen_fov_deg"))
+    _non_negative_fields(
+        "exploration", cfg.exploration, ("seen_cost_m", "seen_fov_deg", "w_own", "own_cap_m")
+    )
     if cfg.exploration.strategy not in ("coordinated", "greedy"):
         raise ConfigError(
             "exploration.strategy: expected coordinated or greedy, "

@@ -419,7 +419,7 @@ def test_a_frontier_another_robot_will_see_on_its_way_is_left_to_it() -> None:
     """o flies along y = 1 m; frontier A (3 m ahead of r) lies in sight of o's way, B
     (3.5 m behind r) does not: r takes B, and A without the visibility cost."""
     g = GridMap(np.zeros((200, 200), np.int8), 0.05, (0.0, 0.0, 0.0))
-    ex = ExplorationManager()
+    ex = ExplorationManager(w_own=0.0)  # the visibility cost alone (own ground: below)
     a, b = np.array([5.0, 2.0]), np.array([5.0, 8.5])
     ex.frontiers = [Frontier(a, a, 20), Frontier(b, b, 20)]
     P = {"o": np.array([1.0, 1.0, 0.0]), "r": np.array([5.0, 5.0, -np.pi / 2])}
@@ -430,6 +430,24 @@ def test_a_frontier_another_robot_will_see_on_its_way_is_left_to_it() -> None:
     ex.assigner.release("r")  # no previous goal to stay near
     goal = ex._goals({"r": P["r"]}, g, P)["r"]
     assert goal is not None and np.allclose(goal, a)
+
+
+def test_a_frontier_far_closer_to_a_robot_than_to_the_others_is_taken_first() -> None:
+    """r, between A (a side room 4 m off, nobody else near) and B (3 m, where o is
+    heading): without the own-ground bonus r takes B and A is left for whoever comes
+    back for it at the end (random:1: a room off the corridor cost the teams 10-20 s);
+    with it r takes A, and B stays o's."""
+    g = GridMap(np.zeros((200, 200), np.int8), 0.05, (0.0, 0.0, 0.0))
+    a, b = np.array([5.0, 9.0]), np.array([5.0, 2.0])
+    P = {"o": np.array([0.5, 0.5, 0.0]), "r": np.array([5.0, 5.0, 0.0])}
+    goals = []
+    for w_own in (0.0, 0.5):
+        ex = ExplorationManager(w_spread=0.0, seen_cost_m=0.0, w_own=w_own)
+        ex.frontiers = [Frontier(a, a, 20), Frontier(b, b, 20)]
+        ex.tasks["o"] = _Task(np.array([2.0, 2.0]), np.array([[0.5, 0.5], [2.0, 2.0]]))
+        goals.append(ex._goals({"r": P["r"]}, g, P)["r"])
+    assert goals[0] is not None and np.allclose(goals[0], b)
+    assert goals[1] is not None and np.allclose(goals[1], a)
 
 
 def test_a_path_planned_before_another_robot_held_is_checked_again() -> None:

@@ -7,7 +7,12 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from basestation.goal_assigner import AssignmentWeights, GoalAssigner, assignment_costs
+from basestation.goal_assigner import (
+    AssignmentWeights,
+    GoalAssigner,
+    assignment_costs,
+    own_ground,
+)
 from common.errors import ConfigError
 
 
@@ -62,3 +67,12 @@ def test_costs_and_bad_weights() -> None:
     assert c[0, 0] == pytest.approx(2.0 + 2.0 * np.pi / 2 + 3.0 * 3.0)
     with pytest.raises(ConfigError):
         AssignmentWeights(w_heading=-1.0)
+
+
+def test_own_ground_is_the_lead_over_the_nearest_other_robot_capped() -> None:
+    inf = np.inf
+    everyone = np.array([[2.0, 6.0, 30.0, inf], [5.0, 4.0, 40.0, 3.0], [9.0, 1.0, inf, inf]])
+    gain = own_ground(everyone, everyone[[0, 1]], [0, 1], cap_m=10.0)
+    assert np.allclose(gain[0], [3.0, 0.0, 10.0, 0.0])  # leads by 3; behind; capped; none
+    assert np.allclose(gain[1], [0.0, 0.0, 0.0, 10.0])  # only robot 1 reaches the last one
+    assert not own_ground(everyone[:1], everyone[:1], [0], 10.0).any()  # alone: no others

@@ -91,6 +91,8 @@ def test_bench_runs_a_tiny_soak(cfg: Config, tmp_path: Path) -> None:
     mem = res["basestation_memory"]  # the base station's own samples, after its heap trims
     rows = [dict(zip(mem["columns"], r, strict=True)) for r in mem["rows"]]
     assert rows and all(r["rss_mb"] > 10.0 and r["py_blocks_k"] > 10.0 for r in rows)
-    assert rows[-1]["count"] == res["keyframes_in_graph"]
+    # keyframes admitted when sampled: the last trim may come before the last keyframes
+    counts = [r["count"] for r in rows]
+    assert counts == sorted(counts) and 0 < counts[-1] <= res["keyframes_in_graph"]
     assert Path(res["plot"]).stat().st_size > 10_000
     json.dumps(res)

@@ -18,34 +18,10 @@ from numpy.typing import ArrayLike
 
 from basestation.scan_archive import NodeKey, ScanArchive
 from common.geometry import pose7_to_pose4
+from common.growable import Rows
 from protocol.messages import Keyframe, Scan2D
 
 log = logging.getLogger(__name__)
-
-
-class Rows:
-    """A growable (n, k) float64 array (amortized doubling): per-keyframe numbers
-    without a Python object per keyframe."""
-
-    def __init__(self, k: int) -> None:
-        self._a = np.zeros((16, k))
-        self._n = 0
-
-    def append(self, row: ArrayLike) -> None:
-        if self._n == len(self._a):
-            self._a = np.concatenate([self._a, np.zeros_like(self._a)])
-        self._a[self._n] = row
-        self._n += 1
-
-    def __len__(self) -> int:
-        return self._n
-
-    def __getitem__(self, i):  # noqa: ANN001, ANN204 (numpy indexing)
-        return self.view()[i]
-
-    def view(self) -> np.ndarray:
-        """The rows so far (a view: valid until the next append)."""
-        return self._a[: self._n]
 
 
 @dataclass
@@ -147,6 +123,13 @@ class KeyframeStore:
     def total_keyframes(self) -> int:
         """Keyframes admitted, all robots."""
         return sum(len(r.stamps) for r in list(self.robots.values()))
+
+    def arrays_nbytes(self) -> int:
+        """Bytes of the per-keyframe arrays (all robots, capacity)."""
+        return sum(
+            r.stamps.nbytes + r.poses_odom.nbytes + r.var_cumsum.nbytes + len(r.has_scan)
+            for r in list(self.robots.values())
+        )
 
     def robot(self, robot_id: str) -> RobotKeyframes:
         if robot_id not in self.robots:

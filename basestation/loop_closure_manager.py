@@ -21,6 +21,7 @@ and 2 with another from 5 m away; the third robot never joined).
 from __future__ import annotations
 
 import logging
+from collections import Counter
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
@@ -31,6 +32,7 @@ from basestation.pose_graph import PoseGraph
 from common.config import ConstraintConfig
 from common.errors import CollabSlamError
 from common.geometry import se2_between, se2_compose, se2_inverse, wrap_angle
+from common.growable import Rows
 
 log = logging.getLogger(__name__)
 
@@ -49,6 +51,7 @@ def invert_with_covariance(T_a_b: np.ndarray, cov: np.ndarray) -> tuple[np.ndarr
 class _Group:
     pcm: IncrementalPcm
     measurements: dict[int, LoopMeasurement] = field(default_factory=dict)
+    kinds: dict[int, str] = field(default_factory=dict)  # measurement id -> kind
     in_graph: dict[int, int] = field(default_factory=dict)  # measurement id -> factor id
     left_out: set[int] = field(default_factory=set)  # ids kept out when the maps were joined
 
@@ -68,9 +71,11 @@ class LoopClosureManager:
         self.groups: dict[tuple[str, str], _Group] = {}
         self._next_id = 0
         self.accepted: set[int] = set()
-        self.kinds: dict[int, str] = {}
-        # accepted inter-robot constraints per robot pair: measurement id -> (index_a, index_b)
-        self.links: dict[tuple[str, str], dict[int, tuple[int, int]]] = {}
+        self.offered: Counter[str] = Counter()  # matches offered, by kind
+        self.accepted_kinds: Counter[str] = Counter()  # of them in the graph now
+        # accepted inter-robot constraints per robot pair: rows [measurement id, index_a,
+        # index_b] (an array, not a dict: one is kept for every such constraint)
+        self.links: dict[tuple[str, str], Rows] = {}
         # Since the last take_journal(): new measurements, and in-graph changes (id -> in).
         self.journal: list[tuple[LoopMeasurement, str]] = []
         self.changes: dict[int, bool] = {}
@@ -95,7 +100,7 @@ class LoopClosureManager:
         m = LoopMeasurement(
             self._next_id, a[0], a[1], b[0], b[1], np.asarray(T_a_b, float), 0.5 * (cov + cov.T)
         )
-        self.kinds[m.id] = kind
+        self.offered[kind] += 1
         self._next_id += 1
         self.journal.append((m, kind))
         group = self.groups.get((a[0], b[0]))
@@ -103,6 +108,7 @@ class LoopClosureManager:
             pcm = IncrementalPcm(self.cfg.pcm_chi2, window=self.cfg.pcm_window)
             group = self.groups[(a[0], b[0])] = _Group(pcm)
         group.measurements[m.id] = m
+        group.kinds[m.id] = kind
         poses: dict[str, np.ndarray] = {}
 
         def batch(robot: str, i: np.ndarray, j: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -134,7 +140,7 @@ class LoopClosureManager:
             return
         window = group.pcm.ids
         for mid in [i for i in group.measurements if i not in window]:
-            del group.measurements[mid]
+            del group.measurements[mid], group.kinds[mid]
             fid = group.in_graph.pop(mid, None)
             if fid is not None:  # never removed now: the graph may fuse it with its peers
                 self.graph.finalize_constraint(fid)
@@ -175,16 +181,20 @@ class LoopClosureManager:
                     robust_k=self.cfg.robust_k,
                 )
                 self.accepted.add(mid)
+                self.accepted_kinds[group.kinds[mid]] += 1
                 self.changes[mid] = True
                 if m.robot_a != m.robot_b:
-                    pair = self.links.setdefault((m.robot_a, m.robot_b), {})
-                    pair[mid] = (m.index_a, m.index_b)
+                    pair = self.links.setdefault((m.robot_a, m.robot_b), Rows(3, np.int64))
+                    pair.append((mid, m.index_a, m.index_b))
             elif mid not in consistent and mid in group.in_graph:
                 self.graph.remove_constraint(group.in_graph.pop(mid))
                 self.accepted.discard(mid)
+                self.accepted_kinds[group.kinds[mid]] -= 1
                 self.changes[mid] = False
-                self.links.get((m.robot_a, m.robot_b), {}).pop(mid, None)
-                log.info("constraint %d (%s) no longer consistent: removed", mid, self.kinds[mid])
+                pair = self.links.get((m.robot_a, m.robot_b))
+                if pair is not None and len(hit := np.flatnonzero(pair.view()[:, 0] == mid)):
+                    pair.drop(int(hit[0]))
+                log.info("constraint %d (%s) no longer consistent: removed", mid, group.kinds[mid])
         if separate:  # other pairs the join put on one map use their agreeing matches now
             comps = self.graph.components()
             for other in list(self.groups.values()):
@@ -394,9 +404,9 @@ class LoopClosureManager:
         if a[0] > b[0]:
             a, b = b, a
         links, k = self.links.get((a[0], b[0])), self.cfg.inter_redundant_keyframes
-        if not links or k <= 0:
+        if links is None or not len(links) or k <= 0:
             return False
-        ends = np.array(list(links.values()))
+        ends = links.view()[:, 1:]
         return bool(np.any((np.abs(ends[:, 0] - a[1]) <= k) & (np.abs(ends[:, 1] - b[1]) <= k)))
 
     def take_journal(self) -> tuple[list[tuple[LoopMeasurement, str]], dict[int, bool]]:
@@ -431,11 +441,10 @@ class LoopClosureManager:
         }
 
     def counts(self) -> dict[str, int]:
-        loops = sum(1 for i in self.accepted if self.kinds[i] == "loop")
-        false = sum(1 for k in self.kinds.values() if k == "false")
-        false_in = sum(1 for i in self.accepted if self.kinds[i] == "false")
-        total = len(self.kinds) - false
-        real_accepted = len(self.accepted) - false_in
+        loops = self.accepted_kinds["loop"]
+        false, false_in = self.offered["false"], self.accepted_kinds["false"]
+        total = self.offered.total() - false
+        real_accepted = self.accepted_kinds.total() - false_in
         out = {
             "loop_closures": loops,
             "inter_robot_constraints": real_accepted - loops,

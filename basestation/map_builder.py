@@ -12,8 +12,9 @@ never spends O(all keyframes) at once however large the correction. A redrawn ti
 replaces the grid's cells only when complete. `finish()` completes every pending
 tile (the map written at shutdown is consistent with the final poses).
 
-Memory per keyframe: its key, current and last drawn pose and reach (~56 bytes in
-numpy arrays, plus the key's index entry). The scans are not kept here when a
+Memory per keyframe: its key, current and last drawn pose (float32: 1e-5 m at 100 m)
+and reach, and its row in the key's index (40 bytes in numpy arrays, which grow by a
+quarter: `common.growable`). The scans are not kept here when a
 `scan_source` is given (the base station's keyframe store: recent scans in memory,
 older ones read back from the database); they are fetched again, a few at a time,
 when a tile is redrawn. Without one the builder keeps a reference to each scan.
@@ -31,6 +32,7 @@ import numpy as np
 from basestation.node_keys import NodeKeys
 from common.config import MapConfig
 from common.geometry import wrap_angle
+from common.growable import grown
 from common.map_io import GridMap
 from common.occupancy_grid import OccupancyGrid
 from protocol.messages import Scan2D
@@ -82,7 +84,7 @@ class MapBuilder:
         self._key_index = np.zeros(0, dtype=np.int32)  # row -> keyframe index
         self._source = scan_source
         self._held: list[Scan2D] = []  # row -> scan, without a scan_source
-        self._pose = np.zeros((0, 3))  # latest pose given, [x, y, yaw] in map
+        self._pose = np.zeros((0, 3), np.float32)  # latest pose given, [x, y, yaw] in map
         # pose it was last drawn (or marked) at; float32: only compared with the pose (moves
         # of a centimetre and more), and a box around it redrawn
         self._drawn = np.zeros((0, 3), np.float32)
@@ -144,26 +146,18 @@ class MapBuilder:
             r[mm == 0] = np.float32(first.range_max)  # as in _beams
             _, a = self._beams(first)
             grid.insert_scans(
-                self._pose[run], r, a, 0.0, first.range_max,
+                self._pose[run].astype(np.float64), r, a, 0.0, first.range_max,
                 max_free_range=self.cfg.max_free_range_m,
             )  # fmt: skip
             start = end
 
     def _append(self, keys: list[NodeKey], scans: list[Scan2D], poses: np.ndarray) -> None:
         n, k = self._n, len(keys)
-        if n + k > len(self._pose):  # amortized growth
-            cap = max(2 * len(self._pose), n + k, 64)
-            for name in ("_pose", "_drawn", "_reach", "_key_robot", "_key_index"):
-                old = getattr(self, name)
-                new = np.zeros((cap, *old.shape[1:]), dtype=old.dtype)
-                new[:n] = old[:n]
-                setattr(self, name, new)
+        for name in ("_pose", "_drawn", "_reach", "_key_robot", "_key_index"):
+            setattr(self, name, grown(getattr(self, name), n + k))
         for j, (key, scan) in enumerate(zip(keys, scans, strict=True)):
-            rows = self._rows.get(key[0], np.zeros(0, dtype=np.int64))
-            if key[1] >= len(rows):
-                grown = np.full(max(2 * len(rows), key[1] + 1, 64), -1, dtype=np.int64)
-                grown[: len(rows)] = rows
-                self._rows[key[0]] = rows = grown
+            rows = self._rows.get(key[0], np.zeros(0, dtype=np.int32))
+            self._rows[key[0]] = rows = grown(rows, key[1] + 1, fill=-1)
             rows[key[1]] = n + j
             if key[0] not in self._robot_ids:
                 self._robot_ids.append(key[0])
@@ -276,6 +270,11 @@ class MapBuilder:
             self._job.stale = max(self._job.stale, moved_m)
         else:
             self._dirty[tile] = max(self._dirty.get(tile, 0.0), moved_m)
+
+    def arrays_nbytes(self) -> int:
+        """Bytes of the per-keyframe arrays (capacity)."""
+        arrays = (self._pose, self._drawn, self._reach, self._key_robot, self._key_index)
+        return sum(a.nbytes for a in (*arrays, *self._rows.values()))
 
     # --- tile redraws -------------------------------------------------------------------
     @property

@@ -115,7 +115,9 @@ class BaseStationNode:
         self._lost: list[str] = []  # agents whose token went away, for run()'s thread
         self._epoch_reserved = 0
         self.recovered: dict[str, Any] = {}
-        self.heap = HeapTrimmer(count=lambda: self.slam.store.total_keyframes())
+        slam = self.slam  # per-keyframe arrays: keyframe store, pose graph, map builder
+        arrays = [slam.store.arrays_nbytes, slam.graph.arrays_nbytes, self.map.arrays_nbytes]
+        self.heap = HeapTrimmer(slam.store.total_keyframes, lambda: sum(f() for f in arrays))
 
     # --- persistence --------------------------------------------------------------------
     def recover(self) -> None:

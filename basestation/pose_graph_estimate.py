@@ -37,6 +37,16 @@ class EstimateMixin(PoseGraphState):
             offset += chain.num_committed
         raise CollabSlamError(f"unknown robot {robot_id!r}")
 
+    def arrays_nbytes(self) -> int:
+        """Bytes of the per-node arrays: the estimate, aliases and stamps (capacity)."""
+        chains = list(self._chains.values())
+        per_chain = sum(
+            c.alias_key.nbytes + c.alias_offset.nbytes
+            + (0 if c.stamps is None else c.stamps.itemsize * len(c.stamps))
+            for c in chains
+        )  # fmt: skip
+        return self._estimate.nbytes + per_chain
+
     def _full_estimate(self) -> FloatArray:
         """All committed poses (one O(n) calculateEstimate, cached until the next update)."""
         if not self._estimate_valid:

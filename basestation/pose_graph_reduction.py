@@ -293,6 +293,9 @@ class ReductionMixin(PoseGraphState):
                 count += 1
             else:
                 chain.reduce_next = stop
+            # marks behind the pass are never read again (_linked looks around the pass)
+            low = chain.reduce_next - LINK_KEYFRAMES
+            chain.constrained = {i for i in chain.constrained if i >= low}
         self.num_aliased += count
         return count
 

@@ -21,6 +21,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from common.errors import CollabSlamError
+from common.growable import grown
 
 FloatArray = NDArray[np.float64]
 FactorKind = Literal["odometry", "start", "gauge", "constraint", "gps"]  # start: known-start prior
@@ -67,7 +68,8 @@ class Chain:
     alias_key: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
     alias_offset: np.ndarray = field(default_factory=lambda: np.zeros((0, 3), np.float32))
     reduce_next: int = 1  # first node the reduction pass has not looked at
-    # nodes with a loop closure or inter-robot constraint (reducing graphs only)
+    # nodes with a loop closure or inter-robot constraint (reducing graphs only; from
+    # LINK_KEYFRAMES behind reduce_next on: the reduction pass drops older ones)
     constrained: set[int] = field(default_factory=set)
     key_base: int = field(init=False)  # node i's key is key_base + i (gtsam.symbol(char, i))
 
@@ -79,14 +81,9 @@ class Chain:
         return self.num_committed + len(self.pending)
 
     def grow_aliases(self, n: int) -> None:
-        """Room for ``n`` nodes in the alias arrays (capacity doubles; new: no alias)."""
-        old = len(self.alias_key)
-        if n <= old:
-            return
-        cap = max(n, 2 * old, 64)
-        self.alias_key = np.concatenate([self.alias_key, np.full(cap - old, -1, np.int64)])
-        grown = np.zeros((cap - old, 3), np.float32)
-        self.alias_offset = np.concatenate([self.alias_offset, grown])
+        """Room for ``n`` nodes in the alias arrays (new: no alias)."""
+        self.alias_key = grown(self.alias_key, n, fill=-1)
+        self.alias_offset = grown(self.alias_offset, n)
 
 
 @dataclass(slots=True)

@@ -8,9 +8,9 @@ page of every arena. Elsewhere (macOS, musl) it does nothing.
 
 After every trim it also notes where the process's memory is (`memory_sample`): the
 resident size, glibc's heap in use and free (``mallinfo2``, every arena; blocks that
-malloc mapped on their own counted apart) and Python's allocated blocks, with an
-optional count from the caller (the base station: keyframes admitted), so a soak can
-tell live data from fragmentation and from what Python itself holds
+malloc mapped on their own counted apart) and Python's allocated blocks, with the
+caller's per-keyframe arrays and a count from it (the base station: keyframes
+admitted), so a soak can tell live data from fragmentation and from what Python holds
 (`HeapTrimmer.series_json`, in basestation.json).
 """
 
@@ -62,7 +62,8 @@ def _mallinfo2() -> Callable[[], _MallInfo2] | None:
 
 _MALLINFO2 = _mallinfo2()
 MEMORY_COLUMNS = [
-    "t_s", "rss_mb", "heap_in_use_mb", "heap_free_mb", "malloc_mmap_mb", "py_blocks_k", "count",
+    "t_s", "rss_mb", "heap_in_use_mb", "heap_free_mb", "malloc_mmap_mb", "py_blocks_k",
+    "arrays_mb", "count",
 ]  # fmt: skip
 
 
@@ -83,8 +84,13 @@ def memory_sample() -> list[float]:
 
 class HeapTrimmer:
     def __init__(
-        self, period_s: float = TRIM_PERIOD_S, count: Callable[[], int] | None = None
+        self,
+        count: Callable[[], int] | None = None,
+        arrays: Callable[[], int] | None = None,
+        period_s: float = TRIM_PERIOD_S,
     ) -> None:
+        """`count`: the caller's count for each row (the base station: keyframes admitted);
+        `arrays`: bytes its per-keyframe arrays hold (capacity, not just the rows used)."""
         self.period_s = period_s
         self._trim = _malloc_trim()
         self._last = time.monotonic()
@@ -92,6 +98,7 @@ class HeapTrimmer:
         self._t0 = self._last
         self._t0_unix = time.time()
         self._count = count
+        self._arrays = arrays
         self.series: list[list[float]] = []  # a MEMORY_COLUMNS row after every trim
         if self._trim is None:
             log.debug("no malloc_trim here: freed heap memory stays with the process")
@@ -110,7 +117,8 @@ class HeapTrimmer:
         self._trim(0)
         self.trims += 1
         count = float(self._count()) if self._count is not None else float("nan")
-        row = [self._last - self._t0, *memory_sample(), count]
+        arrays = self._arrays() / 2**20 if self._arrays is not None else float("nan")
+        row = [self._last - self._t0, *memory_sample(), arrays, count]
         self.series.append([round(v, 3) for v in row])
         return True
 

@@ -94,5 +94,7 @@ def test_bench_runs_a_tiny_soak(cfg: Config, tmp_path: Path) -> None:
     # keyframes admitted when sampled: the last trim may come before the last keyframes
     counts = [r["count"] for r in rows]
     assert counts == sorted(counts) and 0 < counts[-1] <= res["keyframes_in_graph"]
+    arrays = [r["arrays_mb"] for r in rows]  # per-keyframe arrays: they only grow
+    assert arrays == sorted(arrays) and 0.0 < arrays[-1] < rows[-1]["heap_in_use_mb"]
     assert Path(res["plot"]).stat().st_size > 10_000
     json.dumps(res)

@@ -43,14 +43,14 @@ def test_trim_now_restarts_the_period() -> None:
 
 def test_each_trim_notes_where_the_memory_is() -> None:
     n = [0]
-    trimmer = HeapTrimmer(period_s=3600.0, count=lambda: n[0])
+    trimmer = HeapTrimmer(count=lambda: n[0], arrays=lambda: 3 * 2**20, period_s=3600.0)
     assert trimmer.series_json()["rows"] == []
     n[0] = 7
     held = [bytearray(64 * 1024) for _ in range(200)]  # ~13 MB in glibc's heap
     assert trimmer.trim()
     cols = trimmer.series_json()["columns"]
     row = dict(zip(cols, trimmer.series_json()["rows"][-1], strict=True))
-    assert row["count"] == 7 and row["t_s"] >= 0.0
+    assert row["count"] == 7 and row["t_s"] >= 0.0 and row["arrays_mb"] == 3.0
     assert row["rss_mb"] > 13.0 and row["py_blocks_k"] > 0.0
     assert row["heap_in_use_mb"] > 12.0, row  # glibc (Linux): the blocks just made
     del held

@@ -8,7 +8,7 @@ import pytest
 
 from basestation.loop_closure_manager import invert_with_covariance
 from basestation.pose_graph import PoseGraph
-from basestation.pose_graph_reduction import fuse, moved_measurement
+from basestation.pose_graph_reduction import LINK_KEYFRAMES, fuse, moved_measurement
 from basestation.pose_graph_state import pose2
 from common.errors import CollabSlamError
 from common.geometry import se2_between, se2_compose
@@ -85,6 +85,16 @@ def test_variables_stop_growing_once_the_ground_is_mapped():
     after_8 = (variables(more), odometry_factors(more))
     assert after_8[0] <= after_3[0] + 2 and after_8[1] <= after_3[1] + 2
     assert more.num_aliased > 7 * LAP
+
+
+def test_constraint_marks_are_kept_only_where_the_pass_still_looks():
+    graph = PoseGraph(heads_last=True, reduce_distance_m=0.5, reduce_lag=10, reduce_batch_nodes=1)
+    graph.add_robot("a", [0, 0, 0])
+    fly_laps(graph, 3)  # a loop closure every 5 nodes from lap 1 on: ~63 constrained nodes
+    chain = graph._chains["a"]
+    assert chain.reduce_next > 3 * LAP - 20
+    assert chain.constrained and min(chain.constrained) >= chain.reduce_next - LINK_KEYFRAMES
+    assert len(chain.constrained) <= 2 * (LINK_KEYFRAMES + 10) // 5 + 2
 
 
 def test_the_reduction_waits_for_its_node_count():

@@ -118,10 +118,12 @@ def _segment(text: str | None) -> tuple[float | None, float | None]:
 
 def cmd_basestation(args: argparse.Namespace) -> int:
     from basestation.node import BaseStationNode
+    from common.memory import limit_malloc_arenas
     from common.scenario import read_scenario
     from common.shutdown import install_signal_handlers
 
     cfg = load_cfg(args)
+    limit_malloc_arenas(cfg.basestation.malloc_arenas)  # before Zenoh starts its threads
     scenario = read_scenario(args.scenario) if args.scenario else None
     stop = threading.Event()
     install_signal_handlers(stop)

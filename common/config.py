@@ -328,6 +328,10 @@ class BaseStationConfig:
     # a restart with the same file resumes the mission. Empty: no persistence.
     db_path: str = ""
     update_series_period_s: float = 10.0  # s wall per row of iSAM2 latencies over time
+    # glibc malloc arenas the base station process may use (0: glibc's default, 8 per
+    # core). Its Zenoh and verifier threads each got an arena of their own, and the
+    # free memory left in them grew with the mission (common/memory.py).
+    malloc_arenas: int = 2
     # Map snapshots kept for coverage over time (exploration): beyond this many, every
     # other one is dropped and the sync stride doubles (~40 kB each for 30 x 25 m; 0: all).
     map_history_max_snapshots: int = 1000

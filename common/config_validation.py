@@ -174,6 +174,8 @@ def _validate_backend(b: BaseStationConfig) -> None:
         raise ConfigError("basestation.reduce_after_nodes: expected a value >= 0")
     if b.map_history_max_snapshots < 0:
         raise ConfigError("basestation.map_history_max_snapshots: expected >= 0 (0: all)")
+    if b.malloc_arenas < 0:
+        raise ConfigError("basestation.malloc_arenas: expected >= 0 (0: glibc's default)")
     if b.isam2_factorization not in ("CHOLESKY", "QR"):
         raise ConfigError("basestation.isam2_factorization: expected CHOLESKY or QR")
     if b.wildfire_threshold < 0.0:

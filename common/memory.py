@@ -6,6 +6,10 @@ process then creeps up with the work done, not with what it holds. `HeapTrimmer`
 calls glibc's ``malloc_trim(0)`` at most once per period, which returns every free
 page of every arena. Elsewhere (macOS, musl) it does nothing.
 
+`limit_malloc_arenas` caps the arenas themselves (glibc's ``mallopt(M_ARENA_MAX)``),
+called before the process starts its threads: fewer arenas, less free memory stranded
+in them between trims.
+
 After every trim it also notes where the process's memory is (`memory_sample`): the
 resident size, glibc's heap in use and free (``mallinfo2``, every arena; blocks that
 malloc mapped on their own counted apart) and Python's allocated blocks, with the
@@ -39,6 +43,26 @@ def _malloc_trim() -> ctypes._CFuncPtr | None:  # type: ignore[name-defined]
     if fn is not None:
         fn.argtypes, fn.restype = [ctypes.c_size_t], ctypes.c_int
     return fn
+
+
+M_ARENA_MAX = -8  # glibc's mallopt parameter
+
+
+def limit_malloc_arenas(arenas: int) -> bool:
+    """At most `arenas` glibc malloc arenas in this process from now on (0: leave glibc's
+    default); call it before starting threads. An explicit ``MALLOC_ARENA_MAX`` in the
+    environment wins. True if the limit was set."""
+    if arenas <= 0 or "MALLOC_ARENA_MAX" in os.environ:
+        return False
+    name = ctypes.util.find_library("c")
+    try:
+        fn = ctypes.CDLL(name).mallopt if name else None
+    except (OSError, AttributeError):
+        fn = None
+    if fn is None:
+        return False
+    fn.argtypes, fn.restype = [ctypes.c_int, ctypes.c_int], ctypes.c_int
+    return bool(fn(M_ARENA_MAX, arenas))
 
 
 class _MallInfo2(ctypes.Structure):

@@ -57,3 +57,41 @@ def test_each_trim_notes_where_the_memory_is() -> None:
     assert trimmer.trim()
     after = dict(zip(cols, trimmer.series_json()["rows"][-1], strict=True))
     assert after["heap_in_use_mb"] < row["heap_in_use_mb"] - 12.0, (row, after)
+
+
+_ARENAS_SCRIPT = """
+import ctypes, ctypes.util, sys, threading
+from common.memory import limit_malloc_arenas
+limited = limit_malloc_arenas(int(sys.argv[1]))
+barrier = threading.Barrier(4)
+held = []
+def work():
+    barrier.wait()  # all four threads allocate at once
+    held.append([bytearray(64 * 1024) for _ in range(20)])
+threads = [threading.Thread(target=work) for _ in range(4)]
+for t in threads: t.start()
+for t in threads: t.join()
+ctypes.CDLL(ctypes.util.find_library("c")).malloc_stats()  # one "Arena n:" per arena
+print(limited, flush=True)
+"""
+
+
+def _arenas(limit: int, env: dict[str, str] | None = None) -> tuple[bool, int]:
+    """(limit set?, arenas in use) of a fresh process whose 4 threads allocate at once."""
+    import subprocess
+    import sys
+
+    base = {k: v for k, v in os.environ.items() if k != "MALLOC_ARENA_MAX"}
+    run = subprocess.run(
+        [sys.executable, "-c", _ARENAS_SCRIPT, str(limit)],
+        capture_output=True, text=True, check=True, env={**base, **(env or {})},
+    )  # fmt: skip
+    return run.stdout.strip() == "True", run.stderr.count("Arena ")
+
+
+def test_malloc_arenas_are_capped_before_threads_start() -> None:
+    assert _arenas(1) == (True, 1)
+    limited, default = _arenas(0)
+    assert not limited and default > 1  # glibc gives each new thread its own arena
+    # an explicit MALLOC_ARENA_MAX wins (the limit is not set)
+    assert _arenas(1, {"MALLOC_ARENA_MAX": "3"})[0] is False

@@ -71,10 +71,12 @@ def cmd_agent(args: argparse.Namespace) -> int:
     from agent.node import AgentNode
     from agent.sensor_sources import CarmenReplay, ZenohSensors
     from agent.vehicle import NullVehicle
+    from common.memory import limit_malloc_arenas
     from common.scenario import read_scenario
     from common.shutdown import install_signal_handlers
 
     cfg = load_cfg(args)
+    limit_malloc_arenas(cfg.agent.malloc_arenas)  # before Zenoh starts its threads
     tour, T_map_odom = np.zeros((0, 2)), None
     if args.scenario:
         r = read_scenario(args.scenario).robot(args.robot_id)

@@ -221,6 +221,7 @@ class AgentConfig:
     # and a rate fly their log segments in step, as a team does live.
     replay_rate: float = 0.0
     replay_start_unix: float = 0.0
+    malloc_arenas: int = 2  # glibc malloc arenas of the agent process (0: glibc's default)
     local_slam: LocalSlamConfig = field(default_factory=LocalSlamConfig)
     smoothing: SmoothingConfig = field(default_factory=SmoothingConfig)
 

@@ -40,6 +40,8 @@ def test_round_trip(tmp_path: Path) -> None:
         ({"basestation.adaptive_reorder_threshold": 0.5}, "basestation.adaptive_reorder"),
         ({"basestation.relinearize_skip": 0}, "basestation.relinearize_skip"),
         ({"sim.first_sync_wait_s": 0.0}, "sim.first_sync_wait_s"),
+        ({"basestation.malloc_arenas": -1}, "basestation.malloc_arenas"),
+        ({"agent.malloc_arenas": -2}, "agent.malloc_arenas"),
     ],
 )
 def test_bad_values_name_the_key(overrides: dict, key: str) -> None:

@@ -120,12 +120,13 @@ def _segment(text: str | None) -> tuple[float | None, float | None]:
 
 def cmd_basestation(args: argparse.Namespace) -> int:
     from basestation.node import BaseStationNode
-    from common.memory import limit_malloc_arenas
+    from common.memory import fix_mmap_threshold, limit_malloc_arenas
     from common.scenario import read_scenario
     from common.shutdown import install_signal_handlers
 
     cfg = load_cfg(args)
     limit_malloc_arenas(cfg.basestation.malloc_arenas)  # before Zenoh starts its threads
+    fix_mmap_threshold(cfg.basestation.malloc_mmap_threshold_kb)
     scenario = read_scenario(args.scenario) if args.scenario else None
     stop = threading.Event()
     install_signal_handlers(stop)

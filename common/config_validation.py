@@ -176,6 +176,8 @@ def _validate_backend(b: BaseStationConfig) -> None:
         raise ConfigError("basestation.map_history_max_snapshots: expected >= 0 (0: all)")
     if b.malloc_arenas < 0:
         raise ConfigError("basestation.malloc_arenas: expected >= 0 (0: glibc's default)")
+    if b.malloc_mmap_threshold_kb < 0:
+        raise ConfigError("basestation.malloc_mmap_threshold_kb: expected >= 0 (0: glibc's)")
     if b.isam2_factorization not in ("CHOLESKY", "QR"):
         raise ConfigError("basestation.isam2_factorization: expected CHOLESKY or QR")
     if b.wildfire_threshold < 0.0:

@@ -8,7 +8,11 @@ page of every arena. Elsewhere (macOS, musl) it does nothing.
 
 `limit_malloc_arenas` caps the arenas themselves (glibc's ``mallopt(M_ARENA_MAX)``),
 called before the process starts its threads: fewer arenas, less free memory stranded
-in them between trims.
+in them between trims. `fix_mmap_threshold` pins the size from which malloc maps a
+block on its own (``M_MMAP_THRESHOLD``): glibc otherwise raises it to the size of every
+mapped block freed (up to 32 MB), after which the base station's per-update arrays over
+all keyframes (megabytes late in a mission) come from the heap and their freed pages
+stay resident until the next trim.
 
 After every trim it also notes where the process's memory is (`memory_sample`): the
 resident size, glibc's heap in use and free (``mallinfo2``, every arena; blocks that
@@ -54,6 +58,13 @@ def limit_malloc_arenas(arenas: int) -> bool:
     environment wins. True if the limit was set."""
     if arenas <= 0 or "MALLOC_ARENA_MAX" in os.environ:
         return False
+    return _mallopt(M_ARENA_MAX, arenas)
+
+
+M_MMAP_THRESHOLD = -3  # glibc's mallopt parameter
+
+
+def _mallopt(param: int, value: int) -> bool:
     name = ctypes.util.find_library("c")
     try:
         fn = ctypes.CDLL(name).mallopt if name else None
@@ -62,7 +73,16 @@ def limit_malloc_arenas(arenas: int) -> bool:
     if fn is None:
         return False
     fn.argtypes, fn.restype = [ctypes.c_int, ctypes.c_int], ctypes.c_int
-    return bool(fn(M_ARENA_MAX, arenas))
+    return bool(fn(param, value))
+
+
+def fix_mmap_threshold(kib: int) -> bool:
+    """Blocks of `kib` KiB and more are mapped on their own from now on, and given back
+    to the system when freed (0: leave glibc's dynamic threshold). An explicit
+    ``MALLOC_MMAP_THRESHOLD_`` in the environment wins. True if the threshold was set."""
+    if kib <= 0 or "MALLOC_MMAP_THRESHOLD_" in os.environ:
+        return False
+    return _mallopt(M_MMAP_THRESHOLD, kib * 1024)
 
 
 class _MallInfo2(ctypes.Structure):

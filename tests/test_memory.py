@@ -95,3 +95,38 @@ def test_malloc_arenas_are_capped_before_threads_start() -> None:
     assert not limited and default > 1  # glibc gives each new thread its own arena
     # an explicit MALLOC_ARENA_MAX wins (the limit is not set)
     assert _arenas(1, {"MALLOC_ARENA_MAX": "3"})[0] is False
+
+
+_MMAP_SCRIPT = """
+import ctypes, sys
+import numpy as np
+from common.memory import _MALLINFO2, fix_mmap_threshold
+fixed = fix_mmap_threshold(int(sys.argv[1]))
+big = np.ones(4 * 2**20 // 8); del big  # a mapped 4 MB block freed: glibc raises its threshold
+before = _MALLINFO2().hblks
+held = np.ones(2**20 // 8)  # 1 MB: mapped on its own only below the threshold
+print(fixed, _MALLINFO2().hblks - before, flush=True)
+"""
+
+
+def _mapped_blocks(kib: int, env: dict[str, str] | None = None) -> tuple[bool, int]:
+    """(threshold set?, blocks malloc mapped on its own for a 1 MB array made after a
+    4 MB one was freed), in a fresh process."""
+    import subprocess
+    import sys
+
+    base = {k: v for k, v in os.environ.items() if not k.startswith("MALLOC_MMAP")}
+    run = subprocess.run(
+        [sys.executable, "-c", _MMAP_SCRIPT, str(kib)],
+        capture_output=True, text=True, check=True, env={**base, **(env or {})},
+    )  # fmt: skip
+    fixed, blocks = run.stdout.split()
+    return fixed == "True", int(blocks)
+
+
+def test_mmap_threshold_stays_where_it_was_fixed() -> None:
+    fixed, blocks = _mapped_blocks(256)
+    assert fixed and blocks == 1  # the 1 MB block is mapped (given back when freed)
+    fixed, blocks = _mapped_blocks(0)
+    assert not fixed and blocks == 0  # glibc's threshold rose to 4 MB: the heap took it
+    assert _mapped_blocks(256, {"MALLOC_MMAP_THRESHOLD_": "131072"})[0] is False

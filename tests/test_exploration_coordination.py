@@ -467,3 +467,31 @@ def test_a_path_planned_before_another_robot_held_is_checked_again() -> None:
     if out["b"] is not None:
         assert not m._conflict("b", out["b"], P)
         assert m.planner.clear_of(g, out["b"], [P["a"][:2]])
+
+
+def test_a_way_round_another_robots_route_is_also_judged_in_time() -> None:
+    """bshape, seed 8: a drone's way round another's route kept the clearance (1 m) from
+    that route, but ended up 0.85 m from where the other hovered at the route's end: a
+    way round must pass the time-aware check (the clearance x margin) as well."""
+    data = np.zeros((200, 200), np.int8)  # 10 x 10 m open floor inside outer walls
+    data[[0, -1], :] = data[:, [0, -1]] = 100
+    g = GridMap(data, 0.05, (0.0, 0.0, 0.0))
+    m = ExplorationManager(planner=PathPlanner(0.35, 1.0, 0.2))
+    P = {"a": np.array([2.0, 8.0, 0.0]), "b": np.array([5.0, 5.5, np.pi / 2])}
+    hover = np.array([5.0, 6.0])  # b arrives there in half a second and stays
+    m.tasks["b"] = _Task(hover, np.array([[5.0, 5.5], hover]))
+    goal = np.array([8.0, 4.0])  # the straight way passes right where b will hover
+    assert m._conflict("a", np.array([P["a"][:2], goal]), P)
+    around = m.planner.plan(g, P["a"][:2], goal, [m._remaining("b", P["b"])])
+    assert around is not None  # the way round b's route alone ...
+    dense = points_along(
+        around, np.arange(0.0, float(np.hypot(*np.diff(around, axis=0).T).sum()), 0.05)
+    )
+    assert np.hypot(*(dense - hover).T).min() < 1.5  # ... passes closer than the margin
+    path = m._plan("a", goal, g, P)
+    if path is not None:
+        assert not m._conflict("a", path, P)
+        dense = points_along(
+            path, np.arange(0.0, float(np.hypot(*np.diff(path, axis=0).T).sum()), 0.05)
+        )
+        assert np.hypot(*(dense - hover).T).min() >= 1.5 - 0.05

@@ -7,7 +7,8 @@ map or another robot now blocks its path. Frontier goals (`FrontierDetector`) ar
 moved out of the inflation (`PathPlanner.approachable`), assigned jointly (eq. 3,
 `GoalAssigner`) and planned with RRT* (`PathPlanner`) around the other robots and
 their paths, unless that makes a long detour (the robot waits or goes elsewhere). A
-frontier the map itself kept a robot from reaching `max_failures` times is given up.
+frontier the map itself kept a robot from reaching `max_failures` times is given up, and
+all that are left when no robot could move for a few steps (`frontier_give_up`).
 When no frontier is left (those of the exploration grid, then those of the published
 map: `step`), `done` is True until a new map brings more; a robot that goes silent is
 `release`d. Pure logic over numpy arrays: the base station node feeds it and sends
@@ -22,6 +23,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from basestation.frontier_give_up import FrontierGiveUp
 from basestation.frontiers import Box, Frontier, FrontierDetector
 from basestation.goal_assigner import AssignmentWeights, GoalAssigner, own_ground
 from basestation.path_planner import PathPlanner, PlanningMap, path_length
@@ -52,7 +54,7 @@ class ExplorationManager:
     frontiers: list[Frontier] = field(default_factory=list)
     done: bool = False
     unreachable: int = 0
-    max_failures: int = 8  # failed plans before a frontier is given up
+    give_up: FrontierGiveUp = field(default_factory=FrontierGiveUp)
     coordinated: bool = True  # false: the greedy baseline (nearest frontier, no sharing rule)
     alternatives: int = 2  # other frontiers tried when other robots block the best one
     w_spread: float = 1.0  # cost per m a frontier lies inside spread_radius_m of a busy goal
@@ -87,7 +89,6 @@ class ExplorationManager:
     seen_cost_m: float = 5.0  # ... and those cost this much more (0: off)
     strict_detector: FrontierDetector = field(default_factory=FrontierDetector)
     cleanup: bool = False  # the frontiers are those of the strict map (see `step`)
-    _failures: list[tuple[NDArray[np.float64], int]] = field(default_factory=list)
     _stopped: set[str] = field(default_factory=set)
     _unplanned: set[str] = field(default_factory=set)  # this step's robots still to plan
     _stopping: dict[str, NDArray[np.float64]] = field(default_factory=dict)  # see `_conflict`
@@ -113,21 +114,21 @@ class ExplorationManager:
         still there when a robot reaches it is given up."""
         self.frontiers = [
             f for f in self._approachable(self.detector.update(grid, touched), grid)
-            if not self._given_up(f.goal)
+            if not self.give_up.given_up(f.goal)
         ]  # fmt: skip
         self.cleanup = not self.frontiers and strict is not None
         if self.cleanup:  # what the published map still lacks (see `strict`)
             assert strict is not None
             self.frontiers = [
                 f for f in self._approachable(self.strict_detector.update(strict), grid)
-                if not self._given_up(f.goal)
+                if not self.give_up.given_up(f.goal)
             ]  # fmt: skip
         P = {r: np.asarray(p, dtype=np.float64)[:3] for r, p in poses.items()}
         self._note_stopping(P)
         pm = PlanningMap(grid, self.planner.inflation_m)
         need = [r for r in P if r in blocked or self._needs_new_path(r, P, pm)]
         if self.cleanup:  # the ones just given up by the robots standing at them
-            self.frontiers = [f for f in self.frontiers if not self._given_up(f.goal)]
+            self.frontiers = [f for f in self.frontiers if not self.give_up.given_up(f.goal)]
         for r in set(self.tasks) - set(P):
             self.release(r)
         self.done = not self.frontiers and bool((grid.data == 0).any())  # not before a map
@@ -169,6 +170,8 @@ class ExplorationManager:
             for r in [r for r in need if out[r] is None]:
                 out[r] = self._support(r, grid, P)
             self._recheck(out, grid, P)
+        moving = bool(self.tasks) or any(p is not None for p in out.values())
+        self.give_up.note_progress(moving, [f.goal for f in self.frontiers])
         for r, path in out.items():
             task = self.tasks.get(r)
             log.debug(
@@ -294,7 +297,7 @@ class ExplorationManager:
             self.unreachable += 1
             # blocked by the map itself (not just by another robot for now)?
             if self.planner.plan(grid, P[r][:2], goal) is None:
-                self._failed(goal)
+                self.give_up.failed(goal)
             log.debug("robot %s: no path to frontier %s", r, goal)
             tried.append(goal)
             if not self.coordinated or len(tried) > self.alternatives:
@@ -444,7 +447,7 @@ class ExplorationManager:
             if self.cleanup and any(
                 np.hypot(*(f.goal - t.goal)) < self.frontier_gone_m for f in self.frontiers
             ):  # looked at from where it is and still there: it stays as it is
-                self._failed(t.goal, self.max_failures)
+                self.give_up.failed(t.goal, self.give_up.max_failures)
             return True
         if not any(np.hypot(*(f.goal - t.goal)) < self.frontier_gone_m for f in self.frontiers):
             return True  # explored meanwhile, or no longer a frontier
@@ -453,19 +456,6 @@ class ExplorationManager:
             return True
         # the rest of the path, after the waypoint nearest the robot, must still be free
         return not pm.segment_free(rest[1:] if len(rest) > 1 else rest)
-
-    def _given_up(self, goal: NDArray[np.float64]) -> bool:
-        return any(
-            n >= self.max_failures and np.hypot(*(goal - g)) < self.frontier_gone_m
-            for g, n in self._failures
-        )
-
-    def _failed(self, goal: NDArray[np.float64], count: int = 1) -> None:
-        for k, (g, n) in enumerate(self._failures):
-            if np.hypot(*(goal - g)) < self.frontier_gone_m:
-                self._failures[k] = (g, n + count)
-                return
-        self._failures.append((goal.copy(), count))
 
     def restore_task(self, robot: str, path: ArrayLike) -> None:
         """After a restart: the robot is following `path` ((N, 2), map frame) to its end."""

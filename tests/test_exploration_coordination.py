@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 
 from basestation.exploration import ExplorationManager, _Task
+from basestation.frontier_give_up import FrontierGiveUp
 from basestation.frontiers import Frontier, FrontierDetector
 from basestation.goal_assigner import GoalAssigner
 from basestation.map_history import MapHistory, read_map_history
@@ -330,7 +331,7 @@ def test_a_robot_in_the_door_is_followed_or_waited_for_not_flown_around(b: str) 
     # waits or goes elsewhere
     assert path is None
     assert m.detours_refused >= 1 and m.unreachable == 1
-    assert not m._failures  # the map itself does not block the goal: not given up
+    assert not m.give_up.failures  # the map itself does not block the goal: not given up
     P["b"] = np.array([12.0, 8.0, 0.0])  # b gone: a goes through the door
     m.tasks.pop("b", None)
     path = m._plan("a", goal, g, P)
@@ -399,7 +400,7 @@ def test_what_the_published_map_still_lacks_is_looked_at_once_before_done() -> N
         out = ex.step(grid, P, strict=strict)
         visits += 1
     assert ex.done and not ex.frontiers and out == {"a": None}
-    assert 1 <= visits <= 4 and len(ex._failures) == visits
+    assert 1 <= visits <= 4 and len(ex.give_up.failures) == visits
 
 
 def test_a_robot_running_late_does_not_pass_close_to_where_another_stops() -> None:
@@ -495,3 +496,25 @@ def test_a_way_round_another_robots_route_is_also_judged_in_time() -> None:
             path, np.arange(0.0, float(np.hypot(*np.diff(path, axis=0).T).sum()), 0.05)
         )
         assert np.hypot(*(dense - hover).T).min() >= 1.5 - 0.05
+
+
+def test_frontiers_are_given_up_after_repeated_failures_or_when_the_team_stalls() -> None:
+    gu = FrontierGiveUp(max_failures=3, stall_steps=5)
+    a, b = np.array([1.0, 1.0]), np.array([5.0, 5.0])
+    for _ in range(2):
+        gu.failed(a + 0.1)  # the same frontier, its goal moved a little
+    assert not gu.given_up(a)
+    gu.failed(a)
+    assert gu.given_up(a) and not gu.given_up(b)
+    for _ in range(6):  # nobody has moved yet (the first map is still coming): not a stall
+        gu.note_progress(False, [a, b])
+    assert not gu.given_up(b)
+    gu.note_progress(True, [a, b])
+    for _ in range(4):  # four steps with nobody moving ...
+        gu.note_progress(False, [a, b])
+    gu.note_progress(True, [a, b])  # ... then one flies: the count starts again
+    for _ in range(4):
+        gu.note_progress(False, [a, b])
+    assert not gu.given_up(b)
+    gu.note_progress(False, [a, b])  # the fifth step in a row: all left are given up
+    assert gu.given_up(b) and gu.stalled == 0

@@ -267,17 +267,16 @@ class BaseStationNode:
 
     def _await_first_keyframes(self, timeout_s: float) -> None:
         """Before the first answer to the simulator (t = 0): take keyframes until every
-        agent that is up has its first one in, or `timeout_s` (wall) has passed. They
-        race the clock over Zenoh (the outbox resends one that was published before
-        the route to us existed); a robot missing from the first exploration step would
-        wait a period for its first path."""
+        robot of the scenario's roster (without one: every agent that is up) has its
+        first one in, or `timeout_s` (wall) has passed. They race the clock over Zenoh
+        (the outbox resends one that was published before the route to us existed; an
+        agent's liveliness token may not have reached us yet either); a robot missing
+        from the first exploration step would wait a period for its first path."""
         deadline = time.monotonic() + timeout_s
         while True:
             with self._lock:
-                alive = set(self._alive)
-            missing = alive - set(self.slam.graph.robots())
-            if self.roster is not None:
-                missing &= self.roster
+                expected = set(self._alive) if self.roster is None else set(self.roster)
+            missing = expected - set(self.slam.graph.robots())
             if not missing:
                 return
             if time.monotonic() > deadline:

@@ -32,7 +32,7 @@ from agent.odometry_tracker import OdometryTracker
 from agent.outbox import Outbox
 from agent.path_follower import PathFollower
 from agent.pose_smoother import IDENTITY7, PoseSmoother, pose7_compose
-from agent.safety_guard import SafetyGuard
+from agent.safety_guard import SafetyGuard, neighbours_in_body
 from agent.sensor_sources import SensorSource
 from agent.vehicle import NullVehicle, ZenohVehicle
 from common.bus import Bus
@@ -47,6 +47,7 @@ from protocol import (
     Keyframe,
     KeyframeAck,
     LaserScan,
+    Neighbours,
     Odometry,
     PoseCorrection,
     RobotState,
@@ -99,7 +100,10 @@ class AgentNode:
             a.max_accel_mps2,
             a.safety_reaction_s,
             a.blocked_after_s,
+            neighbour_keep_m=a.neighbour_keep_m,
         )
+        self._neighbours: Neighbours | None = None  # the base station's latest relay
+        self._on_map = T_map_odom is not None  # its map pose is known (start or correction)
         self.tour_map = np.asarray(tour_map, dtype=np.float64).reshape(-1, 2)
         self._corr_lock = threading.Lock()
         self.T_map_odom = np.zeros(4) if T_map_odom is None else np.asarray(T_map_odom, float)
@@ -131,6 +135,7 @@ class AgentNode:
         self.bus.subscribe(self.keys.robot(rid, "ack"), KeyframeAck, self._on_ack)
         self.bus.subscribe(self.keys.robot(rid, "correction"), PoseCorrection, self._on_correction)
         self.bus.subscribe(self.keys.robot(rid, "path"), PathMsg, self._on_path)
+        self.bus.subscribe(self.keys.robot(rid, "neighbours"), Neighbours, self._on_neighbours)
         self.bus.watch_alive("basestation", self._on_base_alive)
         self.bus.declare_alive("agent", rid)
 
@@ -158,8 +163,14 @@ class AgentNode:
                 return
             self.epoch = msg.epoch
             self.T_map_odom = pose7_to_pose4(msg.T_map_odom)
+            self._on_map = True
             self._smoother_pending = np.array(msg.T_map_odom, dtype=np.float64)
             self._new_correction = True
+
+    def _on_neighbours(self, msg: Neighbours, key: str) -> None:
+        with self._corr_lock:
+            if self._neighbours is None or msg.stamp >= self._neighbours.stamp:
+                self._neighbours = msg
 
     def _on_path(self, msg: PathMsg, key: str) -> None:
         """A new path from the base station (exploration); empty: stop here."""
@@ -284,6 +295,21 @@ class AgentNode:
 
     def _command(self, stamp: float) -> None:
         self._take_path()
+        with self._corr_lock:
+            nb, T_map_odom = self._neighbours if self._on_map else None, self.T_map_odom.copy()
+        if nb is not None:
+            a = self.cfg.agent
+            self.guard.set_neighbours(
+                neighbours_in_body(
+                    nb.stamps,
+                    nb.xy,
+                    nb.velocity,
+                    stamp,
+                    odom_to_map(T_map_odom, self.frontend.pose),
+                    a.neighbour_max_age_s,
+                    a.neighbour_extrapolation_s,
+                )
+            )
         vx, vy, vz, yaw_rate = self.follower.command(self.frontend.pose)
         vx, vy = self.guard.limit(stamp, vx, vy)
         self.vehicle.command(stamp, vx, vy, vz, yaw_rate)
@@ -353,6 +379,7 @@ class AgentNode:
             "scans_rejected": self.frontend.rejected_scans,
             "odometry_rejected": self.frontend.rejected_odometry,
             "guard_limited_ticks": self.guard.limited_ticks,
+            "guard_neighbour_ticks": self.guard.neighbour_ticks,
             "correction_epoch": self.epoch,
             "smoothing_restarts": self.smoother.restarts,
             "rejected_messages": dict(self.bus.rejected),

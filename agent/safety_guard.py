@@ -8,6 +8,15 @@ within its `radius_m + margin_m` corridor, and removes the velocity component
 toward a point already closer than that. A drone held still for longer than
 `blocked_after_s` is reported `blocked` so the base station replans.
 
+The other drones are kept apart too (`set_neighbours`): their centres, from the
+base station's `Neighbours` relay (`neighbours_in_body`), must stay
+`neighbour_keep_m` away. Toward each, the drone flies at most the speed from which
+it stops within half the gap (the other brakes in its half; a neighbour moves, so
+the whole line between them counts, not only what lies ahead). The lasers do not
+see the other drones reliably (a thin frame at the laser's height) and the base
+station plans once a second: this is the net under its plans (a leader that stopped,
+a plan that came late).
+
 All in the body frame of the latest scan (x forward, y left; the laser at the
 origin), metres and seconds; the vehicle's own limits still apply after this.
 """
@@ -16,6 +25,9 @@ from __future__ import annotations
 
 import numpy as np
 from numpy.typing import NDArray
+
+GIVE_WAY_MPS = 0.3  # m/s aside when a neighbour is in the way
+DEAD_AHEAD = np.sin(np.radians(10.0))  # a neighbour within 10 deg of the way: pass right
 
 
 class SafetyGuard:
@@ -27,6 +39,7 @@ class SafetyGuard:
         reaction_s: float,
         blocked_after_s: float,
         horizon_m: float = 4.0,
+        neighbour_keep_m: float = 1.1,
     ) -> None:
         self.corridor = radius_m + margin_m  # half-width swept by the drone, m
         self.stop_margin = margin_m  # m left between the disc and a point when stopped
@@ -35,6 +48,9 @@ class SafetyGuard:
         self.blocked_after_s = blocked_after_s
         self.horizon = horizon_m
         self.points: NDArray[np.float64] = np.zeros((0, 2))
+        self.neighbour_keep = neighbour_keep_m  # m between drone centres
+        self.neighbours: NDArray[np.float64] = np.zeros((0, 2))  # their centres
+        self.neighbour_ticks = 0  # commands the neighbours limited
         self._held_since: float | None = None
         self.blocked = False
         self.limited_ticks = 0
@@ -46,33 +62,21 @@ class SafetyGuard:
         a = np.asarray(angles, dtype=np.float64)[keep]
         self.points = np.column_stack([r[keep] * np.cos(a), r[keep] * np.sin(a)])
 
+    def set_neighbours(self, centres: NDArray[np.float64]) -> None:
+        """The other drones' centres now ((k, 2), body frame)."""
+        self.neighbours = np.asarray(centres, dtype=np.float64).reshape(-1, 2)
+
     def limit(self, stamp: float, vx: float, vy: float) -> tuple[float, float]:
-        """The body-frame horizontal command (vx, vy), m/s, made safe for the last scan."""
+        """The body-frame horizontal command (vx, vy), m/s, made safe for the last scan
+        and the neighbours."""
         v = np.array([vx, vy], dtype=np.float64)
         wanted = float(np.hypot(vx, vy))
-        p = self.points
-        if len(p) and wanted > 1e-6:
-            dist = np.hypot(p[:, 0], p[:, 1])
-            k = int(np.argmin(dist))
-            if dist[k] < self.corridor:  # too close already: no motion toward it
-                n = p[k] / max(dist[k], 1e-9)
-                v -= max(float(v @ n), 0.0) * n
-            speed = float(np.hypot(*v))
-            if speed > 1e-6:
-                u = v / speed
-                along = p @ u
-                lateral = np.abs(p @ np.array([-u[1], u[0]]))
-                ahead = (along > 0.0) & (lateral < self.corridor)
-                if ahead.any():
-                    # distance the disc can travel before touching the nearest point ahead
-                    travel = along[ahead] - np.sqrt(self.corridor**2 - lateral[ahead] ** 2)
-                    room = max(float(travel.min()) - self.stop_margin, 0.0)
-                    # fly at most the speed from which it still stops in `room`, one
-                    # reaction time of travel included
-                    a, t = self.max_accel, self.reaction_s
-                    allowed = -a * t + np.sqrt((a * t) ** 2 + 2.0 * a * room)
-                    if allowed < speed:
-                        v *= allowed / speed
+        if wanted > 1e-6:
+            before = v.copy()
+            v = self._apart_from_neighbours(v, give_way=True)
+            self.neighbour_ticks += int(not np.array_equal(v, before))
+            v = self._clear_of_scan(v)  # a way aside must be clear too ...
+            v = self._apart_from_neighbours(v)  # ... and not toward another drone
         limited = float(np.hypot(*v)) < wanted - 1e-6
         self.limited_ticks += int(limited)
         held = wanted > 0.05 and float(np.hypot(*v)) < 0.05
@@ -83,7 +87,89 @@ class SafetyGuard:
         self.blocked = held and stamp - self._held_since >= self.blocked_after_s
         return float(v[0]), float(v[1])
 
+    def _stopping_speed(self, room: float) -> float:
+        """The highest speed from which the drone stops within `room` (m), one reaction
+        time of travel included."""
+        a, t = self.max_accel, self.reaction_s
+        return float(-a * t + np.sqrt((a * t) ** 2 + 2.0 * a * max(room, 0.0)))
+
+    def _clear_of_scan(self, v: NDArray[np.float64]) -> NDArray[np.float64]:
+        """No motion toward the nearest scan point if it is within the corridor already,
+        and the speed capped so that the disc stops before any point ahead."""
+        p = self.points
+        if len(p) == 0:
+            return v
+        dist = np.hypot(p[:, 0], p[:, 1])
+        k = int(np.argmin(dist))
+        if dist[k] < self.corridor:  # too close already: no motion toward it
+            n = p[k] / max(dist[k], 1e-9)
+            v = v - max(float(v @ n), 0.0) * n
+        speed = float(np.hypot(*v))
+        if speed > 1e-6:
+            u = v / speed
+            along = p @ u
+            lateral = np.abs(p @ np.array([-u[1], u[0]]))
+            ahead = (along > 0.0) & (lateral < self.corridor)
+            if ahead.any():
+                # distance the disc can travel before touching the nearest point ahead
+                travel = along[ahead] - np.sqrt(self.corridor**2 - lateral[ahead] ** 2)
+                allowed = self._stopping_speed(float(travel.min()) - self.stop_margin)
+                if allowed < speed:
+                    v = v * (allowed / speed)
+        return v
+
+    def _apart_from_neighbours(
+        self, v: NDArray[np.float64], give_way: bool = False
+    ) -> NDArray[np.float64]:
+        """Toward each neighbour, at most the speed from which the drone stops within
+        half the gap left above `neighbour_keep` (the other drone brakes in its half):
+        the separation never shrinks faster than both can stop. Motion across the line
+        between them is kept (the drones slide round each other). With `give_way`, a
+        drone held back by a neighbour in its way also moves aside at `GIVE_WAY_MPS`:
+        past the side the neighbour leaves free, or to the right if it is dead ahead
+        (both drones do, so two meeting head-on pass instead of holding each other
+        forever). `neighbour_keep` 0: off."""
+        if self.neighbour_keep <= 0.0:
+            return v
+        wanted = float(np.hypot(*v))
+        u = v / max(wanted, 1e-9)  # the way it wants to go
+        for p in self.neighbours:
+            d = float(np.hypot(*p))
+            n = p / max(d, 1e-9)
+            allowed = self._stopping_speed(0.5 * (d - self.neighbour_keep))
+            toward = float(v @ n)
+            if toward <= allowed:
+                continue
+            v = v - (toward - allowed) * n
+            if give_way and toward > 0.5 * wanted:  # it is in the way, not just near
+                side = np.array([n[1], -n[0]])  # right of the line to it
+                if u[0] * n[1] - u[1] * n[0] < -DEAD_AHEAD:
+                    side = -side  # it lies to the right of the way: pass it on the left
+                v = v + max(GIVE_WAY_MPS - float(v @ side), 0.0) * side
+        return v
+
     def clear(self) -> None:
         """A new path: forget being blocked."""
         self._held_since = None
         self.blocked = False
+
+
+def neighbours_in_body(
+    stamps: NDArray[np.float64],
+    xy: NDArray[np.float64],
+    velocity: NDArray[np.float64],
+    stamp: float,
+    pose_map: NDArray[np.float64],
+    max_age_s: float,
+    max_extrapolation_s: float,
+) -> NDArray[np.float64]:
+    """Other drones' centres ((k, 2), body frame of a drone at `pose_map` [x, y, z, yaw])
+    at time `stamp`: each from its last reported `map` position (at `stamps`) moved on at
+    its velocity for up to `max_extrapolation_s`; those older than `max_age_s` left out."""
+    age = stamp - np.asarray(stamps, dtype=np.float64)
+    ok = age <= max_age_s
+    dt = np.clip(age[ok], 0.0, max_extrapolation_s)[:, None]
+    at = np.asarray(xy, dtype=np.float64)[ok] + np.asarray(velocity, dtype=np.float64)[ok] * dt
+    d = at - np.asarray(pose_map[:2], dtype=np.float64)
+    c, s = np.cos(pose_map[3]), np.sin(pose_map[3])
+    return np.column_stack([c * d[:, 0] + s * d[:, 1], -s * d[:, 0] + c * d[:, 1]])

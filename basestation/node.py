@@ -7,8 +7,9 @@ basestation/persistence.py; a restart with the same database resumes), publishes
 each robot's T_map_odom after every optimization, and keeps the global occupancy
 grid up to date. At shutdown it writes the map, the trajectories and its statistics.
 
-Threads: Zenoh callbacks only enqueue; the constraint builder verifies matches on
-its own worker; everything else runs on `run()`'s thread.
+Threads: Zenoh callbacks only enqueue (a robot's state is answered there, with where
+the others are); the constraint builder verifies matches on its own worker;
+everything else runs on `run()`'s thread.
 """
 
 from __future__ import annotations
@@ -28,6 +29,7 @@ from basestation.global_slam import GlobalSlam
 from basestation.inbox import KeyframeInbox
 from basestation.map_builder import MapBuilder
 from basestation.map_history import MapHistory
+from basestation.neighbour_relay import NeighbourRelay
 from basestation.path_planner import densify
 from basestation.persistence import EPOCH_BLOCK, Batch, open_database
 from common.bus import Bus
@@ -99,6 +101,7 @@ class BaseStationNode:
         self.inbox = KeyframeInbox()  # bounded (see basestation/inbox.py)
         self.gnss_inbox: queue.Queue[GnssFix] = queue.Queue()  # basestation.gps.enabled
         self.states: dict[str, RobotState] = {}
+        self.neighbours = NeighbourRelay()
         self.epoch = 0
         self.unknown_robot_drops = 0
         self.intake_pauses = 0
@@ -185,8 +188,13 @@ class BaseStationNode:
             self._sync_requested = max(self._sync_requested, msg.stamp)
 
     def _on_state(self, msg: RobotState, key: str) -> None:
+        """(Zenoh thread) keep it; answer with where the others are (neighbour guard)."""
+        if self.roster is not None and msg.robot_id not in self.roster:
+            return
         with self._lock:
             self.states[msg.robot_id] = msg
+            answer = self.neighbours.on_state(msg)
+        self.bus.publish(self.keys.robot(msg.robot_id, "neighbours"), answer)
 
     def _on_agent_alive(self, name: str, alive: bool) -> None:
         """Liveliness (Zenoh thread): a lost agent's state is forgotten and its goal
@@ -197,6 +205,7 @@ class BaseStationNode:
             (self._alive.add if alive else self._alive.discard)(name)
             if not alive:
                 self.states.pop(name, None)
+                self.neighbours.forget(name)
                 self._lost.append(name)
         if alive:
             log.info("agent %s joined", name)
@@ -440,14 +449,7 @@ class BaseStationNode:
             "rejected_messages": dict(self.bus.rejected),
             "correction_epoch": self.epoch,
             "links": {k: dict(v) for k, v in self.links.items()},
-            "persistence": None
-            if self.db.path is None
-            else {
-                "db": str(self.db.path),
-                "starts": self.db.starts,
-                "commits": self.db.commits,
-                "recovered": self.recovered,
-            },
+            "persistence": self.db.stats() and {**self.db.stats(), "recovered": self.recovered},
             "exploration": None
             if self.explorer is None
             else {

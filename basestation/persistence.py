@@ -26,6 +26,7 @@ import logging
 import sqlite3
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -216,6 +217,10 @@ class KeyframeDatabase:
         rows = self._db.execute("SELECT robot_id, count(*) FROM keyframes GROUP BY robot_id")
         return {r: int(n) for r, n in rows}
 
+    def stats(self) -> dict[str, Any] | None:
+        """For basestation.json: where it is, how often opened, transactions."""
+        return {"db": str(self.path), "starts": self.starts, "commits": self.commits}
+
     def scan_reader(self) -> ScanReader:
         """Reads committed keyframes' scans back (its own connection per thread)."""
         if self._reader is None:
@@ -275,6 +280,9 @@ class NullDatabase:
 
     def counts(self) -> dict[str, int]:
         return {}
+
+    def stats(self) -> None:
+        return None
 
     def scan_reader(self) -> None:
         """Nothing to read scans back from: they stay in memory."""

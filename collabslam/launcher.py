@@ -67,7 +67,10 @@ class Launcher:
         out: Path,
         max_sim_time: float,
         log_level: str = "INFO",
+        scenario: Scenario | None = None,
     ) -> None:
+        """`scenario`: starts and tours to fly instead of the world's defaults for
+        `n_robots` (its robots are the team)."""
         if n_robots < 1:
             raise ProcessError("--robots must be at least 1")
         self.cfg = cfg
@@ -75,13 +78,14 @@ class Launcher:
         self.n_robots = n_robots
         self.out = out
         self.max_sim_time = max_sim_time
+        self.scenario = scenario
         self.group = ProcessGroup(out, log_level)
         self.stop = threading.Event()
 
     def run(self) -> dict[str, Any]:
         t0 = time.monotonic()
         self.out.mkdir(parents=True, exist_ok=True)
-        scenario = make_scenario(self.cfg, self.world_yaml, self.n_robots)
+        scenario = self.scenario or make_scenario(self.cfg, self.world_yaml, self.n_robots)
         write_scenario(self.out / "scenario.json", scenario)
         # The base station's crash record (2 ms per batch); a new mission never resumes
         # an old one, so any database left there is deleted first.

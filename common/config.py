@@ -213,7 +213,14 @@ class AgentConfig:
     safety_margin_m: float = 0.05  # m, keep below exploration.inflation_m - vehicle_radius_m
     safety_reaction_s: float = 0.1  # s of travel before braking starts (latency)
     blocked_after_s: float = 2.0  # s held still by the guard: report "blocked" (replan)
-    state_period_s: float = 0.5  # s sim time between RobotState messages
+    # Neighbour guard (the same): other drones' centres, relayed by the base station in
+    # answer to each RobotState, kept neighbour_keep_m away (the 1 m target + slack),
+    # each drone braking within half the gap; positions moved on at their velocity for
+    # up to neighbour_extrapolation_s, ignored once neighbour_max_age_s old.
+    neighbour_keep_m: float = 1.1  # m between centres
+    neighbour_max_age_s: float = 1.0  # s sim time
+    neighbour_extrapolation_s: float = 0.5  # s
+    state_period_s: float = 0.2  # s sim time between RobotState messages (and Neighbours)
     drain_timeout_s: float = 15.0  # s wall: on shutdown wait this long for acks
     replay_max_unacked: int = 200  # --replay: pause the log while this many keyframes wait
     # --replay: log seconds per wall second (0: as fast as the acks allow), from the wall

@@ -127,7 +127,18 @@ def _validate_agent(cfg: Config) -> None:
             "odom_sigma_min",
         ),
     )
-    _non_negative_fields("agent", a, ("safety_margin_m", "safety_reaction_s", "malloc_arenas"))
+    _non_negative_fields(
+        "agent",
+        a,
+        (
+            "safety_margin_m",
+            "safety_reaction_s",
+            "malloc_arenas",
+            "neighbour_keep_m",  # 0: no neighbour guard
+            "neighbour_max_age_s",
+            "neighbour_extrapolation_s",
+        ),
+    )
     if not 0.0 < a.outbox_warn_fraction <= 1.0:
         raise ConfigError("agent.outbox_warn_fraction: expected a value in (0, 1]")
     _positive_fields("agent.smoothing", a.smoothing, ("s", "duration_s"))

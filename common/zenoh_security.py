@@ -6,7 +6,7 @@ The base station's Zenoh session (or a `zenohd` router in front of it) listens o
 table, keyed by that CN, lets robot `rX`
 
 - ingress (rX -> base): put/delete under `collabslam/<fleet>/robot/rX/**` only, declare
-  subscribers there only (ack, correction, goal, path), declare its liveliness token
+  subscribers there only (ack, correction, goal, path, neighbours), declare its liveliness token
   `alive/agent/rX`, and watch the base station's token;
 - egress (base -> rX): receive puts under `robot/rX/**` only, the base station's
   subscriber declarations (so rX routes its keyframes and state to it) and its token.
@@ -219,7 +219,7 @@ def robot_config(
 
 
 def downlink_keys(fleet: str, robot_id: str) -> list[str]:
-    """Keys the base station sends to `robot_id` (ack, correction, goal, path)."""
+    """Keys the base station sends to `robot_id` (ack, correction, goal, path, neighbours)."""
     keys = Keys(fleet)
     return [keys.robot(robot_id, t) for t in DOWNLINK_TOPICS]
 

@@ -6,7 +6,7 @@
     collabslam/<fleet>/robot/<id>/keyframe                           agent -> base station
     collabslam/<fleet>/robot/<id>/state                              agent -> anyone
     collabslam/<fleet>/robot/<id>/pose/control                       agent -> controller, anyone
-    collabslam/<fleet>/robot/<id>/{ack,correction,goal,path}         base station -> agent
+    collabslam/<fleet>/robot/<id>/{ack,correction,goal,path,neighbours}  base station -> agent
     collabslam/<fleet>/alive/{basestation,agent,sim}/<id>           liveliness tokens
     collabslam/<fleet>/clock/{sim,basestation}                       lock-step handshake
 
@@ -25,7 +25,7 @@ _NAME = re.compile(r"^[A-Za-z0-9_-]{1,32}$")
 
 SENSOR_TOPICS = ("scan", "odom", "imu", "altimeter", "gnss")
 UPLINK_TOPICS = ("keyframe", "state", "cmd", "pose/control")
-DOWNLINK_TOPICS = ("ack", "correction", "goal", "path")
+DOWNLINK_TOPICS = ("ack", "correction", "goal", "path", "neighbours")
 
 
 def _check(kind: str, name: str) -> str:

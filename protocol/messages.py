@@ -301,6 +301,25 @@ class RobotState(Message):
 
 
 @message
+class Neighbours(Message):
+    """The other robots where they last said they were (`map` frame), relayed by the
+    base station to `robot_id` in answer to each of its RobotStates, for its
+    neighbour guard: one row per other robot with its state's stamp, position and
+    velocity (from its last two states; zero across a correction)."""
+
+    robot_id: str
+    stamp: float  # the recipient's state this answers
+    stamps: np.ndarray = array_field("f8", (None,))
+    xy: np.ndarray = array_field("f8", (None, 2))
+    velocity: np.ndarray = array_field("f8", (None, 2))
+
+    def validate(self) -> None:
+        super().validate()
+        if not len(self.stamps) == len(self.xy) == len(self.velocity):
+            raise ProtocolError("Neighbours: stamps, xy and velocity differ in length")
+
+
+@message
 class ClockSync:
     """Lock-step handshake between the simulator and the base station (sim time, s).
 
@@ -367,6 +386,7 @@ def message_types() -> dict[str, Any]:
             Goal,
             Path,
             RobotState,
+            Neighbours,
             ClockSync,
             ControlPose,
         )

@@ -28,6 +28,7 @@ from protocol import (
     Keyframe,
     KeyframeAck,
     LaserScan,
+    Neighbours,
     Odometry,
     Path,
     PoseCorrection,
@@ -64,6 +65,7 @@ def _valid_messages() -> list:
         Goal("r0", 1, 2.0, "map", 3, P7),
         Path("r0", 1, 2.0, "odom", 3, np.zeros((4, 4), np.float32)),
         RobotState("r0", 2.0, "flying", 3, 10, 9, 1, P7, P7),
+        Neighbours("r0", 2.0, np.array([1.9]), np.array([[1.0, 2.0]]), np.array([[0.5, 0.0]])),
     ]
 
 

@@ -22,6 +22,7 @@ from protocol import (
     Keyframe,
     KeyframeAck,
     LaserScan,
+    Neighbours,
     Odometry,
     Path,
     PoseCorrection,
@@ -66,6 +67,7 @@ def samples() -> list:
         Path("r0", 2, 2.0, "odom", 3, np.zeros((5, 4), np.float32)),
         RobotState("r0", 2.0, "flying", 3, 10, 9, 1, P7, P7),
         ClockSync("sim", 12.5),
+        Neighbours("r0", 2.0, np.array([1.9]), np.array([[1.0, 2.0]]), np.array([[0.5, 0.0]])),
         ControlPose("r0", 2.025, 4, 0.93, P7, P7, pose4_to_pose7([1.1, -2.0, 0.5, 0.31])),
         GnssFix("r0", 2.0, np.array([45.8118, 16.0106, 160.5]), np.array([1.5, 1.5, 3.0])),
     ]
@@ -165,6 +167,8 @@ def test_semantic_checks() -> None:
         decode(encode(ControlPose("r0", 1.0, 0, 0.5, P7, P7, np.zeros(7))))
     with pytest.raises(ProtocolError, match="exactly one"):
         decode(encode(Keyframe("r0", 0, 0.0, P7, P7, np.eye(6), None, None)))
+    with pytest.raises(ProtocolError, match="differ in length"):
+        decode(encode(Neighbours("r0", 1.0, np.zeros(2), np.zeros((1, 2)), np.zeros((1, 2)))))
     with pytest.raises(ProtocolError, match="sender"):
         decode(encode(ClockSync("intruder", 1.0)))
     with pytest.raises(ProtocolError, match="stamp"):

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from agent.safety_guard import SafetyGuard
+from agent.safety_guard import SafetyGuard, neighbours_in_body
 
 ANGLES = np.linspace(-np.radians(135.0), np.radians(135.0), 1081)
 
@@ -75,3 +75,83 @@ def test_held_still_long_enough_is_blocked_and_a_new_path_clears_it() -> None:
     g.update(ANGLES, _wall_ranges(10.0))
     g.limit(2.1, 1.0, 0.0)
     assert not g.blocked
+
+
+# --- neighbours (other drones, relayed by the base station) ------------------------------
+
+
+def _fly_pair(starts: np.ndarray, goals: np.ndarray, seconds: float) -> tuple[float, np.ndarray]:
+    """Two guarded drones flying straight at 1 m/s to their goals (world frame = body
+    frame, each told where the other is every tick), braking at 1 m/s^2: (closest
+    distance, final positions)."""
+    guards = [_guard(), _guard()]
+    x, v, dt = starts.astype(float), np.zeros((2, 2)), 0.01
+    closest = np.inf
+    for step in range(int(seconds / dt)):
+        for i in range(2):
+            guards[i].set_neighbours((x[1 - i] - x[i])[None])
+            to_goal = goals[i] - x[i]
+            want = to_goal / max(np.hypot(*to_goal), 1.0)  # 1 m/s, slower near the goal
+            cmd = np.array(guards[i].limit(step * dt, *want))
+            dv = cmd - v[i]
+            v[i] += dv * min(1.0, 1.0 * dt / max(np.hypot(*dv), 1e-9))  # 1 m/s^2
+        x += v * dt
+        closest = min(closest, float(np.hypot(*(x[0] - x[1]))))
+    assert guards[0].neighbour_ticks > 0 and guards[1].neighbour_ticks > 0
+    return closest, x
+
+
+def test_two_drones_meeting_head_on_keep_apart_and_pass_each_other() -> None:
+    """Each flies toward the other at most the speed from which it stops in half the
+    gap, and each gives way to its right: they pass, never closer than the keep
+    distance (1.1 m, less what the braking lag costs)."""
+    starts, goals = np.array([[0.0, 0.0], [6.0, 0.0]]), np.array([[6.0, 0.0], [0.0, 0.0]])
+    closest, end = _fly_pair(starts, goals, 25.0)
+    assert 1.0 <= closest <= 1.2, closest
+    np.testing.assert_allclose(end, goals, atol=0.3)  # both got where they were going
+
+
+def test_a_drone_crossing_another_ones_way_keeps_apart() -> None:
+    starts, goals = np.array([[0.0, 0.0], [3.0, -3.0]]), np.array([[6.0, 0.0], [3.0, 3.0]])
+    closest, end = _fly_pair(starts, goals, 25.0)
+    assert closest >= 1.0, closest
+    np.testing.assert_allclose(end, goals, atol=0.3)
+
+
+def test_a_drone_slides_round_a_neighbour_in_its_way_and_may_always_move_apart() -> None:
+    g = _guard()
+    g.set_neighbours(np.array([[1.05, 0.3]]))  # ahead, a little left, inside 1.1 m
+    vx, vy = g.limit(0.0, 1.0, 0.0)
+    n = np.array([1.05, 0.3]) / np.hypot(1.05, 0.3)
+    assert np.dot([vx, vy], n) <= 1e-9  # nothing toward it
+    assert vy < -0.1  # round it, to the right
+    assert g.limit(0.0, -1.0, 0.0) == (-1.0, 0.0)  # away from it: untouched
+    g.set_neighbours(np.array([[-3.0, 0.0]]))  # one behind, far: nothing to do
+    assert g.limit(0.0, 1.0, 0.0) == (1.0, 0.0)
+
+
+def test_no_neighbour_guard_with_keep_zero() -> None:
+    g = SafetyGuard(0.25, 0.05, 1.0, 0.1, 2.0, neighbour_keep_m=0.0)
+    g.set_neighbours(np.array([[0.3, 0.0]]))
+    assert g.limit(0.0, 1.0, 0.0) == (1.0, 0.0) and g.neighbour_ticks == 0
+
+
+def test_neighbours_in_body_frame_moved_on_to_now_and_stale_ones_dropped() -> None:
+    # me at (2, 1) facing +y; a neighbour reported at (2, 3) 0.2 s ago moving +x at 1 m/s,
+    # another reported 5 s ago
+    body = neighbours_in_body(
+        stamps=np.array([9.8, 5.0]),
+        xy=np.array([[2.0, 3.0], [0.0, 0.0]]),
+        velocity=np.array([[1.0, 0.0], [0.0, 0.0]]),
+        stamp=10.0,
+        pose_map=np.array([2.0, 1.0, 1.0, np.pi / 2]),
+        max_age_s=1.0,
+        max_extrapolation_s=0.5,
+    )
+    # now at (2.2, 3): 2 m ahead (+x body), 0.2 m to the right (-y body)
+    np.testing.assert_allclose(body, [[2.0, -0.2]], atol=1e-9)
+    far = neighbours_in_body(
+        np.array([8.0]), np.array([[2.0, 3.0]]), np.array([[1.0, 0.0]]), 9.0,
+        np.array([2.0, 1.0, 1.0, np.pi / 2]), 2.0, 0.5,
+    )  # fmt: skip
+    np.testing.assert_allclose(far, [[2.0, -0.5]], atol=1e-9)  # moved on 0.5 s at most

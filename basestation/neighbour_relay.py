@@ -1,0 +1,63 @@
+"""Tells each robot where the others are, for its neighbour guard (agent side).
+
+Robots never hear each other directly (under the deploy access control a robot gets
+only what is addressed to it), and the base station's paths keep them apart at the
+exploration step's pace (1 Hz). So that a follower notices a leader that stopped
+sooner than that, the base station answers every `RobotState` with a `Neighbours`
+message: the other robots' last reported `map` positions, their stamps and
+velocities (the difference of their last two states; zero across a new correction
+epoch, whose jump is not motion). Robots whose last state is older than `max_age_s`
+of the asking robot's time are left out, and so are robots without a correction yet
+(their `map` pose is not known: correction epoch -1).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from protocol import Neighbours, RobotState
+
+
+@dataclass
+class _Track:
+    stamp: float
+    epoch: int
+    xy: np.ndarray
+    velocity: np.ndarray
+
+
+class NeighbourRelay:
+    def __init__(self, max_age_s: float = 2.0, max_dt_s: float = 2.0) -> None:
+        self.max_age_s = max_age_s  # s, older positions are not relayed
+        self.max_dt_s = max_dt_s  # s, states further apart give no velocity
+        self._tracks: dict[str, _Track] = {}
+
+    def on_state(self, msg: RobotState) -> Neighbours:
+        """Take `msg`'s position; the answer to send back to its robot."""
+        xy = np.asarray(msg.pose_map[:2], dtype=np.float64)
+        old = self._tracks.get(msg.robot_id)
+        velocity = np.zeros(2)
+        if old is not None and old.epoch == msg.correction_epoch:
+            dt = msg.stamp - old.stamp
+            if 0.0 < dt <= self.max_dt_s:
+                velocity = (xy - old.xy) / dt
+        if old is None or msg.stamp > old.stamp:  # a late or repeated state changes nothing
+            self._tracks[msg.robot_id] = _Track(msg.stamp, msg.correction_epoch, xy, velocity)
+        others = [
+            t
+            for rid, t in self._tracks.items()
+            if rid != msg.robot_id and t.stamp >= msg.stamp - self.max_age_s and t.epoch >= 0
+        ]
+        return Neighbours(
+            robot_id=msg.robot_id,
+            stamp=msg.stamp,
+            stamps=np.array([t.stamp for t in others], dtype=np.float64),
+            xy=np.array([t.xy for t in others], dtype=np.float64).reshape(-1, 2),
+            velocity=np.array([t.velocity for t in others], dtype=np.float64).reshape(-1, 2),
+        )
+
+    def forget(self, robot_id: str) -> None:
+        """A robot that went away (liveliness lost) is no longer anyone's neighbour."""
+        self._tracks.pop(robot_id, None)

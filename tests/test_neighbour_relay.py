@@ -1,0 +1,45 @@
+"""The base station's answer to each robot's state: where the other robots are."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from basestation.neighbour_relay import NeighbourRelay
+from common.geometry import pose4_to_pose7
+from protocol import RobotState, decode, encode
+
+
+def _state(rid: str, stamp: float, x: float, y: float, epoch: int = 3) -> RobotState:
+    p = pose4_to_pose7([x, y, 1.0, 0.0])
+    return RobotState(rid, stamp, "flying", epoch, 10, 10, 0, p, p)
+
+
+def test_each_robot_hears_the_others_with_their_velocities() -> None:
+    relay = NeighbourRelay()
+    first = relay.on_state(_state("r0", 1.0, 0.0, 0.0))
+    assert first.robot_id == "r0" and len(first.xy) == 0  # alone so far
+    relay.on_state(_state("r1", 1.0, 5.0, 0.0))
+    relay.on_state(_state("r1", 1.5, 5.0, 0.5))  # r1 flies +y at 1 m/s
+    ans = decode(encode(relay.on_state(_state("r0", 1.6, 0.2, 0.0))))  # what goes out
+    np.testing.assert_allclose(ans.xy, [[5.0, 0.5]])
+    np.testing.assert_allclose(ans.velocity, [[0.0, 1.0]])
+    np.testing.assert_allclose(ans.stamps, [1.5])
+    assert ans.robot_id == "r0" and ans.stamp == 1.6
+    back = relay.on_state(_state("r1", 1.7, 5.0, 0.7))
+    np.testing.assert_allclose(back.xy, [[0.2, 0.0]])
+    np.testing.assert_allclose(back.velocity, [[0.2 / 0.6, 0.0]])
+
+
+def test_no_velocity_across_a_correction_and_old_or_unplaced_robots_left_out() -> None:
+    relay = NeighbourRelay(max_age_s=2.0)
+    relay.on_state(_state("r1", 1.0, 5.0, 0.0, epoch=3))
+    relay.on_state(_state("r1", 1.2, 5.5, 0.0, epoch=4))  # the jump is a new correction
+    np.testing.assert_allclose(relay.on_state(_state("r0", 1.2, 0, 0)).velocity, [[0.0, 0.0]])
+    relay.on_state(_state("r2", 1.2, 9.0, 9.0, epoch=-1))  # not on the map yet
+    assert len(relay.on_state(_state("r0", 1.3, 0, 0)).xy) == 1
+    assert len(relay.on_state(_state("r0", 3.5, 0, 0)).xy) == 0  # r1's news is 2.3 s old
+    relay.on_state(_state("r1", 3.6, 5.0, 0.0, epoch=4))
+    relay.on_state(_state("r1", 3.0, 0.0, 0.0, epoch=4))  # late: changes nothing
+    np.testing.assert_allclose(relay.on_state(_state("r0", 3.7, 0, 0)).xy, [[5.0, 0.0]])
+    relay.forget("r1")  # its liveliness token went away
+    assert len(relay.on_state(_state("r0", 3.8, 0, 0)).xy) == 0

@@ -20,6 +20,7 @@ import json
 import logging
 import threading
 import time
+from collections import deque
 from pathlib import Path
 from typing import Any
 
@@ -39,6 +40,7 @@ from common.bus import Bus
 from common.config import Config
 from common.geometry import map_to_odom, odom_to_map, pose4_to_pose7, pose7_to_pose4
 from common.memory import HeapTrimmer
+from common.metrics import percentiles
 from common.trajectory_io import Trajectory, write_tum
 from protocol import (
     Altimeter,
@@ -104,6 +106,7 @@ class AgentNode:
         )
         self._neighbours: Neighbours | None = None  # the base station's latest relay
         self._on_map = T_map_odom is not None  # its map pose is known (start or correction)
+        self._news_ages: deque[float] = deque(maxlen=20000)  # s, the relay's answer at use
         self.tour_map = np.asarray(tour_map, dtype=np.float64).reshape(-1, 2)
         self._corr_lock = threading.Lock()
         self.T_map_odom = np.zeros(4) if T_map_odom is None else np.asarray(T_map_odom, float)
@@ -299,6 +302,7 @@ class AgentNode:
             nb, T_map_odom = self._neighbours if self._on_map else None, self.T_map_odom.copy()
         if nb is not None:
             a = self.cfg.agent
+            self._news_ages.append(stamp - nb.stamp)
             self.guard.set_neighbours(
                 neighbours_in_body(
                     nb.stamps,
@@ -380,6 +384,8 @@ class AgentNode:
             "odometry_rejected": self.frontend.rejected_odometry,
             "guard_limited_ticks": self.guard.limited_ticks,
             "guard_neighbour_ticks": self.guard.neighbour_ticks,
+            # sim time since the state the neighbours' relay answered (the latest ticks)
+            **percentiles("neighbour_news_age_s", self._news_ages),
             "correction_epoch": self.epoch,
             "smoothing_restarts": self.smoother.restarts,
             "rejected_messages": dict(self.bus.rejected),

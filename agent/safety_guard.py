@@ -27,6 +27,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 GIVE_WAY_MPS = 0.3  # m/s aside when a neighbour is in the way
+REPEL_GAIN = 1.0  # m/s away from a neighbour per m inside the keep distance
 DEAD_AHEAD = np.sin(np.radians(10.0))  # a neighbour within 10 deg of the way: pass right
 
 
@@ -39,7 +40,7 @@ class SafetyGuard:
         reaction_s: float,
         blocked_after_s: float,
         horizon_m: float = 4.0,
-        neighbour_keep_m: float = 1.1,
+        neighbour_keep_m: float = 1.3,
     ) -> None:
         self.corridor = radius_m + margin_m  # half-width swept by the drone, m
         self.stop_margin = margin_m  # m left between the disc and a point when stopped
@@ -71,12 +72,17 @@ class SafetyGuard:
         and the neighbours."""
         v = np.array([vx, vy], dtype=np.float64)
         wanted = float(np.hypot(vx, vy))
-        if wanted > 1e-6:
-            before = v.copy()
-            v = self._apart_from_neighbours(v, give_way=True)
-            self.neighbour_ticks += int(not np.array_equal(v, before))
-            v = self._clear_of_scan(v)  # a way aside must be clear too ...
-            v = self._apart_from_neighbours(v)  # ... and not toward another drone
+        before = v.copy()
+        v = self._apart_from_neighbours(v, give_way=True)  # may move a hovering drone
+        self.neighbour_ticks += int(not np.array_equal(v, before))
+        for _ in range(3):  # a way aside must be clear of the scan, and not toward
+            if float(np.hypot(*v)) <= 1e-6:  # another drone: taking motion toward
+                break  # one away may add some toward the other (a drone by a wall)
+            after = self._apart_from_neighbours(self._clear_of_scan(v))
+            done = bool(np.allclose(after, v, atol=1e-3))
+            v = after
+            if done:
+                break
         limited = float(np.hypot(*v)) < wanted - 1e-6
         self.limited_ticks += int(limited)
         held = wanted > 0.05 and float(np.hypot(*v)) < 0.05
@@ -123,8 +129,11 @@ class SafetyGuard:
     ) -> NDArray[np.float64]:
         """Toward each neighbour, at most the speed from which the drone stops within
         half the gap left above `neighbour_keep` (the other drone brakes in its half):
-        the separation never shrinks faster than both can stop. Motion across the line
-        between them is kept (the drones slide round each other). With `give_way`, a
+        the separation never shrinks faster than both can stop; closer than that (news
+        a state period old, a drone slow to follow its command), it moves away at
+        `REPEL_GAIN` per m inside, even when hovering. Motion across the line between
+        them is kept (the drones slide round each other). With `give_way` (the pass
+        before the scan check; the one after it never adds motion), a
         drone held back by a neighbour in its way also moves aside at `GIVE_WAY_MPS`:
         past the side the neighbour leaves free, or to the right if it is dead ahead
         (both drones do, so two meeting head-on pass instead of holding each other
@@ -136,7 +145,13 @@ class SafetyGuard:
         for p in self.neighbours:
             d = float(np.hypot(*p))
             n = p / max(d, 1e-9)
-            allowed = self._stopping_speed(0.5 * (d - self.neighbour_keep))
+            gap = d - self.neighbour_keep
+            if gap >= 0.0:
+                allowed = self._stopping_speed(0.5 * gap)
+            elif give_way:  # too close already (late news, a lagging turn): move apart
+                allowed = -min(REPEL_GAIN * -gap, GIVE_WAY_MPS)
+            else:  # the pass after the scan check only takes away
+                allowed = 0.0
             toward = float(v @ n)
             if toward <= allowed:
                 continue

@@ -5,8 +5,9 @@ only what is addressed to it), and the base station's paths keep them apart at t
 exploration step's pace (1 Hz). So that a follower notices a leader that stopped
 sooner than that, the base station answers every `RobotState` with a `Neighbours`
 message: the other robots' last reported `map` positions, their stamps and
-velocities (the difference of their last two states; zero across a new correction
-epoch, whose jump is not motion). Robots whose last state is older than `max_age_s`
+velocities (the difference of their last two states' `odom` positions, turned into
+`map` with the latest correction: a correction's jump is not motion, and corrections
+come several times a second). Robots whose last state is older than `max_age_s`
 of the asking robot's time are left out, and so are robots without a correction yet
 (their `map` pose is not known: correction epoch -1).
 """
@@ -17,6 +18,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from common.geometry import pose7_to_pose4
 from protocol import Neighbours, RobotState
 
 
@@ -24,8 +26,9 @@ from protocol import Neighbours, RobotState
 class _Track:
     stamp: float
     epoch: int
-    xy: np.ndarray
-    velocity: np.ndarray
+    xy: np.ndarray  # map
+    odom_xy: np.ndarray
+    velocity: np.ndarray  # map
 
 
 class NeighbourRelay:
@@ -37,14 +40,18 @@ class NeighbourRelay:
     def on_state(self, msg: RobotState) -> Neighbours:
         """Take `msg`'s position; the answer to send back to its robot."""
         xy = np.asarray(msg.pose_map[:2], dtype=np.float64)
+        odom_xy = np.asarray(msg.pose_odom[:2], dtype=np.float64)
         old = self._tracks.get(msg.robot_id)
         velocity = np.zeros(2)
-        if old is not None and old.epoch == msg.correction_epoch:
-            dt = msg.stamp - old.stamp
-            if 0.0 < dt <= self.max_dt_s:
-                velocity = (xy - old.xy) / dt
+        if old is not None and 0.0 < msg.stamp - old.stamp <= self.max_dt_s:
+            turn = pose7_to_pose4(msg.pose_map)[3] - pose7_to_pose4(msg.pose_odom)[3]
+            c, s = np.cos(turn), np.sin(turn)
+            d = (odom_xy - old.odom_xy) / (msg.stamp - old.stamp)
+            velocity = np.array([c * d[0] - s * d[1], s * d[0] + c * d[1]])
         if old is None or msg.stamp > old.stamp:  # a late or repeated state changes nothing
-            self._tracks[msg.robot_id] = _Track(msg.stamp, msg.correction_epoch, xy, velocity)
+            self._tracks[msg.robot_id] = _Track(
+                msg.stamp, msg.correction_epoch, xy, odom_xy, velocity
+            )
         others = [
             t
             for rid, t in self._tracks.items()

@@ -305,7 +305,7 @@ class Neighbours(Message):
     """The other robots where they last said they were (`map` frame), relayed by the
     base station to `robot_id` in answer to each of its RobotStates, for its
     neighbour guard: one row per other robot with its state's stamp, position and
-    velocity (from its last two states; zero across a correction)."""
+    velocity (from its last two states' odometry, turned into `map`)."""
 
     robot_id: str
     stamp: float  # the recipient's state this answers

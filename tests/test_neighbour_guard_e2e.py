@@ -18,8 +18,8 @@ from common.config import load_config
 from common.scenario import RobotScenario, Scenario
 
 # rooms15's south-west room (free 2.8 m around (3.0, 3.5)): r1 hovers in its middle;
-# r0 first flies round the room (~25 s: the base station, whose relay the guard needs,
-# is up well before), then straight through where r1 is
+# r0 first flies round the room (~25 s, real time: the base station, whose relay the
+# guard needs, is up well before), then straight through where r1 is
 TOURS = {
     "r0": np.array(
         [[1.3, 3.5], [1.3, 5.2], [4.8, 5.2], [4.8, 2.2], [1.6, 2.2], [1.3, 3.5], [5.0, 3.5]]
@@ -34,6 +34,9 @@ def _fly(out: Path, keep_m: float) -> tuple[dict, dict[str, dict]]:
         overrides={
             "exploration.enabled": False,
             "agent.neighbour_keep_m": keep_m,
+            # in lock-step 2 drones fly ~3.5x faster than real time: the warm-up would be
+            # over before a loaded machine has the base station up
+            "sim.clock": "realtime",
             "sim.seed": 0,
         }
     )
@@ -51,7 +54,7 @@ def test_neighbour_guard_keeps_crossing_drones_a_metre_apart(tmp_path: Path) -> 
     summary, agents = _fly(tmp_path / "guarded", keep_m=1.1)
     sep = summary["min_robot_separation_m"]
     assert all(r["collisions"] == 0 for r in summary["robots"]), summary["robots"]
-    assert sep >= 0.95, sep  # 1.1 m kept, less what a relay a state period old misses
+    assert sep >= 1.1, sep  # 1.3 m kept, less what news a state period old misses
     assert sum(a["guard_neighbour_ticks"] for a in agents.values()) > 0, agents
     # the same tours without the guard: they meet (so the guard made the difference)
     summary_off, agents_off = _fly(tmp_path / "unguarded", keep_m=0.0)

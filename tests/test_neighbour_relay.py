@@ -9,9 +9,13 @@ from common.geometry import pose4_to_pose7
 from protocol import RobotState, decode, encode
 
 
-def _state(rid: str, stamp: float, x: float, y: float, epoch: int = 3) -> RobotState:
+def _state(
+    rid: str, stamp: float, x: float, y: float, epoch: int = 3, odom: tuple | None = None
+) -> RobotState:
+    """At (x, y) in map; in odom at `odom` ([x, y, yaw]; default: the same pose)."""
     p = pose4_to_pose7([x, y, 1.0, 0.0])
-    return RobotState(rid, stamp, "flying", epoch, 10, 10, 0, p, p)
+    o = p if odom is None else pose4_to_pose7([odom[0], odom[1], 1.0, odom[2]])
+    return RobotState(rid, stamp, "flying", epoch, 10, 10, 0, o, p)
 
 
 def test_each_robot_hears_the_others_with_their_velocities() -> None:
@@ -30,11 +34,15 @@ def test_each_robot_hears_the_others_with_their_velocities() -> None:
     np.testing.assert_allclose(back.velocity, [[0.2 / 0.6, 0.0]])
 
 
-def test_no_velocity_across_a_correction_and_old_or_unplaced_robots_left_out() -> None:
+def test_velocity_from_odometry_and_old_or_unplaced_robots_left_out() -> None:
     relay = NeighbourRelay(max_age_s=2.0)
-    relay.on_state(_state("r1", 1.0, 5.0, 0.0, epoch=3))
-    relay.on_state(_state("r1", 1.2, 5.5, 0.0, epoch=4))  # the jump is a new correction
-    np.testing.assert_allclose(relay.on_state(_state("r0", 1.2, 0, 0)).velocity, [[0.0, 0.0]])
+    # odom turned 90 deg from map: 0.2 m along odom x in 0.2 s is 1 m/s along map y; the
+    # 0.5 m jump in map is a new correction, not motion
+    relay.on_state(_state("r1", 1.0, 5.0, 0.0, epoch=3, odom=(0.0, 0.0, -np.pi / 2)))
+    relay.on_state(_state("r1", 1.2, 5.5, 0.2, epoch=4, odom=(0.2, 0.0, -np.pi / 2)))
+    ans = relay.on_state(_state("r0", 1.2, 0, 0))
+    np.testing.assert_allclose(ans.velocity, [[0.0, 1.0]], atol=1e-9)
+    np.testing.assert_allclose(ans.xy, [[5.5, 0.2]])
     relay.on_state(_state("r2", 1.2, 9.0, 9.0, epoch=-1))  # not on the map yet
     assert len(relay.on_state(_state("r0", 1.3, 0, 0)).xy) == 1
     assert len(relay.on_state(_state("r0", 3.5, 0, 0)).xy) == 0  # r1's news is 2.3 s old

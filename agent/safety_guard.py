@@ -15,7 +15,8 @@ it stops within half the gap (the other brakes in its half; a neighbour moves, s
 the whole line between them counts, not only what lies ahead). The lasers do not
 see the other drones reliably (a thin frame at the laser's height) and the base
 station plans once a second: this is the net under its plans (a leader that stopped,
-a plan that came late).
+a plan that came late). The agent turns it off on scripted tours unless told
+otherwise (`agent.neighbour_guard_tours`): they are not deconflicted.
 
 All in the body frame of the latest scan (x forward, y left; the laser at the
 origin), metres and seconds; the vehicle's own limits still apply after this.

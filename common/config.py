@@ -221,6 +221,10 @@ class AgentConfig:
     neighbour_keep_m: float = 1.3  # m between centres
     neighbour_max_age_s: float = 1.0  # s sim time
     neighbour_extrapolation_s: float = 0.5  # s
+    # Scripted tours (exploration.enabled = false) are planned without the others: the
+    # guard would hold drones meeting in a corridor for good (a 10-drone 30-min soak flew
+    # 5-18 % of its distance). On for exploration only, unless this is true.
+    neighbour_guard_tours: bool = False
     state_period_s: float = 0.2  # s sim time between RobotState messages (and Neighbours)
     drain_timeout_s: float = 15.0  # s wall: on shutdown wait this long for acks
     replay_max_unacked: int = 200  # --replay: pause the log while this many keyframes wait

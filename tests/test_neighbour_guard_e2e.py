@@ -34,6 +34,7 @@ def _fly(out: Path, keep_m: float) -> tuple[dict, dict[str, dict]]:
         overrides={
             "exploration.enabled": False,
             "agent.neighbour_keep_m": keep_m,
+            "agent.neighbour_guard_tours": True,  # tours: the guard is for exploration
             # in lock-step 2 drones fly ~3.5x faster than real time: the warm-up would be
             # over before a loaded machine has the base station up (no relay needed
             # without the guard: lock-step, quicker)

@@ -15,7 +15,9 @@ the reachable free area (the world's free cells connected to the start), read fr
 its per-sync map history: a cell is known when the map has it free, or occupied
 within `WALL_TOLERANCE_M` of a real wall (its surface, `common.metrics.map_coverage`);
 `time_to_95_free_only_s` counts map-free cells only (this benchmark's metric until
-2026-11-26). `collisions` counts wall contacts (simulator)
+2026-11-26). With `bound`, `time_to_95_bound_s` is the floor no team starting where
+this one did could beat (`benchmarks/exploration_bound.py`: the travel to the places
+that see 95 %, map lag not counted). `collisions` counts wall contacts (simulator)
 plus robot-robot contacts (ground-truth discs overlapping). Worlds: shipped names,
 map_server YAML paths, or `random:SEED` for a generated floor plan nobody tuned on.
 """
@@ -29,9 +31,11 @@ from typing import Any
 
 import numpy as np
 
+from benchmarks.exploration_bound import time_to_fraction_bound_s
 from collabslam.launcher import Launcher
 from common.config import Config
-from common.map_io import write_map
+from common.map_io import read_map, write_map
+from common.scenario import read_scenario
 from simulation.world_generator import generate_world
 
 log = logging.getLogger(__name__)
@@ -116,6 +120,27 @@ def speedups(
     return out
 
 
+def _bound(
+    cfg: Config, world: str, out: Path, cache: dict[tuple[str, str], float | None]
+) -> float | None:
+    """`time_to_95_bound_s` for the starts of the mission in `out` (cached per start)."""
+    sc = read_scenario(out / "scenario.json")
+    starts = [r.start_pose[:2] for r in sc.robots]
+    key = (world, repr(np.round(np.asarray(starts, dtype=np.float64), 3).tolist()))
+    if key not in cache:
+        q = cfg.sim.quadrotor
+        cache[key] = time_to_fraction_bound_s(
+            read_map(sc.world),
+            starts,
+            0.95,
+            min(q.max_speed_mps, cfg.agent.cruise_speed_mps),
+            q.max_accel_mps2,
+            radius_m=q.radius_m,
+            range_m=cfg.sim.laser.range_max_m,
+        )
+    return cache[key]
+
+
 def plot_coverage(result: dict[str, list[dict[str, Any]]], path: Path, title: str) -> None:
     import matplotlib
 
@@ -158,9 +183,11 @@ def run(
     seeds: int,
     max_sim_time: float,
     strategies: list[str] | None = None,
+    bound: bool = False,
 ) -> dict[str, Any]:
     names = strategies or list(STRATEGIES)
     report: dict[str, Any] = {"worlds": {}}
+    bounds: dict[tuple[str, str], float | None] = {}  # (world, starts) -> time_to_95_bound_s
     for world in worlds:
         path = resolve_bench_world(world, out_dir)
         result: dict[str, list[dict[str, Any]]] = {name: [] for name in names}
@@ -178,6 +205,8 @@ def run(
                         row["collisions"],
                         row["min_robot_separation_m"],
                     )
+                    if bound:
+                        row["time_to_95_bound_s"] = _bound(cfg, path, Path(row["out"]), bounds)
                     result[name].append(row)
         png = out_dir / f"coverage_{world.replace(':', '_')}.png"
         plot_coverage(result, png, f"exploration of {world}")

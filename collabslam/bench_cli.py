@@ -84,6 +84,7 @@ def add_bench_parsers(sub: argparse._SubParsersAction[argparse.ArgumentParser]) 
             "seeds": a.seeds,
             "max_sim_time": a.max_sim_time,
             "strategies": a.strategies.split(","),
+            "bound": a.bound,
         },
         json_help="output JSON file; runs and plots go next to it",
     )
@@ -96,6 +97,12 @@ def add_bench_parsers(sub: argparse._SubParsersAction[argparse.ArgumentParser]) 
     b.add_argument("--seeds", type=int, default=1, help="runs per team size (sim.seed 0..N-1)")
     b.add_argument("--max-sim-time", type=float, default=400.0, help="s of sim time per run")
     b.add_argument("--strategies", default="ours,baseline", help="comma list of ours, baseline")
+    b.add_argument(
+        "--bound",
+        action="store_true",
+        help="add time_to_95_bound_s to every row: no team could know 95 %% sooner "
+        "(benchmarks/exploration_bound.py; ~10-60 s per world and start)",
+    )
 
     b = _bench_parser(
         bn,

@@ -21,9 +21,9 @@ from agent.correlative_matcher import RealTimeCorrelativeMatcher
 from agent.grid_refiner import CeresLikeRefiner
 from agent.motion_filter import MotionFilter
 from agent.pose_extrapolator import PoseExtrapolator
-from agent.scan_matcher import ScanMatcher
+from agent.scan_matcher import MatchResult, ScanMatcher
 from agent.scan_preprocessor import ScanPreprocessor
-from agent.submaps import ActiveSubmaps
+from agent.submaps import ActiveSubmaps, Submap
 from common.config import LocalSlamConfig
 from common.geometry import quat_to_rpy, se2_compose, se2_inverse, wrap_angle
 from protocol import LaserScan
@@ -79,6 +79,7 @@ class LocalTrajectoryBuilder:
         self.scans = 0
         self.matched = 0
         self.rejected_scans = 0
+        self.gated_matches = 0  # matches that turned too far from the prediction
         self.distance_m = 0.0
 
     # --- other sensors ------------------------------------------------------------------
@@ -97,6 +98,23 @@ class LocalTrajectoryBuilder:
     def add_altitude(self, stamp: float, altitude_m: float) -> None:
         self.altitude = float(altitude_m)
         self.pose[2] = self.altitude
+
+    def _gated(self, m: MatchResult, submap: Submap, predicted: np.ndarray) -> bool:
+        """A match that turns the pose further from the odometry's prediction than
+        `max_match_yaw_jump_deg` in one scan: the refiner slid into a wrong minimum (a
+        drone spinning on the spot in random:1 jumped 28.6 deg in one scan and mapped a
+        room turned by that much). The prediction is used instead."""
+        limit = math.radians(self.cfg.max_match_yaw_jump_deg)
+        jump = abs(float(wrap_angle(submap.to_local(m.pose)[2] - predicted[2])))
+        if limit <= 0.0 or jump <= limit:
+            return False
+        self.gated_matches += 1
+        log.warning(
+            "scan match turned %.1f deg from the odometry's prediction (> %.1f): not used",
+            math.degrees(jump),
+            self.cfg.max_match_yaw_jump_deg,
+        )
+        return True
 
     # --- scans --------------------------------------------------------------------------
     def add_scan(self, scan: LaserScan) -> LocalSlamResult | None:
@@ -141,7 +159,8 @@ class LocalTrajectoryBuilder:
             found = m.converged or not (
                 self.cfg.use_correlative and math.isnan(m.correlative_score)
             )
-            if found and m.score >= self.cfg.min_match_score:
+            good = found and m.score >= self.cfg.min_match_score
+            if good and not self._gated(m, submap, predicted):
                 pose2, score, matched = submap.to_local(m.pose), m.score, True
                 c, s = math.cos(submap.T_local_submap[2]), math.sin(submap.T_local_submap[2])
                 R = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])

@@ -95,6 +95,8 @@ class AgentNode:
             a.yaw_gain,
             a.max_accel_mps2,
             a.cruise_altitude_m,
+            a.full_speed_off_nose_deg,
+            a.max_off_nose_deg,
         )
         self.guard = SafetyGuard(
             a.vehicle_radius_m,
@@ -385,6 +387,7 @@ class AgentNode:
             "scans": self.scans,
             "odom_distance_m": self.frontend.distance_m,
             "scans_rejected": self.frontend.rejected_scans,
+            "matches_gated": self.frontend.gated_matches,
             "odometry_rejected": self.frontend.rejected_odometry,
             "guard_limited_ticks": self.guard.limited_ticks,
             "guard_neighbour_ticks": self.guard.neighbour_ticks,

@@ -28,6 +28,7 @@ class OdometryTracker:
         self.scans = 0
         self.rejected_scans = 0
         self.rejected_odometry = 0
+        self.gated_matches = 0  # no scan matching here: always 0
         self._last_odom: np.ndarray | None = None
         self._last_odom_stamp = -math.inf
 

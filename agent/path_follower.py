@@ -2,8 +2,12 @@
 
 Waypoints are [x, y] (or [x, y, z, yaw]) in the robot's `odom` frame. The
 follower flies straight at each waypoint at cruise speed, turning to face the
-direction of travel (the laser looks forward), slows down for the last one,
-and holds `altitude_m`. It only computes commands; the vehicle limits itself.
+direction of travel, slows down for the last one, and holds `altitude_m`. A
+multirotor need not face where it flies, but its laser must see there (270 deg, a
+blind sector behind): up to `full_speed_off_nose_deg` off the nose it flies at
+full speed while it turns, slower the further off, not at all beyond
+`max_off_nose_deg` (it turns first). It only computes commands; the vehicle
+limits itself.
 """
 
 from __future__ import annotations
@@ -21,12 +25,21 @@ class PathFollower:
         yaw_gain: float,
         max_accel: float,
         altitude_m: float,
+        full_speed_off_nose_deg: float = 60.0,
+        max_off_nose_deg: float = 105.0,
     ) -> None:
+        if not 0.0 <= full_speed_off_nose_deg < max_off_nose_deg <= 180.0:
+            raise ValueError(
+                "need 0 <= full_speed_off_nose_deg < max_off_nose_deg <= 180, got "
+                f"{full_speed_off_nose_deg} and {max_off_nose_deg}"
+            )
         self.cruise_speed = cruise_speed
         self.tolerance = tolerance
         self.yaw_gain = yaw_gain
         self.max_accel = max_accel
         self.altitude_m = altitude_m
+        self.full_speed_off_nose = np.radians(full_speed_off_nose_deg)
+        self.max_off_nose = np.radians(max_off_nose_deg)
         self.waypoints = np.zeros((0, 2))
         self.index = 0
 
@@ -59,8 +72,9 @@ class PathFollower:
         )
         heading_err = float(wrap_angle(np.arctan2(d[1], d[0]) - yaw))
         speed = min(self.cruise_speed, np.sqrt(2.0 * self.max_accel * 0.5 * remaining))
-        # Turn first when the target is well off the nose, then fly.
-        speed *= max(0.0, np.cos(heading_err)) ** 2
+        # Sideways while turning as far as the laser sees; turn first beyond that.
+        taper = self.max_off_nose - self.full_speed_off_nose
+        speed *= float(np.clip((self.max_off_nose - abs(heading_err)) / taper, 0.0, 1.0))
         c, s = np.cos(yaw), np.sin(yaw)
         v_odom = speed * d / max(dist, 1e-9)
         vx = c * v_odom[0] + s * v_odom[1]

@@ -166,6 +166,7 @@ class LocalSlamConfig:
     translation_weight: float = 3.0  # refiner prior weight (1/m)
     rotation_weight: float = 0.1  # refiner prior weight (1/rad)
     min_match_score: float = 0.3  # mean cell probability below which a match is rejected
+    max_match_yaw_jump_deg: float = 15.0  # deg from the odometry's prediction: rejected (0: off)
     motion_filter_min_distance_m: float = 0.05  # m since the last local keyframe ...
     motion_filter_min_angle_deg: float = 1.0  # deg ...
     motion_filter_max_time_s: float = 5.0  # s ... or this long: insert anyway
@@ -206,6 +207,8 @@ class AgentConfig:
     cruise_altitude_m: float = 1.0  # m above ground
     max_accel_mps2: float = 1.0  # m/s^2, used to slow down before the last waypoint
     yaw_gain: float = 1.5  # 1/s, heading controller gain
+    full_speed_off_nose_deg: float = 60.0  # deg: flies at full speed this far off the nose
+    max_off_nose_deg: float = 105.0  # deg: turns first beyond (keep within the laser's view)
     # Safety guard on every command (agent/safety_guard.py): the speed along the commanded
     # direction is capped so the drone stops before any point of the live scan within
     # vehicle_radius_m + safety_margin_m of its track.

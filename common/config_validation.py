@@ -141,6 +141,11 @@ def _validate_agent(cfg: Config) -> None:
     )
     if not 0.0 < a.outbox_warn_fraction <= 1.0:
         raise ConfigError("agent.outbox_warn_fraction: expected a value in (0, 1]")
+    if not 0.0 <= a.full_speed_off_nose_deg < a.max_off_nose_deg <= 180.0:
+        raise ConfigError(
+            "agent.full_speed_off_nose_deg / max_off_nose_deg: expected "
+            "0 <= full_speed_off_nose_deg < max_off_nose_deg <= 180"
+        )
     _positive_fields("agent.smoothing", a.smoothing, ("s", "duration_s"))
     _non_negative_fields("agent.smoothing", a.smoothing, ("t_x_s",))
     _positive_fields(
@@ -155,6 +160,7 @@ def _validate_agent(cfg: Config) -> None:
             "min_num_points",
         ),
     )
+    _non_negative_fields("agent.local_slam", ls, ("max_match_yaw_jump_deg",))  # 0: off
     if not 0.5 < ls.p_hit < 1.0 or not 0.0 < ls.p_miss < 0.5:
         raise ConfigError("agent.local_slam.p_hit / p_miss: expected 0 < p_miss < 0.5 < p_hit < 1")
     if not 0 <= ls.min_range_m < ls.max_range_m:

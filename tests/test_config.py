@@ -43,6 +43,8 @@ def test_round_trip(tmp_path: Path) -> None:
         ({"basestation.malloc_arenas": -1}, "basestation.malloc_arenas"),
         ({"basestation.malloc_mmap_threshold_kb": -1}, "basestation.malloc_mmap_threshold_kb"),
         ({"agent.malloc_arenas": -2}, "agent.malloc_arenas"),
+        ({"agent.max_off_nose_deg": 200.0}, "agent.full_speed_off_nose_deg"),
+        ({"agent.local_slam.max_match_yaw_jump_deg": -1.0}, "agent.local_slam.max_match_yaw"),
     ],
 )
 def test_bad_values_name_the_key(overrides: dict, key: str) -> None:

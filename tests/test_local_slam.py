@@ -143,3 +143,26 @@ def test_replayed_intel_piece_reaches_the_base_station(
     bstats = json.loads((tmp_path / "base" / "basestation.json").read_text())
     assert bstats["robots"]["intel0"]["keyframes_in_graph"] == stats["keyframes_sent"]
     assert (tmp_path / "base" / "map.png").is_file()
+
+
+def test_a_match_that_turns_far_from_the_odometry_is_not_used(caplog) -> None:
+    """A match more than `max_match_yaw_jump_deg` (15) off the prediction in one scan
+    (a refiner slid into a wrong minimum) is dropped with a warning; others are used."""
+    from agent.scan_matcher import MatchResult
+    from agent.submaps import Submap
+    from common.config import LocalSlamConfig
+
+    b = LocalTrajectoryBuilder(LocalSlamConfig())
+    sub = Submap(0, [1.0, 2.0, 0.3], 0.05, 4.0, 0.55, 0.49)  # T_local_submap
+    predicted = np.array([1.5, 2.5, 0.4])  # local frame
+
+    def match_turning(delta_rad: float) -> MatchResult:
+        local = predicted + [0.0, 0.0, delta_rad]
+        return MatchResult(sub.to_submap(local), 0.8, np.eye(3) * 1e-4, 3, True)
+
+    assert not b._gated(match_turning(0.2), sub, predicted)  # 11.5 deg: used
+    with caplog.at_level(logging.WARNING):
+        assert b._gated(match_turning(-0.5), sub, predicted)  # 28.6 deg: dropped
+    assert b.gated_matches == 1 and "28.6 deg" in caplog.text
+    b.cfg.max_match_yaw_jump_deg = 0.0  # off
+    assert not b._gated(match_turning(-0.5), sub, predicted)

@@ -194,3 +194,27 @@ def test_path_follower_reaches_waypoints() -> None:
     assert f.done
     assert np.hypot(pose[0] - 2.0, pose[1] - 2.0) < 0.3
     assert f.command(pose)[:2] == (0.0, 0.0)
+
+
+def test_path_follower_flies_off_the_nose_only_where_the_laser_sees() -> None:
+    """A multirotor flies sideways while it turns, at full speed up to 60 deg off the
+    nose and not at all beyond 105 deg (the laser's blind sector is behind)."""
+    f = PathFollower(cruise_speed=1.0, tolerance=0.3, yaw_gain=1.5, max_accel=1.0, altitude_m=1.0)
+    pose = np.array([0.0, 0.0, 1.0, 0.0])
+
+    def speed_toward(angle_deg: float) -> tuple[float, float]:
+        a = np.radians(angle_deg)
+        f.set_path(np.array([[10.0 * np.cos(a), 10.0 * np.sin(a)]]))
+        vx, vy, _, wz = f.command(pose)
+        if np.hypot(vx, vy) > 0:  # along the way to the waypoint
+            assert abs(np.arctan2(vy, vx) - a) < 1e-9
+        return float(np.hypot(vx, vy)), wz
+
+    assert speed_toward(45.0)[0] == pytest.approx(1.0)
+    assert speed_toward(-60.0)[0] == pytest.approx(1.0)
+    v90, wz90 = speed_toward(90.0)
+    assert 0.2 < v90 < 0.5 and wz90 > 0.0  # slower, and turning toward it
+    v_back, wz_back = speed_toward(-150.0)
+    assert v_back == 0.0 and wz_back < 0.0  # turns first
+    with pytest.raises(ValueError):
+        PathFollower(1.0, 0.3, 1.5, 1.0, 1.0, full_speed_off_nose_deg=90.0, max_off_nose_deg=80.0)

@@ -89,15 +89,7 @@ class AgentNode:
         self.outbox = Outbox(
             a.outbox_max, a.outbox_warn_fraction, a.resend_timeout_s, a.resend_batch
         )
-        self.follower = PathFollower(
-            a.cruise_speed_mps,
-            a.waypoint_tolerance_m,
-            a.yaw_gain,
-            a.max_accel_mps2,
-            a.cruise_altitude_m,
-            a.full_speed_off_nose_deg,
-            a.max_off_nose_deg,
-        )
+        self.follower = PathFollower.from_config(a)
         self.guard = SafetyGuard(
             a.vehicle_radius_m,
             a.safety_margin_m,

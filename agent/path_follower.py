@@ -12,9 +12,14 @@ limits itself.
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import numpy as np
 
 from common.geometry import wrap_angle
+
+if TYPE_CHECKING:
+    from common.config import AgentConfig
 
 
 class PathFollower:
@@ -42,6 +47,19 @@ class PathFollower:
         self.max_off_nose = np.radians(max_off_nose_deg)
         self.waypoints = np.zeros((0, 2))
         self.index = 0
+
+    @classmethod
+    def from_config(cls, a: AgentConfig) -> PathFollower:
+        """The follower the agent flies with (`agent.*` of the configuration)."""
+        return cls(
+            a.cruise_speed_mps,
+            a.waypoint_tolerance_m,
+            a.yaw_gain,
+            a.max_accel_mps2,
+            a.cruise_altitude_m,
+            a.full_speed_off_nose_deg,
+            a.max_off_nose_deg,
+        )
 
     def set_path(self, waypoints_odom: np.ndarray, keep_progress: bool = False) -> None:
         self.waypoints = np.asarray(waypoints_odom, dtype=np.float64)[:, :2]

@@ -68,13 +68,7 @@ def fly(cfg: Config, world_name: str, length_m: float, seed: int) -> tuple[Float
         max_yaw_rate=q.max_yaw_rate_rps,
         radius=q.radius_m,
     )
-    follower = PathFollower(
-        a.cruise_speed_mps,
-        a.waypoint_tolerance_m,
-        a.yaw_gain,
-        a.max_accel_mps2,
-        a.cruise_altitude_m,
-    )
+    follower = PathFollower.from_config(a)
     follower.set_path(tour)
     dt = 1.0 / cfg.sim.laser.rate_hz
     stamps, poses = [], []

@@ -61,13 +61,7 @@ def record_tour(
         radius=q.radius_m,
     )
     a = cfg.agent
-    follower = PathFollower(
-        a.cruise_speed_mps,
-        a.waypoint_tolerance_m,
-        a.yaw_gain,
-        a.max_accel_mps2,
-        a.cruise_altitude_m,
-    )
+    follower = PathFollower.from_config(a)
     follower.set_path(tour)
     dt = 1.0 / s.laser.rate_hz
     rec = Recording()

@@ -22,8 +22,13 @@ the same questions in the same order get the same paths), capped at
 (then the paths depend on the CPU's load). The
 same question (start, goal, other robots) on the same grid is answered from memory:
 an exploration step asks some several times. A start
-inside the inflated zone (a robot close to a wall) is allowed: the inflation (not
-the wall) is cleared in a disc of `start_escape_m` around it.
+inside the inflated zone (a robot close to a wall) is allowed: its path first
+leaves the zone straight away from the wall (`PlanningMap.way_out`), and only if
+there is no such way is the zone opened within `start_escape_m` of it
+(`PlanningMap.open_escape`); a start outside every zone is given no way into one.
+Either way a path never passes a wall closer than the robot already is, which the
+agent's safety guard would refuse (docs/architecture.md: a lone drone on rooms15
+held for 145 s in a door, 0.33 m from the jamb).
 
 OMPL's random generator is seeded (`seed` of the first planner of the process: OMPL
 accepts a seed only before its first sample) for repeatable plans.
@@ -86,7 +91,9 @@ class PlanningMap:
         self.origin = np.array(grid.origin[:2], dtype=np.float64)
         occupied = grid.data > 0
         self.occupied = occupied
-        self.blocked = _wall_distance(occupied, grid.resolution) <= inflation_m
+        self.inflation_m = float(inflation_m)
+        self.wall_distance = _wall_distance(occupied, grid.resolution)  # m, read-only
+        self.blocked = self.wall_distance <= inflation_m
         self.blocked |= occupied
         # other robots: positions and paths, (N, 2) each; a path is blocked along its
         # segments, not only at its vertices (discs a quarter clearance apart: the
@@ -129,6 +136,58 @@ class PlanningMap:
                 self.blocked[y0:y1, x0:x1] |= d
             else:
                 self.blocked[y0:y1, x0:x1] &= ~d
+
+    def open_escape(self, start: NDArray[np.float64], radius: float) -> None:
+        """Within `radius` of a robot at `start`: open the cells blocked by other robots'
+        discs only, and, if the robot is inside a wall's zone (close to a wall), the
+        zone's cells too (not the walls). A start outside every zone gets no way into
+        one: a path from a drone 0.4 m from a door jamb could pass the jamb at 0.25 m."""
+        iy, ix = self.cells(np.asarray(start, dtype=np.float64)[None, :2])
+        h, w = self.blocked.shape
+        cy, cx = int(iy[0]), int(ix[0])
+        if not (0 <= cy < h and 0 <= cx < w):
+            return
+        r = int(math.ceil(radius / self.resolution))
+        y0, y1, x0, x1 = max(cy - r, 0), min(cy + r + 1, h), max(cx - r, 0), min(cx + r + 1, w)
+        yy, xx = np.mgrid[y0:y1, x0:x1]
+        disc = ((yy - cy) ** 2 + (xx - cx) ** 2) * self.resolution**2 <= radius * radius
+        if not self.in_wall_zone(start):
+            disc &= self.wall_distance[y0:y1, x0:x1] > self.inflation_m
+        self.blocked[y0:y1, x0:x1] &= ~disc
+
+    def in_wall_zone(self, xy: ArrayLike) -> bool:
+        """Whether a point lies within the inflation of a wall (or on one)."""
+        iy, ix = self.cells(np.asarray(xy, dtype=np.float64)[None, :2])
+        h, w = self.blocked.shape
+        if not (0 <= iy[0] < h and 0 <= ix[0] < w):
+            return False
+        return bool(self.wall_distance[iy[0], ix[0]] <= self.inflation_m)
+
+    def way_out(self, start: NDArray[np.float64], max_m: float) -> NDArray[np.float64] | None:
+        """From a point inside a wall's zone, the point straight away from the nearest
+        wall (up the wall distance's gradient) where the zone ends, if that is within
+        `max_m` and the way there keeps getting farther from the wall; else None."""
+        s = np.asarray(start, dtype=np.float64)[:2]
+        (cy,), (cx,) = self.cells(s[None])
+        h, w = self.wall_distance.shape
+        if not (1 <= cy < h - 1 and 1 <= cx < w - 1):
+            return None
+        d = self.wall_distance
+        grad = np.array([d[cy, cx + 1] - d[cy, cx - 1], d[cy + 1, cx] - d[cy - 1, cx]])
+        norm = float(np.hypot(*grad))
+        if norm < 1e-9:
+            return None
+        step = 0.5 * self.resolution
+        pts = s + np.arange(1, int(max_m / step) + 1)[:, None] * step * (grad / norm)
+        py, px = self.cells(pts)
+        inside = (py >= 0) & (py < h) & (px >= 0) & (px < w)
+        if not inside.all():
+            return None
+        along = d[py, px]
+        out = np.nonzero(along > self.inflation_m)[0]
+        if not len(out) or (np.diff(along[: out[0] + 1]) < -1e-9).any():
+            return None
+        return pts[out[0]]
 
     def segment_free(self, path: NDArray[np.float64]) -> bool:
         """Whether every point along the polyline (sampled at a quarter cell) is free."""
@@ -228,6 +287,11 @@ class PathPlanner:
         margin = 2.0 * grid.resolution
         pm = self._map(grid, s, others, margin)
         check = self._map(grid, s, others, 0.0)
+        if pm.in_wall_zone(s):  # close to a wall: leave its zone straight away from it
+            out = pm.way_out(s, self.start_escape_m + margin)
+            if out is not None and check.segment_free(np.array([s, out])):
+                rest = self._plan(grid, out, g, others)
+                return None if rest is None else np.vstack([s[None], rest])
         if not pm.is_free(g[None])[0]:
             log.debug("goal %s is blocked", g)
             return None
@@ -327,10 +391,10 @@ class PathPlanner:
         self, grid: GridMap, s: NDArray[np.float64], others: list[ArrayLike] | None, margin: float
     ) -> PlanningMap:
         pm = PlanningMap(grid, self.inflation_m + margin, others, self.robot_clearance_m + margin)
-        pm.block_discs(s[None], self.start_escape_m, value=False)
+        pm.open_escape(s, self.start_escape_m)
         pm.blocked |= pm.occupied  # only the inflation is cleared around the start
-        # ... but the robot is where it is: map noise under it must not trap it
-        pm.block_discs(s[None], self.robot_radius_m, value=False)
+        if not pm.is_free(s[None])[0]:  # ... but the robot is where it is: map noise
+            pm.block_discs(s[None], self.robot_radius_m, value=False)  # must not trap it
         return pm
 
     def _rrt_star(

@@ -102,6 +102,34 @@ def test_a_path_never_crosses_occupied_or_inflated_cells(seed: int) -> None:
     assert not pm.blocked[iy[far], ix[far]].any()
 
 
+def _quarter_cell_samples(path: np.ndarray) -> np.ndarray:
+    """Points along a path a quarter cell apart (as the planner checks its paths)."""
+    pts = []
+    for a, b in zip(path[:-1], path[1:], strict=True):
+        n = max(2, int(np.ceil(np.hypot(*(b - a)) / (0.25 * RES))) + 1)
+        pts.append(a + np.linspace(0.0, 1.0, n)[:, None] * (b - a))
+    return np.vstack(pts)
+
+
+def test_a_robot_beside_a_door_jamb_is_not_sent_past_it_closer() -> None:
+    # rooms15: a drone in a door, 0.33 m from the jamb's corner, was sent on past the
+    # corner closer than that; its safety guard held it there. Now it first leaves the
+    # jamb's zone straight away from it, and is not sent back into the zone after
+    d = np.zeros((60, 60), dtype=np.int8)  # 6 x 6 m at 0.1 m
+    d[29:31, 35:] = 100  # a wall along y = 3 from x = 3.5 east: its corner at (3.5, 3.1)
+    d[29:31, :20] = 100  # the door's other side, 1.5 m away
+    grid = _grid(d)
+    pm = PlanningMap(grid, 0.35)
+    for start, goal in (([3.28, 3.22], [5.5, 5.0]), ([3.28, 3.22], [4.0, 2.4])):
+        s = np.array(start)
+        (sy,), (sx,) = pm.cells(s[None])
+        assert pm.wall_distance[sy, sx] < 0.35 + 2 * RES  # in the zone RRT* plans around
+        path = PathPlanner(inflation_m=0.35, time_budget_s=0.5, seed=1).plan(grid, s, goal)
+        assert path is not None
+        iy, ix = pm.cells(_quarter_cell_samples(path))
+        assert pm.wall_distance[iy, ix].min() >= pm.wall_distance[sy, sx] - 1e-9
+
+
 def _serpentine() -> np.ndarray:
     """10 x 10 m with four walls, gaps alternating right and left: a long detour."""
     d = np.zeros((100, 100), dtype=np.int8)
@@ -222,3 +250,19 @@ def test_plans_are_the_same_however_loaded_the_machine_is(tmp_path) -> None:
     assert out["loaded"]["paths"] == out["idle"]["paths"]
     assert out["loaded"]["checks"] == out["idle"]["checks"]
     assert out["loaded"]["wall_s"] > 1.5 * out["idle"]["wall_s"]  # the load did slow it
+
+
+def test_a_robot_outside_every_wall_zone_is_given_no_way_into_one() -> None:
+    d = np.zeros((60, 60), dtype=np.int8)  # the door of the test above
+    d[29:31, 35:] = 100
+    d[29:31, :20] = 100
+    grid = _grid(d)
+    pm = PlanningMap(grid, 0.35)
+    start = np.array([3.78, 3.47])  # 0.4 m above the wall, 0.45 m from its corner
+    (sy,), (sx,) = pm.cells(start[None])
+    assert 0.35 < pm.wall_distance[sy, sx] < 0.35 + 2 * RES
+    for goal in ([3.0, 2.3], [2.6, 1.5]):  # round the corner, through the door
+        path = PathPlanner(inflation_m=0.35, time_budget_s=0.5, seed=1).plan(grid, start, goal)
+        assert path is not None
+        iy, ix = pm.cells(_quarter_cell_samples(path))
+        assert pm.wall_distance[iy, ix].min() > 0.35

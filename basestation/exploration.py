@@ -29,7 +29,7 @@ from basestation.goal_assigner import AssignmentWeights, GoalAssigner, own_groun
 from basestation.path_planner import PathPlanner, PlanningMap, path_length
 from basestation.path_schedule import points_along, schedule_conflict
 from basestation.travel_distance import travel_distances
-from basestation.visibility import seen_from, viewpoints
+from basestation.visibility import seen_from, unknown_in_view, viewpoints
 from common.config import Config
 from common.map_io import GridMap
 
@@ -72,6 +72,10 @@ class ExplorationManager:
     # m a robot that loses its path in a step may still fly on it while it stops (v^2 / 2a
     # at cruise speed): others planned in that step see it there, not where it was
     stop_distance_m: float = 0.5
+    w_gain: float = 0.25  # m of travel per m^2 of unknown in view short of gain_full_m2
+    gain_full_m2: float = 25.0  # m^2: about a half disc of gain_radius_m, a room's door
+    gain_near_m: float = 5.0  # m of travel: nearer, less (a pocket is taken in passing)
+    gain_radius_m: float = 4.0  # m: how far a look from a frontier counts (unknown_in_view)
     w_own: float = 0.5  # cost per m a frontier is closer to a robot than to all others
     own_cap_m: float = 10.0  # m, up to this much
     support_min_m: float = 1.0  # m, shortest move worth sending an idle robot
@@ -418,6 +422,10 @@ class ExplorationManager:
         # another's shadow: it goes once the robot turns or the other moves, not worth a trip
         D = np.where(D < self.near_frontier_m, D + self.near_frontier_cost_m, D)
         D -= self.w_own * own_ground(D_all, D, rows, self.own_cap_m)  # closer to it than others
+        if self.w_gain > 0.0:  # a door into an unexplored room before a far pocket
+            gain = unknown_in_view(grid, F, self.gain_radius_m)
+            short = np.clip(self.gain_full_m2 - gain, 0.0, None)  # m^2
+            D = D + self.w_gain * short[None, :] * np.clip(D / self.gain_near_m, 0.0, 1.0)
         spread = np.zeros(len(F))
         for g in busy:  # frontiers near where another robot is heading: it will see them
             spread += self.w_spread * np.maximum(0.0, self.spread_radius_m - np.hypot(*(F - g).T))
@@ -479,12 +487,13 @@ def make_explorer(cfg: Config) -> ExplorationManager:
             e.inflation_m, e.robot_clearance_m, e.planning_time_s, check_budget=e.planning_checks
         ),
         coordinated=e.strategy == "coordinated",
-        w_spread=e.w_spread,
         speed_mps=cfg.agent.cruise_speed_mps,
-        spread_radius_m=e.spread_radius_m,
-        seen_range_m=e.seen_range_m,
-        seen_fov_deg=e.seen_fov_deg,
-        seen_cost_m=e.seen_cost_m,
-        w_own=e.w_own,
-        own_cap_m=e.own_cap_m,
+        **{k: getattr(e, k) for k in COST_FIELDS},
     )
+
+
+# exploration config fields that are ExplorationManager fields of the same name
+COST_FIELDS = (
+    "w_spread", "spread_radius_m", "seen_range_m", "seen_fov_deg", "seen_cost_m", "w_own",
+    "own_cap_m", "w_gain", "gain_full_m2", "gain_near_m", "gain_radius_m",
+)  # fmt: skip

@@ -387,6 +387,10 @@ class ExplorationConfig:
     # their goals) costs it w_own per m of that lead less, up to own_cap_m (0: off).
     w_own: float = 0.5
     own_cap_m: float = 10.0  # m
+    w_gain: float = 0.25  # information (0: off): m per m^2 in view short of gain_full_m2
+    gain_full_m2: float = 25.0  # m^2
+    gain_near_m: float = 5.0  # m of travel: the cost x min(1, travel / gain_near_m)
+    gain_radius_m: float = 4.0  # m
     inflation_m: float = 0.35  # m, no-collision zone around obstacles
     robot_clearance_m: float = 1.0  # m, disc around other robots and their paths
     # RRT* work per path: validity checks (~0.2 s here), so plans do not depend on the

@@ -60,10 +60,15 @@ def validate(cfg: Config) -> None:
     _positive_fields(
         "exploration",
         cfg.exploration,
-        ("period_s", "frontier_radius_m", "planning_time_s", "planning_checks", "seen_range_m"),
-    )
+        (
+            "period_s", "frontier_radius_m", "planning_time_s", "planning_checks",
+            "seen_range_m", "gain_radius_m", "gain_near_m",
+        ),
+    )  # fmt: skip
     _non_negative_fields(
-        "exploration", cfg.exploration, ("seen_cost_m", "seen_fov_deg", "w_own", "own_cap_m")
+        "exploration",
+        cfg.exploration,
+        ("seen_cost_m", "seen_fov_deg", "w_own", "own_cap_m", "w_gain", "gain_full_m2"),
     )
     if cfg.exploration.strategy not in ("coordinated", "greedy"):
         raise ConfigError(

@@ -292,6 +292,30 @@ def test_a_frontier_right_next_to_a_robot_is_taken_last() -> None:
     assert goal is not None and np.allclose(goal, near)
 
 
+def test_a_door_into_the_unknown_goes_before_a_pocket_in_a_corner() -> None:
+    """With `w_gain`, a frontier that shows little unknown (beside a walled-in pocket)
+    costs more than one that opens onto an unexplored room: the robot takes the door
+    2 m farther away first, and the nearer pocket without the term."""
+    d = np.zeros((200, 200), np.int8)  # 10 x 10 m known free ...
+    d[:, 150:] = -1  # ... but the east part, unknown behind a wall with a door
+    d[:, 148:150] = 100
+    d[90:110, 148:150] = 0  # the door, at y 4.5-5.5
+    d[10:30, 10:30] = -1  # a pocket in the south-west corner, walled in
+    d[8:10, 8:32] = d[30:32, 8:32] = d[8:32, 30:32] = 100
+    d[10:30, 8:10] = 100
+    g = GridMap(d, 0.05, (0.0, 0.0, 0.0))
+    pocket, door = np.array([1.0, 1.7]), np.array([7.45, 5.0])  # the door: in its opening
+    P = {"a": np.array([3.0, 3.5, 0.0])}
+    off = ExplorationManager(w_gain=0.0)
+    off.frontiers = [Frontier(pocket, pocket, 20), Frontier(door, door, 20)]
+    goal = off._goals(P, g, P)["a"]
+    assert goal is not None and np.allclose(goal, pocket)
+    on = ExplorationManager()  # as shipped
+    on.frontiers = off.frontiers
+    goal = on._goals(P, g, P)["a"]
+    assert goal is not None and np.allclose(goal, door)
+
+
 def test_what_the_published_map_still_lacks_is_looked_at_once_before_done() -> None:
     """With no frontier left on the exploration grid (a cell is free after one look), the
     strict map's frontiers (the published map: free after several looks) are visited

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from basestation.visibility import seen_from, viewpoints
+from basestation.visibility import seen_from, unknown_in_view, viewpoints
 from common.map_io import GridMap
 
 
@@ -46,3 +46,18 @@ def test_line_of_sight_range_field_of_view_and_unknown() -> None:
     # unknown cells block the view: nothing is known about what stands in them
     g.data[:, 160:170] = -1
     assert seen_from(g, pts, heading, targets, 6.0, fov).tolist() == [True, False, False, False]
+
+
+def test_unknown_in_view_is_the_unknown_area_a_look_round_takes_in() -> None:
+    data = np.full((200, 200), -1, np.int8)  # 10 x 10 m, the west half known free
+    data[:, :100] = 0
+    g = GridMap(data, 0.05, (0.0, 0.0, 0.0))
+    pts = np.array([[1.5, 5.0], [4.9, 5.0]])  # deep in the known half; at its edge
+    deep, edge = unknown_in_view(g, pts, 3.0)
+    assert deep == 0.0
+    assert abs(edge - 0.5 * np.pi * 9.0) < 0.1 * 0.5 * np.pi * 9.0  # half the disc
+    # a wall 0.6 m into the unknown: only the strip before it is taken in
+    g.data[:, 110] = 100
+    (walled,) = unknown_in_view(g, pts[1:], 3.0)
+    assert 0.7 * 0.6 * 6.0 < walled < 0.6 * 6.0  # about 0.6 m x the 6 m chord
+    assert unknown_in_view(g, np.zeros((0, 2)), 3.0).shape == (0,)

@@ -120,7 +120,7 @@ class BaseStationNode:
         self.recovered: dict[str, Any] = {}
         slam = self.slam  # per-keyframe arrays: keyframe store, pose graph, map builder
         arrays = [slam.store.arrays_nbytes, slam.graph.arrays_nbytes, self.map.arrays_nbytes]
-        self.heap = HeapTrimmer(slam.store.total_keyframes, lambda: sum(f() for f in arrays))
+        self.heap = HeapTrimmer(slam.store.total_keyframes, arrays, slam.graph.factor_slots)
 
     # --- persistence --------------------------------------------------------------------
     def recover(self) -> None:

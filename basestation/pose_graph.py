@@ -405,6 +405,11 @@ class PoseGraph(EstimateMixin, GaugeMixin, GpsMixin, ReductionMixin):
     def robots(self) -> list[str]:
         return list(self._chains)
 
+    def factor_slots(self) -> int:
+        """iSAM2's factor slots: its graph never shrinks, a removed factor leaves an empty
+        slot (memory: what the base station's samples report)."""
+        return int(self._isam.getFactorsUnsafe().size())
+
     def latest_index(self, robot_id: str) -> int | None:
         chain = self._chains.get(robot_id) or self._chain(robot_id)  # the latter raises
         size = chain.num_committed + len(chain.pending)

@@ -360,7 +360,8 @@ def _memory_breakdown(
 ) -> dict[str, Any]:
     """The base station's own memory samples (`HeapTrimmer`: one per heap trim) on the
     bench clock, and each column's slope per 1000 keyframes admitted over [t0, t1]:
-    whether the RSS grows with live heap (malloc's in use), fragmentation (free but not
+    whether the RSS grows with live heap (malloc's in use; SQLite's share of it, the
+    per-keyframe arrays and iSAM2's factor slots apart), fragmentation (free but not
     given back), malloc's own mappings (large arrays) or Python's objects."""
     if not series or not series.get("rows"):
         return {}

@@ -16,10 +16,12 @@ stay resident until the next trim.
 
 After every trim it also notes where the process's memory is (`memory_sample`): the
 resident size, glibc's heap in use and free (``mallinfo2``, every arena; blocks that
-malloc mapped on their own counted apart) and Python's allocated blocks, with the
-caller's per-keyframe arrays and a count from it (the base station: keyframes
-admitted), so a soak can tell live data from fragmentation and from what Python holds
-(`HeapTrimmer.series_json`, in basestation.json).
+malloc mapped on their own counted apart), SQLite's own heap (``sqlite3_memory_used``:
+page caches and statements of every connection, part of the heap in use) and Python's
+allocated blocks, with the caller's per-keyframe arrays, its factor count (the base
+station: iSAM2's factor slots) and a count from it (the base station: keyframes
+admitted), so a soak can tell live data from fragmentation, SQLite and what Python
+holds (`HeapTrimmer.series_json`, in basestation.json).
 """
 
 from __future__ import annotations
@@ -30,7 +32,7 @@ import logging
 import os
 import sys
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from typing import Any
 
 log = logging.getLogger(__name__)
@@ -104,16 +106,31 @@ def _mallinfo2() -> Callable[[], _MallInfo2] | None:
     return fn
 
 
+def _sqlite_memory_used() -> Callable[[], int] | None:
+    """SQLite's heap in use, every connection of this process (``sqlite3_memory_used``
+    of the library Python's sqlite3 module uses); None where it cannot be reached."""
+    try:
+        import _sqlite3
+
+        fn = ctypes.CDLL(_sqlite3.__file__).sqlite3_memory_used
+    except (ImportError, OSError, AttributeError):
+        return None
+    fn.argtypes, fn.restype = [], ctypes.c_int64
+    return fn
+
+
 _MALLINFO2 = _mallinfo2()
+_SQLITE_MEMORY_USED = _sqlite_memory_used()
 MEMORY_COLUMNS = [
-    "t_s", "rss_mb", "heap_in_use_mb", "heap_free_mb", "malloc_mmap_mb", "py_blocks_k",
-    "arrays_mb", "count",
+    "t_s", "rss_mb", "heap_in_use_mb", "heap_free_mb", "malloc_mmap_mb", "sqlite_mb",
+    "py_blocks_k", "arrays_mb", "factors", "count",
 ]  # fmt: skip
 
 
 def memory_sample() -> list[float]:
-    """[rss_mb, heap_in_use_mb, heap_free_mb, malloc_mmap_mb, py_blocks_k] of this
-    process now (the heap columns NaN without glibc's mallinfo2)."""
+    """[rss_mb, heap_in_use_mb, heap_free_mb, malloc_mmap_mb, sqlite_mb, py_blocks_k] of
+    this process now (the heap columns NaN without glibc's mallinfo2, sqlite_mb without
+    a reachable SQLite library)."""
     try:
         with open("/proc/self/statm") as f:
             rss = int(f.read().split()[1]) * os.sysconf("SC_PAGE_SIZE") / 2**20
@@ -123,18 +140,22 @@ def memory_sample() -> list[float]:
     if _MALLINFO2 is not None:
         m = _MALLINFO2()
         heap = [m.uordblks / 2**20, m.fordblks / 2**20, m.hblkhd / 2**20]
-    return [rss, *heap, sys.getallocatedblocks() / 1000.0]
+    sqlite = float("nan") if _SQLITE_MEMORY_USED is None else _SQLITE_MEMORY_USED() / 2**20
+    return [rss, *heap, sqlite, sys.getallocatedblocks() / 1000.0]
 
 
 class HeapTrimmer:
     def __init__(
         self,
         count: Callable[[], int] | None = None,
-        arrays: Callable[[], int] | None = None,
+        arrays: Sequence[Callable[[], int]] = (),
+        factors: Callable[[], int] | None = None,
         period_s: float = TRIM_PERIOD_S,
     ) -> None:
         """`count`: the caller's count for each row (the base station: keyframes admitted);
-        `arrays`: bytes its per-keyframe arrays hold (capacity, not just the rows used)."""
+        `arrays`: the bytes each of its per-keyframe arrays holds (capacity, not just the
+        rows used; summed);
+        `factors`: the size of its factor graph (the base station: iSAM2's factor slots)."""
         self.period_s = period_s
         self._trim = _malloc_trim()
         self._last = time.monotonic()
@@ -143,6 +164,7 @@ class HeapTrimmer:
         self._t0_unix = time.time()
         self._count = count
         self._arrays = arrays
+        self._factors = factors
         self.series: list[list[float]] = []  # a MEMORY_COLUMNS row after every trim
         if self._trim is None:
             log.debug("no malloc_trim here: freed heap memory stays with the process")
@@ -161,8 +183,9 @@ class HeapTrimmer:
         self._trim(0)
         self.trims += 1
         count = float(self._count()) if self._count is not None else float("nan")
-        arrays = self._arrays() / 2**20 if self._arrays is not None else float("nan")
-        row = [self._last - self._t0, *memory_sample(), arrays, count]
+        arrays = sum(f() for f in self._arrays) / 2**20 if self._arrays else float("nan")
+        factors = float(self._factors()) if self._factors is not None else float("nan")
+        row = [self._last - self._t0, *memory_sample(), arrays, factors, count]
         self.series.append([round(v, 3) for v in row])
         return True
 

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import sqlite3
 import time
 
 from common.memory import HeapTrimmer
@@ -43,16 +44,24 @@ def test_trim_now_restarts_the_period() -> None:
 
 def test_each_trim_notes_where_the_memory_is() -> None:
     n = [0]
-    trimmer = HeapTrimmer(count=lambda: n[0], arrays=lambda: 3 * 2**20, period_s=3600.0)
+    trimmer = HeapTrimmer(
+        count=lambda: n[0], arrays=[lambda: 2**20, lambda: 2 * 2**20], factors=lambda: 12,
+        period_s=3600.0,
+    )  # fmt: skip
     assert trimmer.series_json()["rows"] == []
     n[0] = 7
     held = [bytearray(64 * 1024) for _ in range(200)]  # ~13 MB in glibc's heap
+    db = sqlite3.connect(":memory:")  # SQLite's page cache: its own heap, counted apart
+    db.execute("CREATE TABLE t (x BLOB)")
+    db.executemany("INSERT INTO t VALUES (?)", [(bytes(1000),)] * 1000)
     assert trimmer.trim()
     cols = trimmer.series_json()["columns"]
     row = dict(zip(cols, trimmer.series_json()["rows"][-1], strict=True))
     assert row["count"] == 7 and row["t_s"] >= 0.0 and row["arrays_mb"] == 3.0
+    assert row["factors"] == 12
     assert row["rss_mb"] > 13.0 and row["py_blocks_k"] > 0.0
     assert row["heap_in_use_mb"] > 12.0, row  # glibc (Linux): the blocks just made
+    assert 0.9 < row["sqlite_mb"] < row["heap_in_use_mb"], row  # 1000 rows of 1 kB
     del held
     assert trimmer.trim()
     after = dict(zip(cols, trimmer.series_json()["rows"][-1], strict=True))

@@ -126,9 +126,12 @@ def test_removing_a_constraint_restores_the_estimate() -> None:
     fid = graph.add_constraint(("a", 20), ("a", 0), np.zeros(3), LC_COV, robust=None)
     graph.update(extra_iterations=5)
     assert np.abs(graph.poses("a") - before).max() > 0.5
+    slots = graph.factor_slots()  # prior, 20 odometry factors, the loop closure
+    assert slots == 22
     graph.remove_constraint(fid)
     stats = graph.update(extra_iterations=5)
     assert stats.num_removed_factors == 1
+    assert graph.factor_slots() == slots  # iSAM2 keeps the removed factor's slot
     assert_pose_close(graph.poses("a"), before, 1e-3, 1e-4)
     with pytest.raises(CollabSlamError):
         graph.remove_constraint(fid)

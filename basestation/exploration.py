@@ -461,6 +461,7 @@ class ExplorationManager:
             return True  # explored meanwhile, or no longer a frontier
         rest = self._remaining(r, pose)
         if self._conflict(r, rest, P):  # another robot would come too close
+            log.debug("robot %s: its path now comes too close to another robot", r)
             return True
         # the rest of the path, after the waypoint nearest the robot, must still be free
         return not pm.segment_free(rest[1:] if len(rest) > 1 else rest)

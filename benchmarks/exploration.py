@@ -20,6 +20,9 @@ this one did could beat (`benchmarks/exploration_bound.py`: the travel to the pl
 that see 95 %, map lag not counted). `collisions` counts wall contacts (simulator)
 plus robot-robot contacts (ground-truth discs overlapping). Worlds: shipped names,
 map_server YAML paths, or `random:SEED` for a generated floor plan nobody tuned on.
+With `kinematic`, every row is a kinematic run of the exploration decisions alone
+(`benchmarks/exploration_kinematic.py`: seconds a run, the same for a seed; for
+comparing exploration settings, not for these numbers).
 """
 
 from __future__ import annotations
@@ -32,8 +35,10 @@ from typing import Any
 import numpy as np
 
 from benchmarks.exploration_bound import time_to_fraction_bound_s
+from benchmarks.exploration_kinematic import run_kinematic
 from collabslam.launcher import Launcher
 from common.config import Config
+from common.errors import ConfigError
 from common.map_io import read_map, write_map
 from common.scenario import read_scenario
 from simulation.world_generator import generate_world
@@ -184,7 +189,12 @@ def run(
     max_sim_time: float,
     strategies: list[str] | None = None,
     bound: bool = False,
+    kinematic: bool = False,
 ) -> dict[str, Any]:
+    """Every world x seed x team size x strategy; `kinematic`: decisions only
+    (`benchmarks/exploration_kinematic.py`), not the whole system."""
+    if kinematic and bound:
+        raise ConfigError("--bound needs the missions' runs; it does not go with --kinematic")
     names = strategies or list(STRATEGIES)
     report: dict[str, Any] = {"worlds": {}}
     bounds: dict[tuple[str, str], float | None] = {}  # (world, starts) -> time_to_95_bound_s
@@ -195,9 +205,11 @@ def run(
             for n in robots:
                 for name in names:
                     tag = f"{world.replace(':', '_')}-{name}-n{n}-s{seed}"
-                    row = run_mission(
-                        cfg, path, n, seed, STRATEGIES[name], out_dir / "runs" / tag, max_sim_time
-                    )
+                    if kinematic:
+                        row = run_kinematic(cfg, path, n, seed, STRATEGIES[name], max_sim_time)
+                    else:
+                        out = out_dir / "runs" / tag
+                        row = run_mission(cfg, path, n, seed, STRATEGIES[name], out, max_sim_time)
                     log.warning(
                         "%s: time_to_95 %s s, collisions %d, min separation %s m",
                         tag,

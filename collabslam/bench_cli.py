@@ -85,6 +85,7 @@ def add_bench_parsers(sub: argparse._SubParsersAction[argparse.ArgumentParser]) 
             "max_sim_time": a.max_sim_time,
             "strategies": a.strategies.split(","),
             "bound": a.bound,
+            "kinematic": a.kinematic,
         },
         json_help="output JSON file; runs and plots go next to it",
     )
@@ -102,6 +103,13 @@ def add_bench_parsers(sub: argparse._SubParsersAction[argparse.ArgumentParser]) 
         action="store_true",
         help="add time_to_95_bound_s to every row: no team could know 95 %% sooner "
         "(benchmarks/exploration_bound.py; ~10-60 s per world and start)",
+    )
+    b.add_argument(
+        "--kinematic",
+        action="store_true",
+        help="exploration decisions alone: perfect poses, the agent's path follower on a "
+        "kinematic drone, no SLAM or processes (benchmarks/exploration_kinematic.py; "
+        "seconds a run, repeatable; for comparing settings, not the benchmark's numbers)",
     )
 
     b = _bench_parser(

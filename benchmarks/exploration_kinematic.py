@@ -1,0 +1,160 @@
+"""Exploration decisions alone: `collabslam bench exploration --kinematic`.
+
+The base station's own `ExplorationManager` decides every `exploration.period_s` of sim
+time, as in a lock-step mission, but nothing else of the stack runs: no SLAM, agents,
+Zenoh or processes. Each drone is where it is (perfect poses); the simulator's laser
+(`LaserModel`, no noise) at those poses goes into one occupancy grid every
+`SCAN_PERIOD_S` (`map.*` thresholds: `strict` as published, the exploration
+grid with free at 0.49 as the base station's); each drone flies its path with the
+agent's own `PathFollower` (cruise speed, slowing for the last waypoint, turning
+first when it is far off the nose), its velocity and yaw rate held to the
+quadrotor's limits. No safety guard, no keyframe or map lag.
+
+So a run costs the exploration steps and the ray casting only: ~5-30 s of wall time
+for a mission that takes 1-2 min in full, and the same seed gives the same run
+(each in a fresh process, `run_kinematic`). It
+is for comparing exploration settings and code (`--set exploration.*`); its times
+are not the benchmark's, which fly the whole system: the 26th session's code took
+18.7 s on rooms15 with 3 drones (the full missions: 19.2 s) and 35 s alone (41.5 s).
+Rows have the benchmark's fields; `collisions` counts ticks a drone's disc touched
+a wall of the world, robot contacts are `min_robot_separation_m` below two radii.
+"""
+
+from __future__ import annotations
+
+import copy
+import math
+import multiprocessing
+import time
+from concurrent.futures import ProcessPoolExecutor
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from agent.path_follower import PathFollower
+from basestation.exploration import make_explorer
+from basestation.path_planner import densify
+from collabslam.launcher import make_scenario
+from common.config import Config
+from common.metrics import CoverageTarget, coverage_of, reachable_free
+from common.occupancy_grid import OccupancyGrid
+from simulation.sensors import LaserModel
+from simulation.world import World
+
+TICK_S = 0.05  # s of sim time per motion step
+# s between scans into the map: the base station's map takes a keyframe per 0.2 m (a
+# 0.2 s at cruise speed), and one more where a drone hovers sees nothing new
+SCAN_PERIOD_S = 0.2
+
+
+def run_kinematic(
+    cfg: Config, world: str, n_robots: int, seed: int, strategy: str, max_sim_time: float
+) -> dict[str, Any]:
+    """One kinematic exploration mission (module docstring), its benchmark row, flown in
+    a fresh process: OMPL's generator is seeded once per process, so only there does
+    the same seed give the same run whatever ran before."""
+    spawn = multiprocessing.get_context("spawn")
+    with ProcessPoolExecutor(max_workers=1, mp_context=spawn) as pool:
+        args = (cfg, world, n_robots, seed, strategy, max_sim_time)
+        return pool.submit(fly_kinematic, *args).result()
+
+
+def fly_kinematic(
+    cfg: Config, world: str, n_robots: int, seed: int, strategy: str, max_sim_time: float
+) -> dict[str, Any]:
+    """`run_kinematic` in this process."""
+    c = copy.deepcopy(cfg)
+    c.exploration.enabled = True
+    c.exploration.strategy = strategy
+    c.sim.seed = seed
+    t_wall = time.monotonic()
+    w = World.load(world)
+    starts = [r.start_pose for r in make_scenario(c, Path(world), n_robots).robots]
+    ids = [f"r{i}" for i in range(n_robots)]
+    pose = {r: np.array(s, dtype=np.float64) for r, s in zip(ids, starts, strict=True)}
+    vel = {r: np.zeros(2) for r in ids}
+    target = CoverageTarget(w.grid, reachable_free(w.grid, [s[:2] for s in starts]))
+    m, q, las = c.map, c.sim.quadrotor, c.sim.laser
+    x0, y0, x1, y1 = w.bounds
+    grid = OccupancyGrid.from_bounds(
+        (x0 - 1.0, y0 - 1.0), (x1 + 1.0, y1 + 1.0), m.resolution_m, p_hit=m.p_hit, p_miss=m.p_miss
+    )
+    laser = LaserModel(las.beams, math.radians(las.fov_deg), las.range_min_m, las.range_max_m, 0.0)
+    rng = np.random.default_rng(seed)
+    explorer = make_explorer(c)
+    follower = {r: PathFollower.from_config(c.agent) for r in ids}
+    flying = {r: False for r in ids}
+    distance = {r: 0.0 for r in ids}
+    idle = {r: 0.0 for r in ids}
+    curve: list[list[float]] = []
+    sep, clearance, contacts = math.inf, math.inf, 0
+    scan_every = max(1, round(SCAN_PERIOD_S / TICK_S))
+    step_every = max(1, round(c.exploration.period_s / TICK_S))
+    end_reason, k = "max_sim_time", 0
+    while True:
+        t = k * TICK_S
+        if k % scan_every == 0:
+            for r in ids:
+                ranges = laser.measure(w, pose[r], rng)
+                grid.insert_scan(
+                    pose[r], ranges, laser.angles, laser.range_min, laser.range_max,
+                    max_free_range=m.max_free_range_m,
+                )  # fmt: skip
+        if k % step_every == 0:
+            strict = grid.to_gridmap(m.occupied_thresh, m.free_thresh)
+            curve.append([round(t, 3), round(coverage_of(target, strict), 4)])
+            if curve[-1][1] >= 0.95 or t >= max_sim_time:
+                end_reason = "95 %" if curve[-1][1] >= 0.95 else end_reason
+                break
+            paths = explorer.step(grid.to_gridmap(m.occupied_thresh, 0.49), pose, strict=strict)
+            for r, p in paths.items():
+                flying[r] = p is not None and len(p) > 0
+                if flying[r]:
+                    follower[r].set_path(densify(p, 0.25))
+            if explorer.done:
+                end_reason = "explored"
+                break
+        for r in ids:
+            cmd = (0.0, 0.0, 0.0, 0.0)
+            if flying[r] and not follower[r].done:
+                cmd = follower[r].command(
+                    np.array([*pose[r][:2], c.agent.cruise_altitude_m, pose[r][2]])
+                )
+            cy, sy = math.cos(pose[r][2]), math.sin(pose[r][2])
+            want = np.array([cy * cmd[0] - sy * cmd[1], sy * cmd[0] + cy * cmd[1]])
+            dv = want - vel[r]
+            dv *= min(1.0, q.max_accel_mps2 * TICK_S / max(float(np.hypot(*dv)), 1e-12))
+            vel[r] = vel[r] + dv
+            speed = float(np.hypot(*vel[r]))
+            if speed > q.max_speed_mps:
+                vel[r] *= q.max_speed_mps / speed
+            pose[r][:2] += vel[r] * TICK_S
+            pose[r][2] += float(np.clip(cmd[3], -q.max_yaw_rate_rps, q.max_yaw_rate_rps)) * TICK_S
+            distance[r] += float(np.hypot(*vel[r])) * TICK_S
+            idle[r] += TICK_S if np.hypot(*vel[r]) < 0.2 else 0.0
+        xy = np.array([pose[r][:2] for r in ids])
+        wall = w.clearance(xy)
+        clearance = min(clearance, float(wall.min()))
+        contacts += int(np.count_nonzero(wall < q.radius_m))
+        for i in range(n_robots):
+            for j in range(i + 1, n_robots):
+                sep = min(sep, float(np.hypot(*(xy[i] - xy[j]))))
+        k += 1
+    hit = [t for t, v in curve if v >= 0.95]
+    return {
+        "robots": n_robots,
+        "seed": seed,
+        "model": "kinematic",
+        "time_to_95_s": hit[0] if hit else None,
+        "distance_m": [round(distance[r], 2) for r in ids],
+        "idle_s": [round(idle[r], 2) for r in ids],
+        "collisions": contacts + int(n_robots > 1 and sep < 2.0 * q.radius_m),
+        "min_clearance_m": round(clearance, 3),
+        "min_robot_separation_m": round(sep, 3) if n_robots > 1 else None,
+        "sim_time_s": curve[-1][0],
+        "end_reason": end_reason,
+        "final_coverage": curve[-1][1],
+        "wall_time_s": round(time.monotonic() - t_wall, 1),
+        "coverage_curve": curve,
+    }

@@ -4,20 +4,22 @@ The base station's own `ExplorationManager` decides every `exploration.period_s`
 time, as in a lock-step mission, but nothing else of the stack runs: no SLAM, agents,
 Zenoh or processes. Each drone is where it is (perfect poses); the simulator's laser
 (`LaserModel`, no noise) at those poses goes into one occupancy grid every
-`SCAN_PERIOD_S` (`map.*` thresholds: `strict` as published, the exploration
-grid with free at 0.49 as the base station's); each drone flies its path with the
+`SCAN_PERIOD_S` (`map.*` thresholds: `strict` as published, the exploration grid with
+free at 0.49 as the base station's); each drone flies its path with the
 agent's own `PathFollower` (cruise speed, slowing for the last waypoint, turning
 first when it is far off the nose), its velocity and yaw rate held to the
 quadrotor's limits. No safety guard, no keyframe or map lag.
 
 So a run costs the exploration steps and the ray casting only: ~5-30 s of wall time
 for a mission that takes 1-2 min in full, and the same seed gives the same run
-(each in a fresh process, `run_kinematic`). It
-is for comparing exploration settings and code (`--set exploration.*`); its times
-are not the benchmark's, which fly the whole system: the 26th session's code took
-18.7 s on rooms15 with 3 drones (the full missions: 19.2 s) and 35 s alone (41.5 s).
-Rows have the benchmark's fields; `collisions` counts ticks a drone's disc touched
-a wall of the world, robot contacts are `min_robot_separation_m` below two radii.
+(each in a fresh process, `run_kinematic`). It is for comparing exploration settings
+and code (`--set exploration.*`) on many seeds; its times are not the benchmark's,
+which fly the whole system. On rooms15 (12 seeds, 27th session) its teams were slower
+and its lone drone faster than the full missions: 3 drones 22.1 s (missions: 19.2 s),
+one drone 36.0 s (41.5 s). Small changes to the decisions move single runs by
+seconds either way (a chaotic system), so compare means over many seeds. Rows have the
+benchmark's fields; `collisions` counts ticks a drone's disc touched a wall of the
+world, robot contacts are `min_robot_separation_m` below two radii.
 """
 
 from __future__ import annotations

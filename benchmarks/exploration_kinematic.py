@@ -7,19 +7,19 @@ Zenoh or processes. Each drone is where it is (perfect poses); the simulator's l
 `SCAN_PERIOD_S` (`map.*` thresholds: `strict` as published, the exploration grid with
 free at 0.49 as the base station's); each drone flies its path with the
 agent's own `PathFollower` (cruise speed, slowing for the last waypoint, turning
-first when it is far off the nose), its velocity and yaw rate held to the
-quadrotor's limits. No safety guard, no keyframe or map lag.
+first when it is far off the nose) on the simulator's own `Quadrotor` (its limits,
+lag and wall contacts) behind the agent's `SafetyGuard` (walls from the scan,
+the other drones at their true positions). No SLAM error, no keyframe or map lag.
 
 So a run costs the exploration steps and the ray casting only: ~5-30 s of wall time
 for a mission that takes 1-2 min in full, and the same seed gives the same run
 (each in a fresh process, `run_kinematic`). It is for comparing exploration settings
 and code (`--set exploration.*`) on many seeds; its times are not the benchmark's,
-which fly the whole system. On rooms15 (12 seeds, 27th session) its teams were slower
-and its lone drone faster than the full missions: 3 drones 22.1 s (missions: 19.2 s),
-one drone 36.0 s (41.5 s). Small changes to the decisions move single runs by
+which fly the whole system. On rooms15 (12 seeds, 27th session) its lone drone took
+39.3 s (missions: 41.5 s) but its teams of 3 were slower: 22.4 s (19.2 s). Small changes to the decisions move single runs by
 seconds either way (a chaotic system), so compare means over many seeds. Rows have the
-benchmark's fields; `collisions` counts ticks a drone's disc touched a wall of the
-world, robot contacts are `min_robot_separation_m` below two radii.
+benchmark's fields (`collisions`: wall contacts of the `Quadrotor`s, plus one if two
+drones came within two radii).
 """
 
 from __future__ import annotations
@@ -35,12 +35,14 @@ from typing import Any
 import numpy as np
 
 from agent.path_follower import PathFollower
+from agent.safety_guard import SafetyGuard
 from basestation.exploration import make_explorer
 from basestation.path_planner import densify
 from collabslam.launcher import make_scenario
 from common.config import Config
 from common.metrics import CoverageTarget, coverage_of, reachable_free
 from common.occupancy_grid import OccupancyGrid
+from simulation.quadrotor import Quadrotor
 from simulation.sensors import LaserModel
 from simulation.world import World
 
@@ -48,6 +50,7 @@ TICK_S = 0.05  # s of sim time per motion step
 # s between scans into the map: the base station's map takes a keyframe per 0.2 m (a
 # 0.2 s at cruise speed), and one more where a drone hovers sees nothing new
 SCAN_PERIOD_S = 0.2
+PLANNING_TIME_S = 120.0  # s: a cap the check budget always reaches first
 
 
 def run_kinematic(
@@ -70,14 +73,24 @@ def fly_kinematic(
     c.exploration.enabled = True
     c.exploration.strategy = strategy
     c.sim.seed = seed
+    # RRT* stops at its check budget only: its wall-time cap would make plans (and the
+    # whole run) depend on how loaded the machine is
+    c.exploration.planning_time_s = max(c.exploration.planning_time_s, PLANNING_TIME_S)
     t_wall = time.monotonic()
     w = World.load(world)
     starts = [r.start_pose for r in make_scenario(c, Path(world), n_robots).robots]
     ids = [f"r{i}" for i in range(n_robots)]
-    pose = {r: np.array(s, dtype=np.float64) for r, s in zip(ids, starts, strict=True)}
-    vel = {r: np.zeros(2) for r in ids}
+    q = c.sim.quadrotor
+    vehicle = {
+        r: Quadrotor(
+            np.array([s[0], s[1], q.altitude_m, s[2]]), q.max_speed_mps, q.max_accel_mps2,
+            q.max_vertical_speed_mps, q.max_yaw_rate_rps, radius=q.radius_m,
+        )
+        for r, s in zip(ids, starts, strict=True)
+    }  # fmt: skip
+    pose = {r: v.pose[[0, 1, 3]].copy() for r, v in vehicle.items()}
     target = CoverageTarget(w.grid, reachable_free(w.grid, [s[:2] for s in starts]))
-    m, q, las = c.map, c.sim.quadrotor, c.sim.laser
+    m, las = c.map, c.sim.laser
     x0, y0, x1, y1 = w.bounds
     grid = OccupancyGrid.from_bounds(
         (x0 - 1.0, y0 - 1.0), (x1 + 1.0, y1 + 1.0), m.resolution_m, p_hit=m.p_hit, p_miss=m.p_miss
@@ -86,11 +99,18 @@ def fly_kinematic(
     rng = np.random.default_rng(seed)
     explorer = make_explorer(c)
     follower = {r: PathFollower.from_config(c.agent) for r in ids}
+    a = c.agent
+    guard = {
+        r: SafetyGuard(
+            a.vehicle_radius_m, a.safety_margin_m, a.max_accel_mps2, a.safety_reaction_s,
+            a.blocked_after_s, neighbour_keep_m=a.neighbour_keep_m,
+        )
+        for r in ids
+    }  # fmt: skip
     flying = {r: False for r in ids}
-    distance = {r: 0.0 for r in ids}
     idle = {r: 0.0 for r in ids}
     curve: list[list[float]] = []
-    sep, clearance, contacts = math.inf, math.inf, 0
+    sep = math.inf
     scan_every = max(1, round(SCAN_PERIOD_S / TICK_S))
     step_every = max(1, round(c.exploration.period_s / TICK_S))
     end_reason, k = "max_sim_time", 0
@@ -99,6 +119,7 @@ def fly_kinematic(
         if k % scan_every == 0:
             for r in ids:
                 ranges = laser.measure(w, pose[r], rng)
+                guard[r].update(laser.angles, np.where(ranges < laser.range_max, ranges, np.inf))
                 grid.insert_scan(
                     pose[r], ranges, laser.angles, laser.range_min, laser.range_max,
                     max_free_range=m.max_free_range_m,
@@ -109,7 +130,9 @@ def fly_kinematic(
             if curve[-1][1] >= 0.95 or t >= max_sim_time:
                 end_reason = "95 %" if curve[-1][1] >= 0.95 else end_reason
                 break
-            paths = explorer.step(grid.to_gridmap(m.occupied_thresh, 0.49), pose, strict=strict)
+            blocked = {r for r in ids if guard[r].blocked}
+            explore = grid.to_gridmap(m.occupied_thresh, 0.49)
+            paths = explorer.step(explore, pose, blocked=blocked, strict=strict)
             for r, p in paths.items():
                 flying[r] = p is not None and len(p) > 0
                 if flying[r]:
@@ -118,27 +141,21 @@ def fly_kinematic(
                 end_reason = "explored"
                 break
         for r in ids:
+            v = vehicle[r]
             cmd = (0.0, 0.0, 0.0, 0.0)
             if flying[r] and not follower[r].done:
-                cmd = follower[r].command(
-                    np.array([*pose[r][:2], c.agent.cruise_altitude_m, pose[r][2]])
-                )
-            cy, sy = math.cos(pose[r][2]), math.sin(pose[r][2])
-            want = np.array([cy * cmd[0] - sy * cmd[1], sy * cmd[0] + cy * cmd[1]])
-            dv = want - vel[r]
-            dv *= min(1.0, q.max_accel_mps2 * TICK_S / max(float(np.hypot(*dv)), 1e-12))
-            vel[r] = vel[r] + dv
-            speed = float(np.hypot(*vel[r]))
-            if speed > q.max_speed_mps:
-                vel[r] *= q.max_speed_mps / speed
-            pose[r][:2] += vel[r] * TICK_S
-            pose[r][2] += float(np.clip(cmd[3], -q.max_yaw_rate_rps, q.max_yaw_rate_rps)) * TICK_S
-            distance[r] += float(np.hypot(*vel[r])) * TICK_S
-            idle[r] += TICK_S if np.hypot(*vel[r]) < 0.2 else 0.0
+                cmd = follower[r].command(v.pose)
+            others = np.array([vehicle[o].pose[:2] for o in ids if o != r]).reshape(-1, 2)
+            cy, sy = math.cos(v.pose[3]), math.sin(v.pose[3])
+            d = others - v.pose[:2]
+            guard[r].set_neighbours(
+                np.column_stack([cy * d[:, 0] + sy * d[:, 1], -sy * d[:, 0] + cy * d[:, 1]])
+            )
+            vx, vy = guard[r].limit(t, cmd[0], cmd[1])
+            v.step((vx, vy, cmd[2], cmd[3]), TICK_S, w)
+            pose[r] = v.pose[[0, 1, 3]].copy()
+            idle[r] += TICK_S if np.hypot(*v.velocity_world[:2]) < 0.2 else 0.0
         xy = np.array([pose[r][:2] for r in ids])
-        wall = w.clearance(xy)
-        clearance = min(clearance, float(wall.min()))
-        contacts += int(np.count_nonzero(wall < q.radius_m))
         for i in range(n_robots):
             for j in range(i + 1, n_robots):
                 sep = min(sep, float(np.hypot(*(xy[i] - xy[j]))))
@@ -149,10 +166,11 @@ def fly_kinematic(
         "seed": seed,
         "model": "kinematic",
         "time_to_95_s": hit[0] if hit else None,
-        "distance_m": [round(distance[r], 2) for r in ids],
+        "distance_m": [round(vehicle[r].distance_travelled, 2) for r in ids],
         "idle_s": [round(idle[r], 2) for r in ids],
-        "collisions": contacts + int(n_robots > 1 and sep < 2.0 * q.radius_m),
-        "min_clearance_m": round(clearance, 3),
+        "collisions": sum(v.collisions for v in vehicle.values())
+        + int(n_robots > 1 and sep < 2.0 * q.radius_m),
+        "min_clearance_m": round(min(v.min_clearance for v in vehicle.values()), 3),
         "min_robot_separation_m": round(sep, 3) if n_robots > 1 else None,
         "sim_time_s": curve[-1][0],
         "end_reason": end_reason,

@@ -16,8 +16,9 @@ for a mission that takes 1-2 min in full, and the same seed gives the same run
 (each in a fresh process, `run_kinematic`). It is for comparing exploration settings
 and code (`--set exploration.*`) on many seeds; its times are not the benchmark's,
 which fly the whole system. On rooms15 (12 seeds, 27th session) its lone drone took
-39.3 s (missions: 41.5 s) but its teams of 3 were slower: 22.4 s (19.2 s). Small changes to the decisions move single runs by
-seconds either way (a chaotic system), so compare means over many seeds. Rows have the
+39.3 s (missions: 41.5 s) but its teams of 3 were slower: 22.4 s (19.2 s). Small
+changes to the decisions move single runs by seconds either way (a chaotic system),
+so compare means over many seeds. Rows have the
 benchmark's fields (`collisions`: wall contacts of the `Quadrotor`s, plus one if two
 drones came within two radii).
 """

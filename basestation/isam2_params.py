@@ -69,6 +69,7 @@ class PoseGraphOptions(TypedDict):
     reduce_distance_m: float
     reduce_lag: int
     reduce_after_nodes: int
+    rebuild_nodes: int
 
 
 def pose_graph_options(b: BaseStationConfig, track_changes: bool | None = None) -> PoseGraphOptions:
@@ -90,4 +91,5 @@ def pose_graph_options(b: BaseStationConfig, track_changes: bool | None = None) 
         reduce_distance_m=b.reduce_distance_m,
         reduce_lag=b.reduce_lag,
         reduce_after_nodes=b.reduce_after_nodes,
+        rebuild_nodes=b.isam2_rebuild_nodes,
     )

@@ -36,6 +36,7 @@ from basestation.isam2_params import make_isam2_params, pose_graph_options
 from basestation.pose_graph_estimate import EstimateMixin
 from basestation.pose_graph_gauge import GaugeMixin
 from basestation.pose_graph_gps import GpsMixin
+from basestation.pose_graph_rebuild import RebuildMixin
 from basestation.pose_graph_reduction import REDUCE_BATCH_NODES, ReductionMixin
 from basestation.pose_graph_state import (
     Chain,
@@ -58,7 +59,7 @@ ROBUST_KERNELS = ("huber", "cauchy")
 GUESS_MERGE_BATCH = 64  # updates whose initial guesses are merged at once
 
 
-class PoseGraph(EstimateMixin, GaugeMixin, GpsMixin, ReductionMixin):
+class PoseGraph(EstimateMixin, GaugeMixin, GpsMixin, ReductionMixin, RebuildMixin):
     """Pose chains of several robots plus constraints between any two nodes, on iSAM2.
 
     Not thread-safe: build, update and query it from one thread. Changes (nodes,
@@ -88,6 +89,7 @@ class PoseGraph(EstimateMixin, GaugeMixin, GpsMixin, ReductionMixin):
         reduce_lag: int = 20,  # nodes behind a chain's newest before one may be aliased
         reduce_after_nodes: int = 0,  # the reduction starts once the graph has this many
         reduce_batch_nodes: int = REDUCE_BATCH_NODES,  # settled nodes waiting before a pass
+        rebuild_nodes: int = 0,  # reduced graphs: a fresh iSAM2 each this many nodes (0: never)
     ) -> None:
         params = make_isam2_params(
             factorization=factorization,
@@ -119,6 +121,7 @@ class PoseGraph(EstimateMixin, GaugeMixin, GpsMixin, ReductionMixin):
         self._estimate_valid = True  # False: recompute on the next full-estimate query
         self._init_gps(gps_weighting, max_pending_gps_fixes, gps_batch_period_s)
         self._init_reduction(reduce_distance_m, reduce_lag, reduce_after_nodes, reduce_batch_nodes)
+        self._init_rebuild(rebuild_nodes)
 
     @classmethod
     def from_config(cls, b: BaseStationConfig, track_changes: bool | None = None) -> PoseGraph:
@@ -322,6 +325,7 @@ class PoseGraph(EstimateMixin, GaugeMixin, GpsMixin, ReductionMixin):
         self._pending_ids, self._pending_removals = [], []
         self._pending_graph, self._pending_graph_ids, self._pending_stale = None, [], False
         self._pending_nodes = {}
+        self._after_update(sum(new_nodes.values()))  # a fresh iSAM2 now and then
         changed, chains = None, self._chains
         if self._track_changes:  # then the previous estimate is always valid
             old_estimate, old_counts = self._estimate, [c.num_committed for c in chains.values()]

@@ -291,20 +291,18 @@ class BaseStationConfig:
     # (M3500[:500], city10000[:3000] and [:10000], CPU time per update; docs/architecture.md
     # "Back end"); every choice below kept chi2 within 0.1% of batch LM.
     relinearize_threshold: float = 0.1  # rad or m: a larger delta step relinearizes a variable
-    # Updates between relinearization checks (gtsam's default). 1 checks every update, which
-    # first back-substitutes all deltas: same chi2, 5-30% more CPU per update at 500 nodes.
-    relinearize_skip: int = 10
-    wildfire_threshold: float = 0.001  # rad or m: back-substitution stops below (gtsam default;
+    # Updates between relinearization checks (gtsam's default); 1 back-substitutes all deltas
+    relinearize_skip: int = 10  # each update first: same chi2, +5-30% CPU at 500 nodes
+    wildfire_threshold: float = 0.001  # rad or m: back-substitution stops below (gtsam's;
     # 0.01 queried 1.5x faster but cost +2% chi2 on city10000[:3000])
     isam2_factorization: str = "CHOLESKY"  # QR: 1.5-2x slower, same chi2
     cache_linearized_factors: bool = True  # False: 10-20% slower
-    # Keep every robot's newest node at the root of the Bayes tree (iSAM2 constrainedKeys)
-    # instead of only the keys of the new factors: robots take turns, and the next node of
-    # any robot then re-eliminates the root only. M3500[:500]: -40% CPU per update (p50);
-    # city10000 (a loop closure at almost every node): -15% p50, same p95.
+    # Every robot's newest node at the root of the Bayes tree (iSAM2 constrainedKeys), not
+    # only the new factors' keys: the next node of any robot re-eliminates the root only.
+    # M3500[:500]: -40% CPU per update (p50); city10000: -15% p50, same p95.
     heads_last: bool = True
-    # Re-order the whole Bayes tree (a batch elimination, 0.3 s at 10,000 nodes) once its fill-in
-    # exceeds this multiple of the last ordering's; 0: never. city10000 at 1.5: +8% CPU: off.
+    # Re-order the whole Bayes tree (a batch elimination, 0.3 s at 10,000 nodes) once its
+    # fill-in exceeds this x the last ordering's; 0: never. city10000 at 1.5: +8% CPU: off.
     adaptive_reorder_threshold: float = 0.0
     track_changes: bool = False  # O(n) UpdateStats.changed_robots per update (not needed)
     # Reduced pose graph (basestation/pose_graph_reduction.py): once the graph has
@@ -318,6 +316,7 @@ class BaseStationConfig:
     reduce_distance_m: float = 0.5
     reduce_lag: int = 20
     reduce_after_nodes: int = 2000
+    isam2_rebuild_nodes: int = 1000  # reducing: a fresh iSAM2 per this many nodes (0: never)
     prior_sigma_xy_m: float = 0.01  # m, known start pose
     prior_sigma_yaw_rad: float = 0.001  # rad
     map_update_period_s: float = 2.0  # s wall between global map refreshes

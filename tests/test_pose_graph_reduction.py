@@ -417,3 +417,37 @@ def test_fused_robust_constraints_weigh_what_they_did_apart():
             assert sum(r.kind == "constraint" for r in graph._factors.values()) == 1
         graphs.append(graph)
     np.testing.assert_allclose(graphs[1].poses("a"), graphs[0].poses("a"), atol=1e-4)
+
+
+def test_a_fresh_isam2_now_and_then_holds_the_same_graph():
+    """``rebuild_nodes``: once reducing, every so many nodes iSAM2 is built anew from the
+    same factors at the current estimate; the factors keep their ids (a constraint can
+    still be removed) and get new slots, none left empty."""
+    graphs = {}
+    for every in (0, 100):
+        graph = PoseGraph(
+            heads_last=True, reduce_distance_m=0.5, reduce_lag=10, reduce_batch_nodes=1,
+            reduce_after_nodes=200, rebuild_nodes=every,
+        )  # fmt: skip
+        graph.add_robot("a", [0, 0, 0])
+        truth = fly_with_window(graph, 4, 40)
+        graphs[every] = graph
+    plain, rebuilt = graphs[0], graphs[100]
+    assert plain.num_rebuilds == 0 and rebuilt.num_rebuilds >= 3  # 628 nodes, from 200 on
+    err = {k: np.linalg.norm(g.poses("a")[:, :2] - truth[:, :2], axis=1) for k, g in graphs.items()}
+    assert err[100].max() < 0.2 and err[100].mean() < 1.2 * err[0].mean()
+    n = 4 * LAP
+    fid = rebuilt.add_constraint(("a", 3), ("a", n - 1), se2_between(truth[3], truth[-1]), LOOP_COV)
+    rebuilt.update()
+    rebuilt.rebuild()
+    live = [r for r in rebuilt._factors.values() if r.isam_index is not None]
+    assert rebuilt.factor_slots() == len(live) == len({r.isam_index for r in live})
+    before = rebuilt.poses("a")
+    rebuilt.remove_constraint(fid)  # by its slot in the new iSAM2
+    rebuilt.update()
+    assert fid not in rebuilt._factors
+    assert rebuilt._isam.getFactorsUnsafe().nrFactors() == len(live) - 1
+    assert np.abs(rebuilt.poses("a")[:, :2] - before[:, :2]).max() < 0.05
+    rebuilt.add_constraint(("a", 5), ("a", n - 2), se2_between(truth[5], truth[-2]), LOOP_COV)
+    with pytest.raises(CollabSlamError):
+        rebuilt.rebuild()  # a factor is pending: between updates only

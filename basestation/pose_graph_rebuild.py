@@ -1,0 +1,71 @@
+"""A fresh iSAM2 now and then for a reduced pose graph: every factor, in one batch step
+linearized at the current estimate.
+
+iSAM2 relinearizes a variable only once its step passes the threshold and re-eliminates
+only the part of its Bayes tree an update touches, in an order chosen for that part (the
+chains' heads last). On a reduced graph, where the reduction keeps moving factors onto a
+bounded set of variables, both drift: linearization points lag behind the estimate, and
+the tree holds more than one ordered in one go (COLAMD over the whole graph). A replay of
+the 10-robot, 30-minute soak's database (78,716 keyframes, 3,186 variables, 11,033
+factors) with a fresh iSAM2 every 1,000 new nodes: trajectory error 0.0486 m against
+0.0518 m, heap 7 MB less right after a rebuild (3 MB at the end), 0.1 s a rebuild.
+Only once the reduction has started: the graph is then bounded, and so is a rebuild.
+
+Package-internal: a mixin of ``basestation.pose_graph.PoseGraph``.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from typing import TYPE_CHECKING
+
+import gtsam
+
+from basestation.pose_graph_state import PoseGraphState
+from common.errors import CollabSlamError
+
+logger = logging.getLogger(__name__)
+
+
+class RebuildMixin(PoseGraphState):
+    """``rebuild`` and when the update calls it (``isam2_rebuild_nodes``)."""
+
+    if TYPE_CHECKING:  # provided by PoseGraph
+        _isam: gtsam.ISAM2
+        _heads: gtsam.KeyGroupMap | None
+        reduction_started: bool
+
+    def _init_rebuild(self, every_nodes: int) -> None:
+        self._rebuild_every = max(int(every_nodes), 0)  # 0: never
+        self._nodes_since_rebuild = 0
+        self.num_rebuilds = 0
+
+    def _after_update(self, new_nodes: int) -> None:
+        """Count the new nodes; rebuild once ``every_nodes`` came since the last one."""
+        if not self._rebuild_every or not self.reduction_started:
+            return
+        self._nodes_since_rebuild += new_nodes
+        if self._nodes_since_rebuild >= self._rebuild_every:
+            self.rebuild()
+
+    def rebuild(self) -> None:
+        """Replace iSAM2 by a fresh one holding the same factors, linearized and ordered
+        anew at the current estimate (module doc). Only between updates (nothing
+        pending); factor ids stay, their iSAM2 slots are renumbered."""
+        if self._pending_ids or self._pending_removals:
+            raise CollabSlamError("the pose graph is rebuilt between updates only")
+        t0 = time.perf_counter()
+        estimate = self._isam.calculateEstimate()
+        records = [r for r in self._factors.values() if r.isam_index is not None]
+        graph = gtsam.NonlinearFactorGraph()
+        for record in records:
+            graph.add(record.factor)
+        self._isam = gtsam.ISAM2(self._isam.params())  # the old tree goes first
+        result = self._isam.update(graph, estimate, [], constrainedKeys=self._heads)
+        for record, slot in zip(records, result.getNewFactorsIndices(), strict=True):
+            record.isam_index = slot
+        self._nodes_since_rebuild = 0
+        self.num_rebuilds += 1
+        ms = (time.perf_counter() - t0) * 1e3
+        logger.debug("pose graph: a fresh iSAM2, %d factors, in %.0f ms", len(records), ms)

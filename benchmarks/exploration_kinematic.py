@@ -43,6 +43,7 @@ from basestation.exploration import make_explorer
 from basestation.path_planner import densify
 from collabslam.launcher import make_scenario
 from common.config import Config
+from common.errors import ConfigError
 from common.metrics import CoverageTarget, coverage_of, reachable_free
 from common.occupancy_grid import OccupancyGrid
 from simulation.quadrotor import Quadrotor
@@ -71,7 +72,9 @@ def run_kinematic(
 def fly_kinematic(
     cfg: Config, world: str, n_robots: int, seed: int, strategy: str, max_sim_time: float
 ) -> dict[str, Any]:
-    """`run_kinematic` in this process."""
+    """`run_kinematic` in this process. `strategy`: `exploration.strategy`'s values."""
+    if strategy not in ("coordinated", "greedy"):  # set after the config's validation
+        raise ConfigError(f"strategy: expected coordinated or greedy, got {strategy!r}")
     c = copy.deepcopy(cfg)
     c.exploration.enabled = True
     c.exploration.strategy = strategy

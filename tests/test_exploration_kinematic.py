@@ -2,8 +2,11 @@
 
 from __future__ import annotations
 
-from benchmarks.exploration_kinematic import run_kinematic
+import pytest
+
+from benchmarks.exploration_kinematic import fly_kinematic, run_kinematic
 from common.config import Config
+from common.errors import ConfigError
 
 
 def test_a_kinematic_team_explores_bshape_apart_and_repeatably() -> None:
@@ -18,3 +21,8 @@ def test_a_kinematic_team_explores_bshape_apart_and_repeatably() -> None:
     again = run_kinematic(Config(), "bshape", 3, 0, "coordinated", 6.0)
     assert again["coverage_curve"] == row["coverage_curve"][: len(again["coverage_curve"])]
     assert again["end_reason"] == "max_sim_time"
+
+
+def test_an_unknown_strategy_is_refused_not_flown_as_greedy() -> None:
+    with pytest.raises(ConfigError, match="coordinated or greedy"):
+        fly_kinematic(Config(), "bshape", 3, 0, "ours", 6.0)  # the bench's name, not the config's

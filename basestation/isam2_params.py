@@ -69,6 +69,7 @@ class PoseGraphOptions(TypedDict):
     reduce_distance_m: float
     reduce_lag: int
     reduce_after_nodes: int
+    tie_budget: float
     rebuild_nodes: int
 
 
@@ -91,5 +92,6 @@ def pose_graph_options(b: BaseStationConfig, track_changes: bool | None = None) 
         reduce_distance_m=b.reduce_distance_m,
         reduce_lag=b.reduce_lag,
         reduce_after_nodes=b.reduce_after_nodes,
+        tie_budget=b.reduce_tie_budget,
         rebuild_nodes=b.isam2_rebuild_nodes,
     )

@@ -89,6 +89,7 @@ class PoseGraph(EstimateMixin, GaugeMixin, GpsMixin, ReductionMixin, RebuildMixi
         reduce_lag: int = 20,  # nodes behind a chain's newest before one may be aliased
         reduce_after_nodes: int = 0,  # the reduction starts once the graph has this many
         reduce_batch_nodes: int = REDUCE_BATCH_NODES,  # settled nodes waiting before a pass
+        tie_budget: float = 0.0,  # final-constraint ties per variable, then folded (0: no cap)
         rebuild_nodes: int = 0,  # reduced graphs: a fresh iSAM2 each this many nodes (0: never)
     ) -> None:
         params = make_isam2_params(
@@ -120,7 +121,9 @@ class PoseGraph(EstimateMixin, GaugeMixin, GpsMixin, ReductionMixin, RebuildMixi
         self._estimate = np.zeros((0, 3))  # committed poses, rows in key order
         self._estimate_valid = True  # False: recompute on the next full-estimate query
         self._init_gps(gps_weighting, max_pending_gps_fixes, gps_batch_period_s)
-        self._init_reduction(reduce_distance_m, reduce_lag, reduce_after_nodes, reduce_batch_nodes)
+        self._init_reduction(
+            reduce_distance_m, reduce_lag, reduce_after_nodes, reduce_batch_nodes, tie_budget
+        )
         self._init_rebuild(rebuild_nodes)
 
     @classmethod

@@ -176,6 +176,7 @@ class PoseGraphState:
     # pose_graph_reduction
     _adjacency: dict[int, set[int]] | None = None
     _pairs: dict[PairKey, int] | None = None
+    _num_final_ties = 0  # entries of _pairs for final constraints
 
     def _chain(self, robot_id: str) -> Chain:
         try:
@@ -236,6 +237,7 @@ class PoseGraphState:
             self._adjacency.setdefault(key, set()).add(factor_id)
         pair = pair_key(record)
         if pair is not None and self._pairs is not None:
+            self._num_final_ties += pair[0] and pair not in self._pairs
             self._pairs[pair] = factor_id
 
     def _unlink(self, factor_id: int, record: FactorRecord) -> None:
@@ -250,4 +252,5 @@ class PoseGraphState:
         pair = pair_key(record)
         if pair is not None and self._pairs is not None and self._pairs.get(pair) == factor_id:
             del self._pairs[pair]
+            self._num_final_ties -= pair[0]
         record.keys = ()

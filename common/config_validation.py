@@ -194,6 +194,8 @@ def _validate_backend(b: BaseStationConfig) -> None:
         raise ConfigError("basestation.reduce_distance_m: expected a value >= 0 (0: off)")
     if b.reduce_after_nodes < 0:
         raise ConfigError("basestation.reduce_after_nodes: expected a value >= 0")
+    if not b.reduce_tie_budget >= 0.0:
+        raise ConfigError("basestation.reduce_tie_budget: expected a value >= 0 (0: no cap)")
     if b.isam2_rebuild_nodes < 0:
         raise ConfigError("basestation.isam2_rebuild_nodes: expected a value >= 0 (0: never)")
     if b.map_history_max_snapshots < 0:

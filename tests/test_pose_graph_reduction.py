@@ -339,10 +339,11 @@ def test_final_constraints_between_the_same_two_nodes_are_one_factor():
     np.testing.assert_allclose(fused.poses("a"), plain.poses("a"), atol=2e-4)
 
 
-def fly_with_window(graph: PoseGraph, laps: int, window: int | None) -> np.ndarray:
+def fly_with_window(graph: PoseGraph, laps: int, window: int | None, spread: int = 1) -> np.ndarray:
     """fly_laps, with each loop closure tied to the lap-0 node 2 m further on (so its two
-    ends stay apart, on two variables), and finalized ``window`` nodes after it was added
-    (None: never), as LoopClosureManager finalizes the matches that leave PCM's window."""
+    ends stay apart, on two variables; ``spread`` > 1: 2 m + 0.2 m x (0 .. spread - 1)
+    in turn), and finalized ``window`` nodes after it was added (None: never), as
+    LoopClosureManager finalizes the matches that leave PCM's window."""
     rng = np.random.default_rng(4)
     truth = [circle(i) for i in range(laps * LAP)]
     added: list[tuple[int, int]] = []  # (node, factor id)
@@ -350,7 +351,7 @@ def fly_with_window(graph: PoseGraph, laps: int, window: int | None) -> np.ndarr
         d = None if i == 0 else se2_between(truth[i - 1], p) + rng.normal(0, [0.01, 0.01, 0.001])
         graph.add_node("a", i, d, None if i == 0 else ODOM_COV)
         if i >= LAP and i % 5 == 0:
-            j = (i + 10) % LAP
+            j = (i + 10 + (i // 5) % spread) % LAP
             T = se2_between(truth[j], p) + rng.normal(0, [0.01, 0.01, 0.001])
             added.append((i, graph.add_constraint(("a", j), ("a", i), T, LOOP_COV)))
         while window is not None and added and added[0][0] <= i - window:
@@ -381,6 +382,29 @@ def test_final_constraints_grow_with_the_places_not_with_the_revisits():
     assert final.reduction_stats()["factor_records"] < kept.reduction_stats()["factor_records"]
     err = {w: np.linalg.norm(g.poses("a")[:, :2] - truth[:, :2], axis=1) for w, g in graphs.items()}
     assert err[40].max() < 0.2 and err[40].mean() < 1.2 * err[None].mean()
+
+
+def test_past_the_tie_budget_a_final_constraint_is_folded_into_a_tie_next_to_it():
+    """Matches whose far ends wander over 0.6 m land on several variables there: each
+    would tie a new pair of places (iSAM2's fill-in grows with such ties). Past the
+    budget they go into the ties already there, at no cost in accuracy."""
+    graphs = {}
+    for budget in (0.0, 0.2):  # 0: no cap
+        graph = PoseGraph(
+            heads_last=True, reduce_distance_m=0.5, reduce_lag=10, reduce_batch_nodes=1,
+            tie_budget=budget,
+        )  # fmt: skip
+        graph.add_robot("a", [0, 0, 0])
+        truth = fly_with_window(graph, 6, 40, spread=4)
+        graphs[budget] = graph
+    plain, capped = graphs[0.0].reduction_stats(), graphs[0.2].reduction_stats()
+    assert plain["folded_constraints"] == 0
+    assert capped["folded_constraints"] > 20
+    # (a match with no tie within FOLD_DISTANCE_M of its far end still ties a new pair)
+    assert capped["final_ties"] < 0.6 * plain["final_ties"]  # 46 against 98
+    assert capped["factors"] < plain["factors"]
+    err = {b: np.linalg.norm(g.poses("a")[:, :2] - truth[:, :2], axis=1) for b, g in graphs.items()}
+    assert err[0.2].max() < 0.2 and err[0.2].mean() < 1.2 * err[0.0].mean()
 
 
 def test_a_constraint_is_finalized_once():

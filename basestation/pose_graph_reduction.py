@@ -364,7 +364,7 @@ class ReductionMixin(PoseGraphState):
                 self._drop_factor(fid)
                 continue
             if record.final:
-                ka, kb, z, cov = self._fold(ka, kb, z, cov)
+                ka, kb, z, cov = self._fold(ka, kb, z, cov, leaving=key)
             if ka == kb:
                 moved = None
             else:
@@ -415,7 +415,7 @@ class ReductionMixin(PoseGraphState):
         self.num_fused += 1
 
     def _fold(
-        self, ka: int, kb: int, z: FloatArray, cov: FloatArray
+        self, ka: int, kb: int, z: FloatArray, cov: FloatArray, leaving: int = -1
     ) -> tuple[int, int, FloatArray, FloatArray]:
         """A final constraint T_ka_kb, moved onto an existing tie once the final ties
         number ``tie_budget`` per variable: when it would tie a new pair and one end
@@ -425,7 +425,7 @@ class ReductionMixin(PoseGraphState):
         measurement into that tie. Ties between places make iSAM2's fill-in (a fresh
         iSAM2 of the 30-minute soak's graph: 19 MB at 30,000 keyframes, 38 at 79,000
         for the same places); matches next to an existing tie add none. Unchanged
-        otherwise."""
+        otherwise. ``leaving``: a variable being aliased (its ties are moving away)."""
         assert self._pairs is not None
         if self._tie_budget <= 0.0 or (True, min(ka, kb), max(ka, kb)) in self._pairs:
             return ka, kb, z, cov
@@ -440,7 +440,7 @@ class ReductionMixin(PoseGraphState):
                 if not record.final or record.factor is None:
                     continue
                 p = record.keys[1] if record.keys[0] == own else record.keys[0]
-                if not self._isam.valueExists(p):
+                if p == leaving or not self._isam.valueExists(p):
                     continue
                 if at is None:
                     if not self._isam.valueExists(far):

@@ -13,6 +13,10 @@ $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install --quiet --upgrade pip
 	$(BIN)/python -m pip install --quiet -e '.[test]'
+	@echo "compiling the numba kernels once: a 20 s simulated flight (log: $(VENV)/warmup.log)"
+	$(BIN)/collabslam run --world bshape --robots 3 --max-sim-time 20 \
+		--set exploration.enabled=false --out $(VENV)/warmup > $(VENV)/warmup.log 2>&1 \
+		|| echo "warm-up failed (see $(VENV)/warmup.log); the first run compiles them instead"
 	touch $(STAMP)
 
 run: venv

@@ -26,7 +26,9 @@ and a team of robots over one area holds one set of variables, not one per robot
 Final constraints between the same two variables are fused too. Beyond ``tie_budget``
 final-constraint ties per variable, one that would tie a new pair of variables is folded
 into an existing tie next to it (``_fold``): the ties, whose fill-in is most of iSAM2's
-growth over a long mission in one area, then stop growing with the time flown too.
+growth over a long mission in one area, then stop growing with the time flown too;
+with a budget, an odometry factor that an alias would make a new tie between two
+settled variables already joined within two hops is left out (``_redundant_odometry``).
 Freezing offsets costs accuracy (the relations inside a cluster are dropped), so the
 base station starts only on a large graph (``basestation.reduce_after_nodes``).
 
@@ -47,9 +49,17 @@ import gtsam
 import numpy as np
 from scipy.spatial import cKDTree
 
+from basestation.between_measurements import (
+    adjoint,
+    covariance_of,
+    fuse,
+    moved_measurement,
+    noise_with,
+    pose_array,
+)
 from basestation.pose_graph_state import Chain, FloatArray, PoseGraphState, pose2
 from common.errors import CollabSlamError
-from common.geometry import se2_between, se2_compose, se2_inverse
+from common.geometry import se2_between, se2_inverse
 
 logger = logging.getLogger(__name__)
 
@@ -75,50 +85,6 @@ LINK_KEYFRAMES = 10
 # close to its own (``_fold``); with none that close it ties a new pair (a new place).
 FOLD_DISTANCE_M = 3.0
 SNAPSHOT_NEIGHBOURS = 8  # nearest variables looked at for one of an allowed robot
-
-
-def _arr(p: gtsam.Pose2) -> FloatArray:
-    return np.array([p.x(), p.y(), p.theta()])
-
-
-def _adjoint(T: FloatArray) -> FloatArray:
-    return np.asarray(pose2(T).AdjointMap())
-
-
-def _noise_with(noise: gtsam.noiseModel.Base, cov: FloatArray) -> gtsam.noiseModel.Base:
-    """``noise`` with its Gaussian part replaced by ``cov`` (robust kernels kept)."""
-    gauss = gtsam.noiseModel.Gaussian.Covariance(0.5 * (cov + cov.T))
-    if isinstance(noise, gtsam.noiseModel.Robust):
-        return gtsam.noiseModel.Robust.Create(noise.robust(), gauss)
-    return gauss
-
-
-def _covariance(noise: gtsam.noiseModel.Base) -> FloatArray:
-    if isinstance(noise, gtsam.noiseModel.Robust):
-        noise = noise.noise()
-    return np.asarray(noise.covariance())
-
-
-def moved_measurement(
-    z: FloatArray, cov: FloatArray, side: int, offset: FloatArray
-) -> tuple[FloatArray, FloatArray]:
-    """A between-factor measurement T_a_b (covariance at b) once end ``side`` (0: a,
-    1: b) is expressed through its anchor, node = anchor * offset."""
-    if side == 0:  # T_anchor_b = offset * z, error unchanged
-        return se2_compose(offset, z), cov
-    ad = _adjoint(offset)  # T_a_anchor = z * offset^-1; error rotates by Ad(offset)
-    return se2_compose(z, se2_inverse(offset)), ad @ cov @ ad.T
-
-
-def fuse(
-    z1: FloatArray, cov1: FloatArray, z2: FloatArray, cov2: FloatArray
-) -> tuple[FloatArray, FloatArray]:
-    """Two Gaussian measurements of the same T_a_b as one (tangent space at z1)."""
-    info1, info2 = np.linalg.inv(cov1), np.linalg.inv(cov2)
-    cov = np.linalg.inv(info1 + info2)
-    xi = np.asarray(gtsam.Pose2.Logmap(pose2(se2_between(z1, z2))))
-    step = cov @ info2 @ xi
-    return se2_compose(z1, _arr(gtsam.Pose2.Expmap(step))), 0.5 * (cov + cov.T)
 
 
 def _dist2(a: FloatArray, b: FloatArray) -> float:
@@ -195,6 +161,7 @@ class ReductionMixin(PoseGraphState):
         self.num_fused = 0  # final constraints fused into another between the same variables
         self._tie_budget = float(tie_budget)  # final-constraint ties per variable (_fold)
         self.num_folded = 0  # final constraints moved onto an existing tie (``_fold``)
+        self.num_dropped = 0  # odometry ties between settled places left out (``_alias``)
         if self._reduce_distance > 0.0:
             self._adjacency = {}
             self._pairs = {}
@@ -216,6 +183,7 @@ class ReductionMixin(PoseGraphState):
             "fused_constraints": self.num_fused,
             "final_ties": self._num_final_ties,  # pairs of variables final constraints tie
             "folded_constraints": self.num_folded,
+            "dropped_odometry": self.num_dropped,
         }
 
     # ----- resolving keyframes to variables -------------------------------------------
@@ -241,12 +209,12 @@ class ReductionMixin(PoseGraphState):
         if ka == kb:
             return None
         if off_a is not None or off_b is not None:
-            z, cov = T_a_b, _covariance(noise)
+            z, cov = T_a_b, covariance_of(noise)
             if off_a is not None:
                 z, cov = moved_measurement(z, cov, 0, off_a)
             if off_b is not None:
                 z, cov = moved_measurement(z, cov, 1, off_b)
-            T_a_b, noise = z, _noise_with(noise, cov)
+            T_a_b, noise = z, noise_with(noise, cov)
         return gtsam.BetweenFactorPose2(ka, kb, pose2(T_a_b), noise)
 
     # ----- the reduction pass ---------------------------------------------------------
@@ -354,10 +322,10 @@ class ReductionMixin(PoseGraphState):
             record = self._factors[fid]
             factor = record.factor
             ka, kb = record.keys
-            z = _arr(factor.measured())
+            z = pose_array(factor.measured())
             noise = factor.noiseModel()
             side = 0 if ka == key else 1
-            z, cov = moved_measurement(z, _covariance(noise), side, offset)
+            z, cov = moved_measurement(z, covariance_of(noise), side, offset)
             ka, kb = (anchor, kb) if side == 0 else (ka, anchor)
             fusable = record.kind == "odometry" or record.final
             if ka == kb and fusable:  # inside one variable: carries nothing, for good
@@ -365,10 +333,14 @@ class ReductionMixin(PoseGraphState):
                 continue
             if record.final:
                 ka, kb, z, cov = self._fold(ka, kb, z, cov, leaving=key)
+            elif record.kind == "odometry" and self._redundant_odometry(fid, ka, kb, key):
+                self._drop_factor(fid)
+                self.num_dropped += 1
+                continue
             if ka == kb:
                 moved = None
             else:
-                moved = gtsam.BetweenFactorPose2(ka, kb, pose2(z), _noise_with(noise, cov))
+                moved = gtsam.BetweenFactorPose2(ka, kb, pose2(z), noise_with(noise, cov))
             if fusable and moved is not None:
                 other = self._pairs.get((record.final, min(ka, kb), max(ka, kb)))
                 if other is not None and other != fid:
@@ -402,7 +374,7 @@ class ReductionMixin(PoseGraphState):
         record.final = True
         ka, kb = record.factor.keys()
         noise = record.factor.noiseModel()
-        z, cov = _arr(record.factor.measured()), _covariance(noise)
+        z, cov = pose_array(record.factor.measured()), covariance_of(noise)
         ka, kb, z, cov = self._fold(ka, kb, z, cov)
         other = self._pairs.get((True, min(ka, kb), max(ka, kb)))
         if other is None:  # a new pair (never a folded one: it lands on a tie)
@@ -445,8 +417,8 @@ class ReductionMixin(PoseGraphState):
                 if at is None:
                     if not self._isam.valueExists(far):
                         break
-                    at = _arr(self._isam.calculateEstimatePose2(far))
-                there = _arr(self._isam.calculateEstimatePose2(p))
+                    at = pose_array(self._isam.calculateEstimatePose2(far))
+                there = pose_array(self._isam.calculateEstimatePose2(p))
                 d2 = _dist2(there, at)
                 if d2 <= FOLD_DISTANCE_M**2 and (best is None or d2 < best[0]):
                     best = (d2, side, p, se2_between(there, at))
@@ -456,6 +428,35 @@ class ReductionMixin(PoseGraphState):
         z, cov = moved_measurement(z, cov, side, offset)
         self.num_folded += 1
         return (ka, p, z, cov) if side == 1 else (p, kb, z, cov)
+
+    def _redundant_odometry(self, fid: int, ka: int, kb: int, leaving: int) -> bool:
+        """Whether odometry factor ``fid``, moved onto variables ka and kb by an alias,
+        would tie a new pair of settled variables (anchors, or passed by the pass) that
+        are already joined within two hops by odometry or final ties: with a tie
+        budget, it is left out, so these ties grow with the places, not with the ways
+        flown between them (the soak replay: 4,849 against 5,788 at 78,716 keyframes,
+        trajectory error 0.0496 against 0.0490 m)."""
+        assert self._pairs is not None and self._adjacency is not None
+        if self._tie_budget <= 0.0 or ka == kb or (False, min(ka, kb), max(ka, kb)) in self._pairs:
+            return False
+        chains = {ord(c.char): c for c in self._chains.values()}
+        for k in (ka, kb):
+            c = chains.get(k >> CHAR_SHIFT)
+            if c is None or (k not in self._anchors and (k & INDEX_MASK) >= c.reduce_next):
+                return False
+
+        def ties(k: int) -> set[int]:
+            out: set[int] = set()
+            for f in self._adjacency.get(k, ()):
+                r = self._factors[f]
+                if f != fid and r.factor is not None and (r.kind == "odometry" or r.final):
+                    out.update(r.keys)
+            out.discard(k)
+            out.discard(leaving)
+            return out
+
+        near = ties(ka)
+        return kb in near or not near.isdisjoint(ties(kb))
 
     def _fused(
         self, other: int, ka: int, kb: int, z: FloatArray, cov: FloatArray, count: int
@@ -467,9 +468,9 @@ class ReductionMixin(PoseGraphState):
         where keeping k would down-weight them once sqrt(n) r passes k."""
         record = self._factors[other]
         factor = record.factor
-        z1, cov1 = _arr(factor.measured()), _covariance(factor.noiseModel())
+        z1, cov1 = pose_array(factor.measured()), covariance_of(factor.noiseModel())
         if record.keys[0] != ka:  # stored the other way round: turn it
-            ad = _adjoint(z1)
+            ad = adjoint(z1)
             z1, cov1 = se2_inverse(z1), ad @ cov1 @ ad.T
         zf, covf = fuse(z1, cov1, z, cov)
         gauss = gtsam.noiseModel.Gaussian.Covariance(0.5 * (covf + covf.T))

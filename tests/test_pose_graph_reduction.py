@@ -5,50 +5,24 @@ from __future__ import annotations
 import gtsam
 import numpy as np
 import pytest
+from pose_graph_helpers import (
+    LAP,
+    LOOP_COV,
+    ODOM_COV,
+    circle,
+    fly_laps,
+    fly_with_window,
+    odometry_factors,
+    variables,
+)
 
+from basestation.between_measurements import fuse, moved_measurement
 from basestation.loop_closure_manager import invert_with_covariance
 from basestation.pose_graph import PoseGraph
-from basestation.pose_graph_reduction import LINK_KEYFRAMES, fuse, moved_measurement
+from basestation.pose_graph_reduction import LINK_KEYFRAMES
 from basestation.pose_graph_state import pose2
 from common.errors import CollabSlamError
 from common.geometry import se2_between, se2_compose
-
-ODOM_COV = np.diag([1e-4, 1e-4, 1e-5])
-LOOP_COV = np.diag([1e-3, 1e-3, 1e-4])
-RADIUS, STEP = 5.0, 0.2
-LAP = int(2 * np.pi * RADIUS / STEP)  # nodes per lap of the circle
-
-
-def circle(i: int) -> np.ndarray:
-    th = 2 * np.pi * i / LAP
-    return np.array([RADIUS * np.sin(th), RADIUS - RADIUS * np.cos(th), th])
-
-
-def fly_laps(graph: PoseGraph, laps: int, seed: int = 0, robot: str = "a") -> np.ndarray:
-    """Laps of a circle with noisy odometry and a loop closure to lap 0 every 5 nodes
-    (from lap 1 on), one update per node; returns the true poses."""
-    rng = np.random.default_rng(seed)
-    truth = [circle(i) for i in range(laps * LAP)]
-    for i, p in enumerate(truth):
-        if i == 0:
-            graph.add_node(robot, 0, None, None)
-        else:
-            d = se2_between(truth[i - 1], p) + rng.normal(0, [0.01, 0.01, 0.001])
-            graph.add_node(robot, i, d, ODOM_COV)
-        if i >= LAP and i % 5 == 0:
-            j = i % LAP
-            T = se2_between(truth[j], p) + rng.normal(0, [0.01, 0.01, 0.001])
-            graph.add_constraint((robot, j), (robot, i), T, LOOP_COV)
-        graph.update()
-    return np.array(truth)
-
-
-def variables(graph: PoseGraph) -> int:
-    return graph._isam.calculateEstimate().size()
-
-
-def odometry_factors(graph: PoseGraph) -> int:
-    return sum(r.kind == "odometry" for r in graph._factors.values())
 
 
 def test_revisits_add_no_variables_and_poses_stay_accurate():
@@ -337,78 +311,6 @@ def test_final_constraints_between_the_same_two_nodes_are_one_factor():
     loops = [r for r in fused._factors.values() if r.kind == "constraint"]
     assert len(loops) == 1 and fused.reduction_stats()["fused_constraints"] == 3
     np.testing.assert_allclose(fused.poses("a"), plain.poses("a"), atol=2e-4)
-
-
-def fly_with_window(graph: PoseGraph, laps: int, window: int | None, spread: int = 1) -> np.ndarray:
-    """fly_laps, with each loop closure tied to the lap-0 node 2 m further on (so its two
-    ends stay apart, on two variables; ``spread`` > 1: 2 m + 0.2 m x (0 .. spread - 1)
-    in turn), and finalized ``window`` nodes after it was added (None: never), as
-    LoopClosureManager finalizes the matches that leave PCM's window."""
-    rng = np.random.default_rng(4)
-    truth = [circle(i) for i in range(laps * LAP)]
-    added: list[tuple[int, int]] = []  # (node, factor id)
-    for i, p in enumerate(truth):
-        d = None if i == 0 else se2_between(truth[i - 1], p) + rng.normal(0, [0.01, 0.01, 0.001])
-        graph.add_node("a", i, d, None if i == 0 else ODOM_COV)
-        if i >= LAP and i % 5 == 0:
-            j = (i + 10 + (i // 5) % spread) % LAP
-            T = se2_between(truth[j], p) + rng.normal(0, [0.01, 0.01, 0.001])
-            added.append((i, graph.add_constraint(("a", j), ("a", i), T, LOOP_COV)))
-        while window is not None and added and added[0][0] <= i - window:
-            graph.finalize_constraint(added.pop(0)[1])
-        graph.update()
-    return np.array(truth)
-
-
-def test_final_constraints_grow_with_the_places_not_with_the_revisits():
-    graphs = {}
-    for window in (None, 40):
-        graph = PoseGraph(
-            heads_last=True, reduce_distance_m=0.5, reduce_lag=10, reduce_batch_nodes=1
-        )
-        graph.add_robot("a", [0, 0, 0])
-        truth = fly_with_window(graph, 6, window)
-        graphs[window] = graph
-    kept, final = graphs[None], graphs[40]
-    n_loops = 5 * LAP // 5  # one every 5 nodes from lap 1 on
-
-    def constraints(g: PoseGraph) -> int:
-        return sum(r.kind == "constraint" and r.factor is not None for r in g._factors.values())
-
-    # 5 laps of matches between the same places: final ones fold onto a lap's worth of pairs
-    assert constraints(kept) > 0.8 * n_loops
-    assert constraints(final) < 0.45 * n_loops  # 62 of 157
-    assert final.reduction_stats()["fused_constraints"] > 0.5 * n_loops
-    assert final.reduction_stats()["factor_records"] < kept.reduction_stats()["factor_records"]
-    err = {w: np.linalg.norm(g.poses("a")[:, :2] - truth[:, :2], axis=1) for w, g in graphs.items()}
-    assert err[40].max() < 0.2 and err[40].mean() < 1.2 * err[None].mean()
-
-
-def test_past_the_tie_budget_a_final_constraint_is_folded_into_a_tie_next_to_it():
-    """Matches whose far ends wander over 0.6 m land on several variables there: each
-    would tie a new pair of places (iSAM2's fill-in grows with such ties). Past the
-    budget they go into the ties already there, at no cost in accuracy."""
-    graphs = {}
-    for budget in (0.0, 0.2):  # 0: no cap
-        graph = PoseGraph(
-            heads_last=True, reduce_distance_m=0.5, reduce_lag=10, reduce_batch_nodes=1,
-            tie_budget=budget,
-        )  # fmt: skip
-        graph.add_robot("a", [0, 0, 0])
-        # final 5 nodes after it was added, before aliasing (10): moved onto the anchors
-        truth = fly_with_window(graph, 6, 5, spread=4)
-        graphs[budget] = graph
-    plain, capped = graphs[0.0].reduction_stats(), graphs[0.2].reduction_stats()
-    assert plain["folded_constraints"] == 0
-    assert capped["folded_constraints"] > 20
-    # (a match with no tie within FOLD_DISTANCE_M of its far end still ties a new pair)
-    assert capped["final_ties"] < 0.6 * plain["final_ties"]  # 45 against 101
-    assert capped["factors"] < plain["factors"]
-    chain = graphs[0.2]._chains["a"]  # no factor is left on a variable that became an alias
-    aliased = {chain.key_base + i for i in np.flatnonzero(chain.alias_key[: chain.size] >= 0)}
-    assert not any(set(r.keys) & aliased for r in graphs[0.2]._factors.values())
-    err = {b: np.linalg.norm(g.poses("a")[:, :2] - truth[:, :2], axis=1) for b, g in graphs.items()}
-    assert err[0.2].max() < 0.2 and err[0.2].mean() < 1.2 * err[0.0].mean()
 
 
 def test_a_constraint_is_finalized_once():

@@ -2,9 +2,8 @@
 
 Every parameter has a name, a unit in its comment and a default (from the papers
 where they give one). `load_config()` reads a TOML file and/or dotted overrides,
-rejects unknown keys and wrong types with a `ConfigError` that names the key,
-and checks ranges (`common.config_validation.validate`). `dump_config()` writes the config
-actually used (so every run's output folder holds it).
+rejects unknown keys and wrong types with a `ConfigError` that names the key, and checks
+ranges (`common.config_validation.validate`). `dump_config()` writes the config used.
 """
 
 from __future__ import annotations
@@ -312,7 +311,8 @@ class BaseStationConfig:
     # an update stays under ~1 ms unreduced and frozen offsets would only cost accuracy
     # (Intel, 4,078 nodes: 0.0151 m unreduced, 0.0162 m reduced from the first node);
     # city10000 from 2,000 nodes: p95 as low as reduced from the first node, offset from
-    # the batch optimum 0.019 m instead of 0.027 m; from 10,000 nodes: p95 21 ms.
+    # the batch optimum 0.019 m instead of 0.027 m; from 10,000 nodes: p95 21 ms. A tie
+    # budget also leaves out odometry between places already joined (pose_graph_reduction).
     reduce_distance_m: float = 0.5
     reduce_lag: int = 20
     reduce_after_nodes: int = 2000

@@ -213,7 +213,7 @@ class AgentConfig:
     # vehicle_radius_m + safety_margin_m of its track.
     vehicle_radius_m: float = 0.25  # m, the drone's collision disc
     safety_margin_m: float = 0.05  # m, keep below exploration.inflation_m - vehicle_radius_m
-    safety_reaction_s: float = 0.1  # s of travel before braking starts (latency)
+    safety_reaction_s: float = 0.3  # s of travel before braking: latency + velocity lag
     blocked_after_s: float = 2.0  # s held still by the guard: report "blocked" (replan)
     # Neighbour guard (the same): other drones' centres, relayed by the base station in
     # answer to each RobotState, kept neighbour_keep_m away (the 1 m target + what

@@ -60,6 +60,9 @@ from protocol import Path as PathMsg
 
 log = logging.getLogger(__name__)
 
+# The odometry's twist steers the guard's braking while it is at most this old (s).
+TWIST_MAX_AGE_S = 0.25
+
 
 class AgentNode:
     def __init__(
@@ -103,6 +106,7 @@ class AgentNode:
             else 0.0,
         )
         self._neighbours: Neighbours | None = None  # the base station's latest relay
+        self._twist: tuple[float, np.ndarray] | None = None  # odometry's (stamp, vx vy)
         self._on_map = T_map_odom is not None  # its map pose is known (start or correction)
         self._news_ages: deque[float] = deque(maxlen=20000)  # s, the relay's answer at use
         self.tour_map = np.asarray(tour_map, dtype=np.float64).reshape(-1, 2)
@@ -205,6 +209,7 @@ class AgentNode:
     def handle(self, msg: Any) -> None:
         if isinstance(msg, Odometry):
             self.frontend.add_odometry(msg.stamp, pose7_to_pose4(msg.pose)[[0, 1, 3]])
+            self._twist = (msg.stamp, np.asarray(msg.twist[:2], dtype=np.float64))
         elif isinstance(msg, Imu):
             self.frontend.add_imu(msg.stamp, msg.orientation)
         elif isinstance(msg, Altimeter):
@@ -313,7 +318,9 @@ class AgentNode:
                 )
             )
         vx, vy, vz, yaw_rate = self.follower.command(self.frontend.pose)
-        vx, vy = self.guard.limit(stamp, vx, vy)
+        moving = self._twist  # the guard brakes along it (a turn lags the command)
+        fresh = moving is not None and abs(stamp - moving[0]) <= TWIST_MAX_AGE_S
+        vx, vy = self.guard.limit(stamp, vx, vy, velocity=moving[1] if fresh else None)
         self.vehicle.command(stamp, vx, vy, vz, yaw_rate)
 
     def _resend(self) -> None:

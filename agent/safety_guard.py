@@ -8,6 +8,13 @@ within its `radius_m + margin_m` corridor, and removes the velocity component
 toward a point already closer than that. A drone held still for longer than
 `blocked_after_s` is reported `blocked` so the base station replans.
 
+The vehicle follows its command with a lag, so in a turn it still moves the way it
+was going. Given its current velocity (`limit(..., velocity=)`, the odometry's
+twist), the guard also caps the command along that motion at the speed the scan
+allows there; when the drone already moves faster than that, it commands only
+the braking (that direction, at the allowed speed) and turns once it has slowed:
+turning while braking would share the vehicle's acceleration between the two.
+
 The other drones are kept apart too (`set_neighbours`): their centres, from the
 base station's `Neighbours` relay (`neighbours_in_body`), must stay
 `neighbour_keep_m` away. Toward each, the drone flies at most the speed from which
@@ -32,6 +39,9 @@ from common.geometry import pose4_compose, pose4_inverse
 GIVE_WAY_MPS = 0.3  # m/s aside when a neighbour is in the way
 REPEL_GAIN = 1.0  # m/s away from a neighbour per m inside the keep distance
 DEAD_AHEAD = np.sin(np.radians(10.0))  # a neighbour within 10 deg of the way: pass right
+# Slower than this (m/s), a drone turns while it brakes: the lag's exponential decay
+# would hold it for a second more, for the last centimetre.
+TURN_WHILE_BRAKING_MPS = 0.1
 
 
 class SafetyGuard:
@@ -70,9 +80,15 @@ class SafetyGuard:
         """The other drones' centres now ((k, 2), body frame)."""
         self.neighbours = np.asarray(centres, dtype=np.float64).reshape(-1, 2)
 
-    def limit(self, stamp: float, vx: float, vy: float) -> tuple[float, float]:
+    def limit(
+        self,
+        stamp: float,
+        vx: float,
+        vy: float,
+        velocity: NDArray[np.float64] | None = None,
+    ) -> tuple[float, float]:
         """The body-frame horizontal command (vx, vy), m/s, made safe for the last scan
-        and the neighbours."""
+        and the neighbours; `velocity`: the drone's body-frame (vx, vy) now, if known."""
         v = np.array([vx, vy], dtype=np.float64)
         wanted = float(np.hypot(vx, vy))
         before = v.copy()
@@ -86,6 +102,8 @@ class SafetyGuard:
             v = after
             if done:
                 break
+        if velocity is not None:
+            v = self._brake_along_motion(v, np.asarray(velocity, dtype=np.float64)[:2])
         limited = float(np.hypot(*v)) < wanted - 1e-6
         self.limited_ticks += int(limited)
         held = wanted > 0.05 and float(np.hypot(*v)) < 0.05
@@ -115,16 +133,39 @@ class SafetyGuard:
             v = v - max(float(v @ n), 0.0) * n
         speed = float(np.hypot(*v))
         if speed > 1e-6:
-            u = v / speed
-            along = p @ u
-            lateral = np.abs(p @ np.array([-u[1], u[0]]))
-            ahead = (along > 0.0) & (lateral < self.corridor)
-            if ahead.any():
-                # distance the disc can travel before touching the nearest point ahead
-                travel = along[ahead] - np.sqrt(self.corridor**2 - lateral[ahead] ** 2)
-                allowed = self._stopping_speed(float(travel.min()) - self.stop_margin)
-                if allowed < speed:
-                    v = v * (allowed / speed)
+            allowed = self._allowed_along(v / speed)
+            if allowed < speed:
+                v = v * (allowed / speed)
+        return v
+
+    def _allowed_along(self, u: NDArray[np.float64]) -> float:
+        """The highest speed along unit vector `u` from which the disc stops before the
+        nearest scan point ahead (inf when none is ahead)."""
+        p = self.points
+        along = p @ u
+        lateral = np.abs(p @ np.array([-u[1], u[0]]))
+        ahead = (along > 0.0) & (lateral < self.corridor)
+        if not ahead.any():
+            return float("inf")
+        # distance the disc can travel before touching the nearest point ahead
+        travel = along[ahead] - np.sqrt(self.corridor**2 - lateral[ahead] ** 2)
+        return self._stopping_speed(float(travel.min()) - self.stop_margin)
+
+    def _brake_along_motion(
+        self, v: NDArray[np.float64], velocity: NDArray[np.float64]
+    ) -> NDArray[np.float64]:
+        """The command `v` with at most the allowed speed along the current motion;
+        only the braking when the drone moves faster than that (see the module doc)."""
+        speed = float(np.hypot(*velocity))
+        if speed <= 1e-3 or len(self.points) == 0:
+            return v
+        u = velocity / speed
+        allowed = self._allowed_along(u)
+        toward = float(v @ u)
+        if speed > max(allowed, TURN_WHILE_BRAKING_MPS):  # too fast: brake, then turn
+            return self._clear_of_scan(u * min(allowed, toward))
+        if toward > allowed:
+            v = v - (toward - allowed) * u
         return v
 
     def _apart_from_neighbours(

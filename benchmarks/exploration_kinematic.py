@@ -8,8 +8,10 @@ Zenoh or processes. Each drone is where it is (perfect poses); the simulator's l
 free at 0.49 as the base station's); each drone flies its path with the
 agent's own `PathFollower` (cruise speed, slowing for the last waypoint, turning
 first when it is far off the nose) on the simulator's own `Quadrotor` (its limits,
-lag and wall contacts) behind the agent's `SafetyGuard` (walls from the scan,
-the other drones at their true positions). No SLAM error, no keyframe or map lag.
+lag and wall contacts) behind the agent's `SafetyGuard` (walls from the last scan,
+seen from where the drone is now, as the agent's guard gets a scan every 25 ms; the
+vehicle's velocity; the other drones at their true positions). No SLAM error, no
+keyframe or map lag.
 
 So a run costs the exploration steps and the ray casting only: ~5-30 s of wall time
 for a mission that takes 1-2 min in full, and the same seed gives the same run
@@ -114,6 +116,7 @@ def fly_kinematic(
         for r in ids
     }  # fmt: skip
     flying = {r: False for r in ids}
+    seen = {r: np.zeros((0, 2)) for r in ids}  # each drone's last scan, world points
     idle = {r: 0.0 for r in ids}
     curve: list[list[float]] = []
     sep = math.inf
@@ -125,7 +128,11 @@ def fly_kinematic(
         if k % scan_every == 0:
             for r in ids:
                 ranges = laser.measure(w, pose[r], rng)
-                guard[r].update(laser.angles, np.where(ranges < laser.range_max, ranges, np.inf))
+                hit = ranges < laser.range_max
+                bearing = pose[r][2] + laser.angles[hit]
+                seen[r] = pose[r][:2] + ranges[hit, None] * np.column_stack(
+                    [np.cos(bearing), np.sin(bearing)]
+                )
                 grid.insert_scan(
                     pose[r], ranges, laser.angles, laser.range_min, laser.range_max,
                     max_free_range=m.max_free_range_m,
@@ -157,7 +164,9 @@ def fly_kinematic(
             guard[r].set_neighbours(
                 np.column_stack([cy * d[:, 0] + sy * d[:, 1], -sy * d[:, 0] + cy * d[:, 1]])
             )
-            vx, vy = guard[r].limit(t, cmd[0], cmd[1])
+            d = seen[r] - v.pose[:2]  # the last scan's points, from here
+            guard[r].update(np.arctan2(d[:, 1], d[:, 0]) - v.pose[3], np.hypot(d[:, 0], d[:, 1]))
+            vx, vy = guard[r].limit(t, cmd[0], cmd[1], velocity=v.velocity_body[:2])
             v.step((vx, vy, cmd[2], cmd[3]), TICK_S, w)
             pose[r] = v.pose[[0, 1, 3]].copy()
             idle[r] += TICK_S if np.hypot(*v.velocity_world[:2]) < 0.2 else 0.0

@@ -5,6 +5,10 @@ from __future__ import annotations
 import numpy as np
 
 from agent.safety_guard import SafetyGuard, neighbours_in_body
+from common.map_io import GridMap
+from simulation.quadrotor import Quadrotor
+from simulation.sensors import LaserModel
+from simulation.world import World
 
 ANGLES = np.linspace(-np.radians(135.0), np.radians(135.0), 1081)
 
@@ -75,6 +79,48 @@ def test_held_still_long_enough_is_blocked_and_a_new_path_clears_it() -> None:
     g.update(ANGLES, _wall_ranges(10.0))
     g.limit(2.1, 1.0, 0.0)
     assert not g.blocked
+
+
+def test_a_drone_moving_at_a_wall_brakes_before_it_turns() -> None:
+    """Moving at 0.5 m/s toward a wall 0.5 m ahead, told to go left (a turn its velocity
+    lags): the command is braking along the motion alone, none of it sideways."""
+    g = _guard()
+    g.update(ANGLES, _wall_ranges(0.5))
+    assert g.limit(0.0, 0.0, 0.5) == (0.0, 0.5)  # without its velocity: left is clear
+    vx, vy = g.limit(0.0, 0.0, 0.5, velocity=np.array([0.5, 0.0]))
+    assert vx <= 0.0 and abs(vy) < 1e-9, (vx, vy)
+    # slow enough for a wall 0.8 m ahead (0.85 m/s allowed): it turns as told
+    g.update(ANGLES, _wall_ranges(0.8))
+    assert g.limit(0.0, 0.0, 0.5, velocity=np.array([0.3, 0.0])) == (0.0, 0.5)
+    assert g.limit(0.0, 0.0, 0.5, velocity=np.array([0.0, 0.0])) == (0.0, 0.5)
+
+
+def test_a_lagging_quadrotor_passing_a_corner_keeps_off_it() -> None:
+    """The simulator's quadrotor moving east at 0.57 m/s, 0.25 m (disc edge) short of a
+    wall whose corner is just to its left, told to fly north, past the corner: braking
+    and turning share its acceleration, so turning at once nearly grazes the wall, and
+    the guard that knows the vehicle's velocity brakes first and keeps clear."""
+    data = np.zeros((200, 200), dtype=np.int8)  # 10 x 10 m, 5 cm cells
+    data[0, :] = data[-1, :] = data[:, 0] = data[:, -1] = 100
+    data[:100, 120:] = 100  # a block at x >= 6, y < 5: its corner at (6, 5)
+    world = World(GridMap(data=data, resolution=0.05, origin=(0.0, 0.0, 0.0)))
+    laser = LaserModel(1081, np.radians(270.0), 0.1, 30.0, 0.0)
+
+    def closest(with_velocity: bool) -> float:
+        q = Quadrotor([5.5, 4.8, 1.0, 0.0], max_accel=1.0, time_constant=0.2)
+        q.velocity_world[:2] = [0.57, 0.0]
+        g = SafetyGuard(0.25, 0.05, 1.0, 0.3, 2.0)
+        for k in range(120):  # 3 s
+            r = laser.measure(world, q.pose[[0, 1, 3]], np.random.default_rng(0))
+            g.update(laser.angles, np.where(r < laser.range_max, r, np.inf))
+            vel = q.velocity_body[:2] if with_velocity else None
+            vx, vy = g.limit(k * 0.025, 0.0, 0.5, velocity=vel)
+            q.step((vx, vy, 0.0, 0.0), 0.025, world)
+        assert q.collisions == 0 and q.pose[1] > 5.5  # it got past the corner
+        return q.min_clearance
+
+    assert closest(with_velocity=False) < 0.03
+    assert closest(with_velocity=True) >= 0.06
 
 
 # --- neighbours (other drones, relayed by the base station) ------------------------------

@@ -157,7 +157,7 @@ class SafetyGuard:
         """The command `v` with at most the allowed speed along the current motion;
         only the braking when the drone moves faster than that (see the module doc)."""
         speed = float(np.hypot(*velocity))
-        if speed <= 1e-3 or len(self.points) == 0:
+        if not 1e-3 < speed < np.inf or len(self.points) == 0:  # slow, no scan, not finite
             return v
         u = velocity / speed
         allowed = self._allowed_along(u)

@@ -93,6 +93,8 @@ def test_a_drone_moving_at_a_wall_brakes_before_it_turns() -> None:
     g.update(ANGLES, _wall_ranges(0.8))
     assert g.limit(0.0, 0.0, 0.5, velocity=np.array([0.3, 0.0])) == (0.0, 0.5)
     assert g.limit(0.0, 0.0, 0.5, velocity=np.array([0.0, 0.0])) == (0.0, 0.5)
+    for bad in (np.nan, np.inf):  # a broken twist is ignored
+        assert g.limit(0.0, 0.0, 0.5, velocity=np.array([bad, 0.0])) == (0.0, 0.5)
 
 
 def test_a_lagging_quadrotor_passing_a_corner_keeps_off_it() -> None:

@@ -41,6 +41,7 @@ from common.config import Config
 from common.geometry import map_to_odom, odom_to_map, pose4_to_pose7, pose7_to_pose4
 from common.memory import HeapTrimmer
 from common.metrics import percentiles
+from common.row_spool import RowSpool
 from common.trajectory_io import Trajectory, write_tum
 from protocol import (
     Altimeter,
@@ -127,7 +128,7 @@ class AgentNode:
         self.last_scan_stamp: float | None = None
         self.last_state_stamp = -np.inf
         self.scans = 0
-        self.local_trajectory: list[tuple[float, np.ndarray]] = []  # every scan, odom frame
+        self.local_trajectory = RowSpool(5)  # every scan: stamp, T_odom_base [x y z yaw]
         self.base_links = {"joins": 0, "losses": 0}  # base-station liveliness events
 
     # --- wiring -------------------------------------------------------------------------
@@ -229,7 +230,7 @@ class AgentNode:
             return
         self.last_scan_stamp = scan.stamp
         self.scans += 1
-        self.local_trajectory.append((scan.stamp, result.pose))
+        self.local_trajectory.append([scan.stamp, *result.pose])
         self._publish_control_pose(scan.stamp, result.pose)
         if self.selector.is_due(result.pose) and self.outbox.has_room():
             self._send_keyframe(scan, result)
@@ -404,12 +405,11 @@ class AgentNode:
         out = Path(out_dir)
         (out / "agents").mkdir(parents=True, exist_ok=True)
         (out / "agents" / f"{self.robot_id}.json").write_text(json.dumps(self.stats(), indent=1))
-        if self.local_trajectory:
-            stamps = np.array([t for t, _ in self.local_trajectory])
-            poses = np.array([p for _, p in self.local_trajectory])
+        if len(self.local_trajectory):
+            rows = self.local_trajectory.rows()
             write_tum(
                 out / "local_trajectories" / f"{self.robot_id}.tum",
-                Trajectory.from_pose4(stamps, poses),
+                Trajectory.from_pose4(rows[:, 0], rows[:, 1:]),
             )
         if len(self.control_log):
             write_control_log(

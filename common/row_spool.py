@@ -1,7 +1,8 @@
 """Rows of numbers recorded for the whole of a run, kept on disk instead of in memory.
 
 An agent records a row at every control tick (40 Hz: its local trajectory and its
-control poses) for the files it writes when it stops. Kept in memory, a row costs
+control poses) for the files it writes when it stops, the simulator each robot's
+ground truth (10 Hz). Kept in memory, a row costs
 ~250 bytes with Python's and numpy's object headers: ~1.3 MB a minute that a drone's
 process never gives back. `RowSpool` appends each row's float64 bytes to an unnamed
 temporary file (buffered, deleted by the operating system when the process ends) and

@@ -27,6 +27,7 @@ from common.bus import Bus
 from common.config import Config
 from common.errors import ProcessError
 from common.geometry import pose4_to_pose7
+from common.row_spool import RowSpool
 from common.scenario import Scenario
 from common.trajectory_io import Trajectory, write_tum
 from protocol import (
@@ -59,7 +60,7 @@ class SimRobot:
     command: tuple[float, float, float, float] = (0.0, 0.0, 0.0, 0.0)
     answered: float = -1.0  # stamp of the last tick this robot's agent answered
     status: str = "starting"
-    gt: list[list[float]] = field(default_factory=list)  # [t, x, y, z, yaw]
+    gt: RowSpool = field(default_factory=lambda: RowSpool(5))  # [t, x, y, z, yaw]
 
 
 class Simulator:
@@ -261,7 +262,7 @@ class Simulator:
             r.odometry.step(r.vehicle.velocity_body, r.vehicle.yaw_rate, self.dt, r.rng)
 
     def _record(self, r: SimRobot, t: float) -> None:
-        r.gt.append([t, *(float(x) for x in r.vehicle.pose)])
+        r.gt.append([t, *r.vehicle.pose])
 
     def _publish_tick(self, t: float) -> None:
         for r in self.robots.values():
@@ -325,7 +326,7 @@ class Simulator:
     def write_outputs(self, out_dir: str | Path) -> None:
         out = Path(out_dir)
         for rid, r in self.robots.items():
-            gt = np.array(r.gt)
+            gt = r.gt.rows()
             write_tum(
                 out / "ground_truth" / f"{rid}.tum",
                 Trajectory.from_pose4(gt[:, 0], gt[:, 1:5]),

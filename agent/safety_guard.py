@@ -11,9 +11,12 @@ toward a point already closer than that. A drone held still for longer than
 The vehicle follows its command with a lag, so in a turn it still moves the way it
 was going. Given its current velocity (`limit(..., velocity=)`, the odometry's
 twist), the guard also caps the command along that motion at the speed the scan
-allows there; when the drone already moves faster than that, it commands only
-the braking (that direction, at the allowed speed) and turns once it has slowed:
-turning while braking would share the vehicle's acceleration between the two.
+allows there; when the drone already moves faster than that, the rest of the
+command (the turn) is scaled down by allowed / actual speed: turning while braking
+shares the vehicle's acceleration between the two, so the faster it is for what
+lies ahead, the more of it goes to braking. (Braking alone, with no turn until
+slow, left a drone on a scripted tour short of its corner, nose to the wall, held
+for good.)
 
 The other drones are kept apart too (`set_neighbours`): their centres, from the
 base station's `Neighbours` relay (`neighbours_in_body`), must stay
@@ -39,8 +42,8 @@ from common.geometry import pose4_compose, pose4_inverse
 GIVE_WAY_MPS = 0.3  # m/s aside when a neighbour is in the way
 REPEL_GAIN = 1.0  # m/s away from a neighbour per m inside the keep distance
 DEAD_AHEAD = np.sin(np.radians(10.0))  # a neighbour within 10 deg of the way: pass right
-# Slower than this (m/s), a drone turns while it brakes: the lag's exponential decay
-# would hold it for a second more, for the last centimetre.
+# Slower than this (m/s), a drone turns in full while it brakes: the lag's exponential
+# decay would hold its turn back for a second more, for the last centimetre.
 TURN_WHILE_BRAKING_MPS = 0.1
 
 
@@ -154,18 +157,19 @@ class SafetyGuard:
     def _brake_along_motion(
         self, v: NDArray[np.float64], velocity: NDArray[np.float64]
     ) -> NDArray[np.float64]:
-        """The command `v` with at most the allowed speed along the current motion;
-        only the braking when the drone moves faster than that (see the module doc)."""
+        """The command `v` with at most the allowed speed along the current motion, and
+        less of its turn when the drone moves faster than that (see the module doc)."""
         speed = float(np.hypot(*velocity))
         if not 1e-3 < speed < np.inf or len(self.points) == 0:  # slow, no scan, not finite
             return v
         u = velocity / speed
         allowed = self._allowed_along(u)
         toward = float(v @ u)
-        if speed > max(allowed, TURN_WHILE_BRAKING_MPS):  # too fast: brake, then turn
-            return self._clear_of_scan(u * min(allowed, toward))
         if toward > allowed:
             v = v - (toward - allowed) * u
+        if speed > max(allowed, TURN_WHILE_BRAKING_MPS):  # too fast: brake more, turn less
+            along = float(v @ u)
+            v = self._clear_of_scan(u * along + (v - u * along) * (allowed / speed))
         return v
 
     def _apart_from_neighbours(

@@ -3,8 +3,11 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
+from agent.path_follower import PathFollower
 from agent.safety_guard import SafetyGuard, neighbours_in_body
+from common.config import load_config
 from common.map_io import GridMap
 from simulation.quadrotor import Quadrotor
 from simulation.sensors import LaserModel
@@ -81,14 +84,16 @@ def test_held_still_long_enough_is_blocked_and_a_new_path_clears_it() -> None:
     assert not g.blocked
 
 
-def test_a_drone_moving_at_a_wall_brakes_before_it_turns() -> None:
-    """Moving at 0.5 m/s toward a wall 0.5 m ahead, told to go left (a turn its velocity
-    lags): the command is braking along the motion alone, none of it sideways."""
+def test_a_drone_moving_at_a_wall_brakes_more_and_turns_less() -> None:
+    """Moving at 0.5 m/s toward a wall 0.4 m ahead (0.23 m/s allowed), told to go left
+    (a turn its velocity lags): nothing more toward the wall, and the turn scaled down
+    by allowed / actual speed, so that most of the vehicle's acceleration brakes."""
     g = _guard()
-    g.update(ANGLES, _wall_ranges(0.5))
+    g.update(ANGLES, _wall_ranges(0.4))
     assert g.limit(0.0, 0.0, 0.5) == (0.0, 0.5)  # without its velocity: left is clear
+    allowed = -0.1 + np.sqrt(0.01 + 2.0 * (0.4 - 0.35))  # 0.1 s reaction, 1 m/s^2
     vx, vy = g.limit(0.0, 0.0, 0.5, velocity=np.array([0.5, 0.0]))
-    assert vx <= 0.0 and abs(vy) < 1e-9, (vx, vy)
+    assert vx <= 1e-9 and vy == pytest.approx(0.5 * allowed / 0.5), (vx, vy)
     # slow enough for a wall 0.8 m ahead (0.85 m/s allowed): it turns as told
     g.update(ANGLES, _wall_ranges(0.8))
     assert g.limit(0.0, 0.0, 0.5, velocity=np.array([0.3, 0.0])) == (0.0, 0.5)
@@ -207,3 +212,26 @@ def test_neighbours_in_body_frame_moved_on_to_now_and_stale_ones_dropped() -> No
         np.array([2.0, 1.0, 1.0, np.pi / 2]), 2.0, 0.5,
     )  # fmt: skip
     np.testing.assert_allclose(far, [[2.0, -0.5]], atol=1e-9)  # moved on 0.5 s at most
+
+
+def test_a_drone_turning_a_corner_at_speed_gets_round_it() -> None:
+    """A scripted tour's corner on the shipped floor30x25 (the 31st session's soak: a
+    drone arriving at 1 m/s, the next leg 120 degrees off): braking without turning
+    left it nose to the wall, held for good; scaled down, the turn goes on and the drone
+    flies the next leg."""
+    world = World.load("floor30x25")
+    laser = LaserModel(1081, np.radians(270.0), 0.1, 30.0, 0.0)
+    q = Quadrotor([9.0, 12.28, 1.0, np.pi - 0.069], max_accel=1.0, time_constant=0.2)
+    q.velocity_world[:2] = [-1.0, -0.069]
+    follower = PathFollower.from_config(load_config(None).agent)
+    follower.set_path(np.array([[9.0, 12.28], [5.325, 12.025], [5.075, 11.625], [3.275, 7.825]]))
+    g = SafetyGuard(0.25, 0.05, 1.0, 0.3, 2.0)
+    for k in range(480):  # 12 s at 40 Hz
+        r = laser.measure(world, q.pose[[0, 1, 3]], np.random.default_rng(0))
+        g.update(laser.angles, np.where(r < laser.range_max, r, np.inf))
+        vx, vy, vz, yaw_rate = follower.command(q.pose)
+        vx, vy = g.limit(k * 0.025, vx, vy, velocity=q.velocity_body[:2])
+        q.step((vx, vy, vz, yaw_rate), 0.025, world)
+        assert not g.blocked, (k, q.pose)
+    assert q.collisions == 0 and q.min_clearance > 0.05
+    assert np.hypot(*(q.pose[:2] - [3.275, 7.825])) < 1.0  # at the end of the next leg

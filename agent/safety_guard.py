@@ -169,7 +169,8 @@ class SafetyGuard:
             v = v - (toward - allowed) * u
         if speed > max(allowed, TURN_WHILE_BRAKING_MPS):  # too fast: brake more, turn less
             along = float(v @ u)
-            v = self._clear_of_scan(u * along + (v - u * along) * (allowed / speed))
+            turn = (v - u * along) * (allowed / speed)  # may have led away from a neighbour
+            v = self._apart_from_neighbours(self._clear_of_scan(u * along + turn))
         return v
 
     def _apart_from_neighbours(

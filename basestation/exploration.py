@@ -25,12 +25,11 @@ from numpy.typing import ArrayLike, NDArray
 
 from basestation.frontier_give_up import FrontierGiveUp
 from basestation.frontiers import Box, Frontier, FrontierDetector
-from basestation.goal_assigner import AssignmentWeights, GoalAssigner, own_ground
+from basestation.goal_assigner import AssignmentWeights, GoalAssigner, own_ground, spaced
 from basestation.path_planner import PathPlanner, PlanningMap, path_length
-from basestation.path_schedule import points_along, schedule_conflict
+from basestation.path_schedule import points_along, schedule_conflict, turn_delay_s
 from basestation.travel_distance import travel_distances
 from basestation.visibility import seen_from, unknown_in_view, viewpoints
-from common.config import Config
 from common.map_io import GridMap
 
 log = logging.getLogger(__name__)
@@ -69,6 +68,11 @@ class ExplorationManager:
     # (a new goal, a hold) is noticed at the next step, up to a period (1 s) later, and the
     # follower needs ~0.5 m to stop (within the conflict margin)
     lag_s: float = 1.2
+    # a robot facing away from its way turns on the spot first (the agents' follower flies
+    # while it turns only up to 60-105 degrees off the nose): held in the schedules until
+    # its way is this far off the nose, turning at this yaw rate (rad/s; 0: not modelled)
+    turn_free_deg: float = 82.5
+    turn_rate_rps: float = 1.0
     # m a robot that loses its path in a step may still fly on it while it stops (v^2 / 2a
     # at cruise speed): others planned in that step see it there, not where it was
     stop_distance_m: float = 0.5
@@ -380,15 +384,20 @@ class ExplorationManager:
         robot clearance x `conflict_margin`, over `horizon_s`, the others also `lag_s`
         behind and ahead of their schedule. One flying at the start of this step that
         lost its path in it is flown on for `stop_distance_m` (docs: Exploration)."""
+        names = [o for o in P if o != r]
         others = [
-            self._remaining(o, q) if o in self.tasks else self._stopping.get(o, q[:2])
-            for o, q in P.items()
-            if o != r
+            self._remaining(o, P[o]) if o in self.tasks else self._stopping.get(o, P[o][:2])
+            for o in names
+        ]
+        free, rate = np.radians(self.turn_free_deg), self.turn_rate_rps  # turns on the spot
+        delays = [
+            turn_delay_s(P[o], q, free, rate) if q.ndim == 2 else 0.0
+            for o, q in zip(names, others, strict=True)
         ]
         c = self.planner.robot_clearance_m
         return schedule_conflict(
             path, P[r], others, self.speed_mps, self.horizon_s, c, c * self.conflict_margin,
-            self.lag_s,
+            self.lag_s, delays, turn_delay_s(P[r], path, free, rate),
         )  # fmt: skip
 
     def _goals(
@@ -397,12 +406,18 @@ class ExplorationManager:
         grid: GridMap,
         P: dict[str, NDArray[np.float64]],
         exclude: list[NDArray[np.float64]] | None = None,
+        taken: list[NDArray[np.float64]] | None = None,
     ) -> dict[str, NDArray[np.float64] | None]:
-        """Goals for the robots in `poses` (eq. 3, jointly; P: every robot's pose)."""
+        """Goals for the robots in `poses` (eq. 3, jointly; P: every robot's pose), no
+        two closer than the robots keep apart (clearance x `conflict_margin`): of two
+        such, the robot with the longer way is assigned again, with the other's goal
+        `taken` (busy). random:1 seed 6 (kinematic): goals 1.37 m apart; the robot that
+        would get there last conflicted with the other's hover, lost its goal to the
+        busy radius, and the team stalled for good."""
         if not self.coordinated:
             return self.assigner.nearest(poses, [f.goal for f in self.frontiers])
         flying = [r for r, t in self.tasks.items() if r not in poses and not t.support]
-        busy = [self.tasks[r].goal for r in flying]
+        busy = [self.tasks[r].goal for r in flying] + (taken or [])
         # a frontier this close to another robot's goal is that robot's to see
         near = self.busy_radius_factor * self.planner.robot_clearance_m
         candidates = [
@@ -438,7 +453,16 @@ class ExplorationManager:
             spread += self.seen_cost_m * seen
             if seen.any():
                 log.debug("in sight of %s's way: %s", flying, np.round(F[seen], 1).tolist())
-        return self.assigner.assign(poses, candidates, dict(zip(robots, D, strict=True)), spread)
+        out = self.assigner.assign(poses, candidates, dict(zip(robots, D, strict=True)), spread)
+        way = {
+            r: D_all[names.index(r), np.argmin(np.hypot(*(F - g).T))]
+            for r, g in out.items() if g is not None
+        }  # fmt: skip
+        kept, again = spaced(out, way, self.planner.robot_clearance_m * self.conflict_margin)
+        if again:
+            mine = [g for g in kept.values() if g is not None]
+            kept.update(self._goals({r: P[r] for r in again}, grid, P, exclude, busy + mine))
+        return kept
 
     def _remaining(self, robot: str, pose: NDArray[np.float64]) -> NDArray[np.float64]:
         """The part of a robot's path still ahead of it, from where it is now."""
@@ -475,26 +499,3 @@ class ExplorationManager:
         """Forget a robot (gone silent): its goal is free for the others."""
         self.tasks.pop(robot, None)
         self.assigner.release(robot)
-
-
-def make_explorer(cfg: Config) -> ExplorationManager:
-    """An `ExplorationManager` set up from `cfg.exploration`."""
-    e = cfg.exploration
-    return ExplorationManager(
-        detector=FrontierDetector(e.frontier_radius_m, min_group_cells=e.min_frontier_cells),
-        strict_detector=FrontierDetector(e.frontier_radius_m, min_group_cells=e.min_frontier_cells),
-        assigner=GoalAssigner(AssignmentWeights(e.w_distance, e.w_heading, e.w_previous)),
-        planner=PathPlanner(
-            e.inflation_m, e.robot_clearance_m, e.planning_time_s, check_budget=e.planning_checks
-        ),
-        coordinated=e.strategy == "coordinated",
-        speed_mps=cfg.agent.cruise_speed_mps,
-        **{k: getattr(e, k) for k in COST_FIELDS},
-    )
-
-
-# exploration config fields that are ExplorationManager fields of the same name
-COST_FIELDS = (
-    "w_spread", "spread_radius_m", "seen_range_m", "seen_fov_deg", "seen_cost_m", "w_own",
-    "own_cap_m", "w_gain", "gain_full_m2", "gain_near_m", "gain_radius_m",
-)  # fmt: skip

@@ -73,6 +73,24 @@ def own_ground(
     return out
 
 
+def spaced(
+    goals: dict[str, NDArray[np.float64] | None], way_m: dict[str, float], apart_m: float
+) -> tuple[dict[str, NDArray[np.float64] | None], list[str]]:
+    """Goals of one joint assignment with none within `apart_m` of another: the robot
+    with the shorter way (`way_m`) keeps its goal. Returns the goals kept (None for the
+    others) and the robots that lost theirs (to be assigned again)."""
+    kept: dict[str, NDArray[np.float64] | None] = {r: None for r in goals}
+    again: list[str] = []
+    for r in sorted((r for r in goals if goals[r] is not None), key=lambda r: (way_m[r], r)):
+        g = goals[r]
+        assert g is not None
+        if any(k is not None and np.hypot(*(g - k)) <= apart_m for k in kept.values()):
+            again.append(r)
+        else:
+            kept[r] = g
+    return kept, again
+
+
 class GoalAssigner:
     def __init__(self, weights: AssignmentWeights | None = None) -> None:
         self.weights = weights or AssignmentWeights()

@@ -24,7 +24,7 @@ from typing import Any
 
 import numpy as np
 
-from basestation.exploration import make_explorer
+from basestation.exploration_setup import make_explorer
 from basestation.global_slam import GlobalSlam
 from basestation.inbox import KeyframeInbox
 from basestation.map_builder import MapBuilder

@@ -37,6 +37,8 @@ def schedule_conflict(
     clearance_m: float,
     keep_m: float | list[float],
     lag_s: float,
+    delays_s: list[float] | None = None,
+    delay_s: float = 0.0,
 ) -> bool:
     """Whether a robot at `start` flying `path` would come within `keep_m` of another
     over the next `horizon_s`: each of `others` is a hovering robot ((2,) point) or the
@@ -48,13 +50,16 @@ def schedule_conflict(
     it will hover, is judged in full. Flying others are also checked `lag_s` behind
     their schedule (one slowed by a turn or still speeding up must not be caught up)
     and `lag_s` ahead of it (this robot itself late: one that got to the end of its
-    path early must not be passed within the clearance)."""
+    path early must not be passed within the clearance). `delay_s` (this robot) and
+    `delays_s` (one per other) hold a robot where it is before it sets off: the turn to
+    face its way (`turn_delay_s`)."""
     t = np.arange(0.0, horizon_s, 0.1)
-    mine = points_along(path, speed_mps * t)
+    mine = points_along(path, speed_mps * np.maximum(t - delay_s, 0.0))
     near_start = np.hypot(*(mine - start[:2]).T) <= clearance_m
     near_start &= speed_mps * t < path_length(path)  # where it will hover is judged
     keeps = [keep_m] * len(others) if np.isscalar(keep_m) else keep_m
-    for other, keep in zip(others, keeps, strict=True):
+    waits = [0.0] * len(others) if delays_s is None else delays_s
+    for other, keep, wait in zip(others, keeps, waits, strict=True):
         now = other[:2] if other.ndim == 1 else other[0]
         # near the start: two drones starting 1.5 m apart came within 0.91 m, both
         # still within the clearance of their starts, and then held each other forever
@@ -64,10 +69,24 @@ def schedule_conflict(
             positions = [other[:2]]
         else:
             positions = [
-                points_along(other, speed_mps * np.maximum(t - lag, 0.0))
+                points_along(other, speed_mps * np.maximum(t - wait - lag, 0.0))
                 for lag in (0.0, lag_s, -lag_s)
             ]
         for theirs in positions:
             if np.any(np.hypot(*(mine - theirs).T) < limit):
                 return True
     return False
+
+
+def turn_delay_s(
+    pose: NDArray[np.float64], path: NDArray[np.float64], free_rad: float, rate_rps: float
+) -> float:
+    """Seconds a robot at `pose` (x, y, yaw) stays where it is before it flies `path`
+    (from where it is): the turn until its way is within `free_rad` of its nose, at
+    `rate_rps` (the follower flies while it turns only that far off the nose; 0: the
+    turn is not modelled)."""
+    ahead = points_along(path, np.array([0.5]))[0] - pose[:2]
+    if rate_rps <= 0.0 or len(pose) < 3 or np.hypot(*ahead) < 1e-6:
+        return 0.0
+    err = abs((np.arctan2(ahead[1], ahead[0]) - pose[2] + np.pi) % (2.0 * np.pi) - np.pi)
+    return max(0.0, err - free_rad) / rate_rps

@@ -41,7 +41,7 @@ import numpy as np
 
 from agent.path_follower import PathFollower
 from agent.safety_guard import SafetyGuard
-from basestation.exploration import make_explorer
+from basestation.exploration_setup import make_explorer
 from basestation.path_planner import densify
 from collabslam.launcher import make_scenario
 from common.config import Config

@@ -73,7 +73,6 @@ class ExplorationManager:
     # its way is this far off the nose, turning at this yaw rate (rad/s; 0: not modelled)
     turn_free_deg: float = 82.5
     turn_rate_rps: float = 1.0
-    reassign_m: float = 2.0  # m (0: a robot keeps its goal until it is reached or gone)
     # m a robot that loses its path in a step may still fly on it while it stops (v^2 / 2a
     # at cruise speed): others planned in that step see it there, not where it was
     stop_distance_m: float = 0.5
@@ -159,7 +158,6 @@ class ExplorationManager:
                 stop += more
             return {r: None for r in stop}
         self._stopped.clear()
-        need += self._switching(need, grid, P)
         if not need:
             return {}
         for r in need:
@@ -193,22 +191,6 @@ class ExplorationManager:
                 + (" (support)" if task.support else ""),
             )  # fmt: skip
         return out
-
-    def _switching(
-        self, need: list[str], grid: GridMap, P: dict[str, NDArray[np.float64]]
-    ) -> list[str]:
-        """Robots on their way whose goal a joint assignment of every robot (eq. 3, w3
-        against switching) now moves by more than `reassign_m`: the map has grown, or
-        another robot came free, since their goals were given (random:1, kinematic
-        model, 12 seeds: 54.5 -> 51.4 s; rooms15, 24 seeds: 21.6 -> 21.1 s)."""
-        flying = [r for r in P if r in self.tasks and r not in need and not self.tasks[r].support]
-        if not self.coordinated or self.reassign_m <= 0.0 or not flying:
-            return []
-        remembered = dict(self.assigner.goals)  # a trial: only switching robots keep it
-        trial = self._goals({r: P[r] for r in flying + need}, grid, P)
-        self.assigner.goals = remembered
-        new = {r: g for r in flying if (g := trial.get(r)) is not None}
-        return [r for r, g in new.items() if np.hypot(*(g - self.tasks[r].goal)) > self.reassign_m]
 
     def _note_stopping(self, P: dict[str, NDArray[np.float64]]) -> None:
         """Where each robot flying now would stop if it lost its path in this step."""

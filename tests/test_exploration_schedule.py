@@ -71,25 +71,3 @@ def test_one_joint_assignment_never_sends_two_robots_to_hover_side_by_side() -> 
     ex.frontiers = [Frontier(f, f, 20) for f in (a, a2, c)]
     goals = ex._goals(P, g, P)
     assert np.allclose(goals["r"], a) and np.allclose(goals["s"], c)
-
-
-def test_a_robot_on_its_way_switches_when_a_joint_assignment_moves_its_goal() -> None:
-    """o flies to A, 8 m off; r comes free next to A, and B appears next to o: the
-    assignment of both (w3 against switching included) sends o to B and r to A, so o
-    is re-planned; with `reassign_m` 0 (or with B far from o) it keeps A."""
-    g = GridMap(np.zeros((200, 200), np.int8), 0.05, (0.0, 0.0, 0.0))
-    a, b = np.array([9.0, 1.0]), np.array([1.5, 3.0])
-    P = {"o": np.array([1.0, 1.0, 0.0]), "r": np.array([8.0, 4.0, 0.0])}
-    ex = ExplorationManager(w_spread=0.0, seen_cost_m=0.0, w_own=0.0, w_gain=0.0)
-    ex.frontiers = [Frontier(f, f, 20) for f in (a, b)]
-    ex.tasks["o"] = _Task(a, np.array([[1.0, 1.0], [9.0, 1.0]]))
-    ex.assigner.goals["o"] = a
-    assert ex._switching(["r"], g, P) == ["o"]
-    assert np.allclose(ex.assigner.goals["o"], a)  # the trial is not remembered
-    assert "r" not in ex.assigner.goals
-    ex.reassign_m = 0.0
-    assert ex._switching(["r"], g, P) == []
-    ex.reassign_m = 2.0
-    far = np.array([1.5, 9.5])  # B far from o: o keeps A
-    ex.frontiers = [Frontier(f, f, 20) for f in (a, far)]
-    assert ex._switching(["r"], g, P) == []

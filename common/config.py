@@ -387,6 +387,9 @@ class ExplorationConfig:
     # their goals) costs it w_own per m of that lead less, up to own_cap_m (0: off).
     w_own: float = 0.5
     own_cap_m: float = 10.0  # m
+    # Tours (basestation/frontier_tours.py): every frontier on one robot's tour, the longest
+    # tour as short as can be; a frontier on another robot's tour costs w_tour (0: off).
+    w_tour: float = 10.0  # m of travel
     w_gain: float = 0.25  # information (0: off): m per m^2 in view short of gain_full_m2
     gain_full_m2: float = 25.0  # m^2
     gain_near_m: float = 5.0  # m of travel: the cost x min(1, travel / gain_near_m)
@@ -490,11 +493,7 @@ def _coerce(hint: Any, value: Any, key: str) -> Any:
     raise ConfigError(f"{key}: unsupported type {hint}")  # pragma: no cover
 
 
-def config_to_dict(cfg: Config) -> dict[str, Any]:
-    return dataclasses.asdict(cfg)
-
-
 def dump_config(cfg: Config, path: str | Path) -> None:
     """Write the config actually used as TOML."""
     Path(path).parent.mkdir(parents=True, exist_ok=True)
-    Path(path).write_text(tomli_w.dumps(config_to_dict(cfg)))
+    Path(path).write_text(tomli_w.dumps(dataclasses.asdict(cfg)))

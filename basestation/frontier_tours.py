@@ -57,6 +57,17 @@ def _max_without(lengths, r):  # noqa: ANN001, ANN202
 
 
 @njit(cache=True)
+def _insert(routes, counts, lengths, r, p, j, offset, S, C):  # noqa: ANN001, ANN202
+    """Frontier j into tour r at position p (tours, counts and lengths updated)."""
+    n = counts[r]
+    for q in range(n, p, -1):
+        routes[r, q] = routes[r, q - 1]
+    routes[r, p] = j
+    counts[r] = n + 1
+    lengths[r] = _length(r, routes[r], n + 1, offset, S, C)
+
+
+@njit(cache=True)
 def _solve(offset, S, C, rounds):  # noqa: ANN001, ANN202
     R, N = S.shape
     routes = np.full((R, N), -1, np.int64)
@@ -75,12 +86,7 @@ def _solve(offset, S, C, rounds):  # noqa: ANN001, ANN202
                     new_max = max(rest, lengths[r] + add)
                     if _better(new_max, add, best_max, best_add):
                         best_max, best_add, bj, br, bp = new_max, add, j, r, p
-        n = counts[br]
-        for i in range(n, bp, -1):
-            routes[br, i] = routes[br, i - 1]
-        routes[br, bp] = bj
-        counts[br] = n + 1
-        lengths[br] = _length(br, routes[br], n + 1, offset, S, C)
+        _insert(routes, counts, lengths, br, bp, bj, offset, S, C)
         placed[bj] = True
     for _ in range(rounds):  # relocation and 2-opt while (max, sum) shrinks
         improved = False
@@ -120,12 +126,7 @@ def _solve(offset, S, C, rounds):  # noqa: ANN001, ANN202
                 routes[a, m:] = -1
                 counts[a] = m
                 lengths[a] = len_a
-                n = counts[br]
-                for q in range(n, bp, -1):
-                    routes[br, q] = routes[br, q - 1]
-                routes[br, bp] = j
-                counts[br] = n + 1
-                lengths[br] = _length(br, routes[br], n + 1, offset, S, C)
+                _insert(routes, counts, lengths, br, bp, j, offset, S, C)
                 improved = True
         for r in range(R):  # 2-opt: reverse a stretch of one tour
             n = counts[r]

@@ -4,6 +4,8 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 OUT ?= runs/latest
+# pytest-xdist workers for `make test` (CI has 2 cores; 0: one process, no workers)
+TEST_WORKERS ?= 2
 
 .PHONY: venv run test lint clean
 
@@ -25,7 +27,7 @@ run: venv
 	$(BIN)/collabslam run --world bshape --robots 3 --out $(OUT)
 
 test: venv
-	$(BIN)/python -m pytest
+	$(BIN)/python -m pytest -n $(TEST_WORKERS) --dist worksteal
 
 lint: venv
 	$(BIN)/ruff check .

@@ -13,6 +13,7 @@ from pathlib import Path
 
 import msgpack
 import numpy as np
+import pytest
 from process_helpers import poll_until
 
 from common.bus import Bus
@@ -38,6 +39,7 @@ def _keyframe(seq: int, robot: str = "r0", x: float | None = None) -> Keyframe:
     )
 
 
+@pytest.mark.e2e
 def test_basestation_survives_bad_input_and_acks_valid(tmp_path: Path, endpoint: str) -> None:
     write_scenario(
         tmp_path / "scenario.json",

@@ -9,6 +9,7 @@ from common.config import Config
 from common.errors import ConfigError
 
 
+@pytest.mark.e2e
 def test_a_kinematic_team_explores_bshape_apart_and_repeatably() -> None:
     row = run_kinematic(Config(), "bshape", 3, 0, "coordinated", 60.0)
     assert row["end_reason"] == "95 %" and row["final_coverage"] >= 0.95

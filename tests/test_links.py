@@ -6,6 +6,7 @@ from __future__ import annotations
 import time
 
 import numpy as np
+import pytest
 from conftest import free_port
 from process_helpers import poll_until
 
@@ -36,6 +37,7 @@ def test_lost_agent_releases_its_goal(cfg: Config, endpoint: str) -> None:
         node.drain(1.0)
 
 
+@pytest.mark.e2e
 def test_one_link_per_pair_of_processes_after_a_base_station_restart(cfg: Config) -> None:
     """Simulator and agent up, then a (restarted) base station: each pair of processes
     must end with one link. With Zenoh's defaults, gossip told the base station where

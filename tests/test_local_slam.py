@@ -90,6 +90,7 @@ def test_local_slam_beats_odometry_on_a_simulated_flight(cfg) -> None:
     assert ate_rmse(traj, rec.ground_truth, align=True) < 0.1
 
 
+@pytest.mark.e2e
 def test_replayed_intel_piece_reaches_the_base_station(
     tmp_path: Path, endpoint: str, shared_data: Path
 ) -> None:

@@ -12,6 +12,7 @@ import json
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 from collabslam.launcher import Launcher, resolve_world
 from common.config import load_config
@@ -52,6 +53,7 @@ def _fly(out: Path, keep_m: float) -> tuple[dict, dict[str, dict]]:
     return summary, agents
 
 
+@pytest.mark.e2e
 def test_neighbour_guard_keeps_crossing_drones_a_metre_apart(tmp_path: Path) -> None:
     summary, agents = _fly(tmp_path / "guarded", keep_m=1.1)
     sep = summary["min_robot_separation_m"]

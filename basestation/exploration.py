@@ -82,7 +82,8 @@ class ExplorationManager:
     gain_radius_m: float = 4.0  # m: how far a look from a frontier counts (unknown_in_view)
     w_own: float = 0.5  # cost per m a frontier is closer to a robot than to all others
     own_cap_m: float = 10.0  # m, up to this much
-    w_tour: float = 10.0  # m a frontier on another robot's tour costs (`frontier_tours`)
+    # goals only from the robot's own share of the min-max tours (`frontier_tours`)
+    tours: bool = True
     support_min_m: float = 1.0  # m, shortest move worth sending an idle robot
     busy_radius_factor: float = 2.0  # frontiers within this x clearance of a busy goal: taken
     goal_shift_m: float = 1.0  # m a frontier goal may move to get out of the inflation
@@ -432,18 +433,22 @@ class ExplorationManager:
         robots = sorted(poses)
         names = sorted(P)  # every robot from where it will be (a flying one: its goal)
         at = [self.tasks[o].goal if o in self.tasks and o not in poses else P[o][:2] for o in names]
-        sources = np.vstack([np.array(at), F]) if self.w_tour > 0.0 else np.array(at)
+        sources = np.vstack([np.array(at), F]) if self.tours else np.array(at)
         D_both = travel_distances(grid, sources, F, self.planner.robot_radius_m)
-        D_all, between = D_both[: len(names)], D_both[len(names) :]
+        D_all = D_both[: len(names)]
+        between = D_both[len(names) :] if self.tours else None
         rows = [names.index(r) for r in robots]
         left = [
             path_length(self._remaining(o, P[o])) if o in self.tasks and o not in poses else 0.0
             for o in names
         ]  # fmt: skip
-        D, spread = frontier_costs(
+        D, spread, others = frontier_costs(
             self, grid, F, D_all, rows, busy, flying, P, between, np.array(left)
         )  # fmt: skip
-        out = self.assigner.assign(poses, candidates, dict(zip(robots, D, strict=True)), spread)
+        out = self.assigner.assign(
+            poses, candidates, dict(zip(robots, D, strict=True)), spread,
+            None if others is None else dict(zip(robots, others, strict=True)),
+        )  # fmt: skip
         way = {
             r: D_all[names.index(r), np.argmin(np.hypot(*(F - g).T))]
             for r, g in out.items() if g is not None

@@ -6,8 +6,8 @@ an open tour through every frontier for each robot, from where it will be free (
 flying robot: its goal, after what is left of its way), so that the longest tour is
 as short as it can be made: min-max multiple travelling salesmen, by min-max cheapest
 insertion and then moving frontiers between and within tours (relocation, 2-opt)
-while the longest tour, then the sum, shrinks. The exploration's goal costs
-(`basestation/goal_costs.py`) charge a robot for frontiers of another robot's tour.
+while the longest tour, then the sum, shrinks. Exploration gives a robot goals from
+its own tour only (`basestation/goal_costs.py`, `ExplorationManager._goals`).
 A few tens of frontiers and up to ten robots take well under a millisecond (numba).
 """
 

@@ -35,6 +35,7 @@ class AssignmentWeights:
 
 
 UNREACHABLE_COST = 1e6  # a frontier a robot cannot reach: assigned only if nothing else is
+FORBIDDEN_COST = 1e9  # a pair `assign` must not make: above any other, and then dropped
 
 
 def assignment_costs(
@@ -102,11 +103,13 @@ class GoalAssigner:
         frontiers: list[ArrayLike],
         distances: dict[str, NDArray[np.float64]] | None = None,
         extra_costs: NDArray[np.float64] | None = None,
+        forbidden: dict[str, NDArray[np.bool_]] | None = None,
     ) -> dict[str, NDArray[np.float64] | None]:
         """Goals [x, y] (or None: nothing left for it) for every robot in `poses`.
 
         `distances[robot]`: travel distance (m) to each frontier, replacing the straight
-        line; `extra_costs`: per-frontier cost added for every robot (spreading)."""
+        line; `extra_costs`: per-frontier cost added for every robot (spreading);
+        `forbidden[robot]`: frontiers that robot must not get (it gets none rather)."""
         robots = sorted(poses)
         if not robots:
             return {}
@@ -120,10 +123,15 @@ class GoalAssigner:
         cost = assignment_costs(P, F, prev, self.weights, D)
         if extra_costs is not None:
             cost = cost + np.asarray(extra_costs, dtype=np.float64)[None, :]
+        banned = np.zeros(cost.shape, dtype=bool)
+        if forbidden is not None:
+            banned = np.array([forbidden[r] for r in robots], dtype=bool).reshape(cost.shape)
+            cost = np.where(banned, FORBIDDEN_COST, cost)
         rows, cols = linear_sum_assignment(cost)
         out: dict[str, NDArray[np.float64] | None] = {r: None for r in robots}
         for i, j in zip(rows, cols, strict=True):
-            out[robots[i]] = F[j].copy()
+            if not banned[i, j]:
+                out[robots[i]] = F[j].copy()
         self._remember(out)
         return out
 

@@ -1,6 +1,6 @@
 """The terms of a frontier's cost beyond eq. 3's distance, heading and previous goal
-(`ExplorationManager._goals`): its information, whose ground it is, and whether
-another robot will see it first."""
+(`ExplorationManager._goals`): its information, whose ground it is, whether another
+robot will see it first, and whose tour it is on (`tour_shares`)."""
 
 from __future__ import annotations
 
@@ -46,11 +46,14 @@ def frontier_costs(
     P: dict[str, NDArray[np.float64]],
     between: NDArray[np.float64] | None = None,
     offset: NDArray[np.float64] | None = None,
-) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.bool_] | None]:
     """(distances (robots to plan, frontiers) with the per-robot terms added, the
-    per-frontier costs for every robot): `D_all` travel distances from every robot
-    (a flying one: from its goal) to the frontiers `F`, `rows` the robots to plan in
-    it; `busy` the goals of the robots `flying` (and those taken), `P` every pose."""
+    per-frontier costs for every robot, (robots to plan, frontiers) True where the
+    frontier is on another robot's tour (None: no tours)): `D_all` travel distances
+    from every robot (a flying one: from its goal) to the frontiers `F`, `rows` the
+    robots to plan in it; `busy` the goals of the robots `flying` (and those taken), `P`
+    every pose; `between` the travel distances between the frontiers and `offset` how
+    far each robot still flies to its goal (tours, when both are given)."""
     D = D_all[rows]  # a frontier right next to a robot lies in its blind sector or in
     # another's shadow: it goes once the robot turns or the other moves, not worth a trip
     D = np.where(D < ex.near_frontier_m, D + ex.near_frontier_cost_m, D)
@@ -62,8 +65,9 @@ def frontier_costs(
             points, headings = viewpoints(ex._remaining(r, P[r]), 0.5)
             fov = np.radians(ex.seen_fov_deg)
             seen |= seen_from(grid, points, headings, F, ex.seen_range_m, fov)
-    if ex.w_tour > 0.0 and between is not None and offset is not None and len(D_all) > 1:
-        D = D + ex.w_tour * ~tour_shares(offset, D_all, between)[rows]  # another's share
+    others = None
+    if between is not None and offset is not None and len(D_all) > 1:
+        others = ~tour_shares(offset, D_all, between)[rows]
     if gain is not None:  # a door into an unexplored room before a far pocket
         short = np.clip(ex.gain_full_m2 - gain, 0.0, None)  # m^2
         D = D + ex.w_gain * short[None, :] * np.clip(D / ex.gain_near_m, 0.0, 1.0)
@@ -73,4 +77,4 @@ def frontier_costs(
     if seen.any():  # ... or in sight of its way there
         spread += ex.seen_cost_m * seen
         log.debug("in sight of %s's way: %s", flying, np.round(F[seen], 1).tolist())
-    return D, spread
+    return D, spread, others

@@ -378,14 +378,14 @@ def test_a_frontier_far_closer_to_a_robot_than_to_the_others_is_taken_first() ->
     """r, between A (a side room 4 m off, nobody else near) and B (3 m, where o is
     heading): without the own-ground bonus r takes B and A is left for whoever comes
     back for it at the end (random:1: a room off the corridor cost the teams 10-20 s);
-    with it r takes A, and B stays o's. The tours (`w_tour`) share them out so too:
+    with it r takes A, and B stays o's. The tours (`tours`) share them out so too:
     o, at its goal 2.1 m on, is 3 m from B and ~7.6 m from A."""
     g = GridMap(np.zeros((200, 200), np.int8), 0.05, (0.0, 0.0, 0.0))
     a, b = np.array([5.0, 9.0]), np.array([5.0, 2.0])
     P = {"o": np.array([0.5, 0.5, 0.0]), "r": np.array([5.0, 5.0, 0.0])}
     goals = []
-    for w_own, w_tour in ((0.0, 0.0), (0.5, 0.0), (0.0, 10.0)):
-        ex = ExplorationManager(w_spread=0.0, seen_cost_m=0.0, w_own=w_own, w_tour=w_tour)
+    for w_own, tours in ((0.0, False), (0.5, False), (0.0, True)):
+        ex = ExplorationManager(w_spread=0.0, seen_cost_m=0.0, w_own=w_own, tours=tours)
         ex.frontiers = [Frontier(a, a, 20), Frontier(b, b, 20)]
         ex.tasks["o"] = _Task(np.array([2.0, 2.0]), np.array([[0.5, 0.5], [2.0, 2.0]]))
         goals.append(ex._goals({"r": P["r"]}, g, P)["r"])

@@ -7,8 +7,11 @@ import itertools
 import numpy as np
 import pytest
 
+from basestation.exploration import ExplorationManager, _Task
 from basestation.frontier_tours import minmax_tours
+from basestation.frontiers import Frontier
 from basestation.goal_costs import tour_shares
+from common.map_io import GridMap
 
 
 def _dist(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -90,3 +93,20 @@ def test_tour_shares_marks_each_frontier_for_one_robot() -> None:
     assert on[0].tolist() == [True, True, False, False]
     # the robot on the east still has 20 m to fly: the west one takes everything
     assert tour_shares(np.array([20.0, 0.0]), D, C)[1].all()
+
+
+def test_a_robot_takes_no_frontier_from_another_robots_tour() -> None:
+    """One frontier B, 3 m past the goal o is about to reach (1.5 m on) and 7 m from r:
+    it is on o's tour, so r gets no goal (it moves up behind the others) instead of
+    flying 7 m to a frontier o will see first; without tours r takes it."""
+    g = GridMap(np.zeros((240, 240), np.int8), 0.05, (0.0, 0.0, 0.0))
+    b = np.array([5.0, 2.0])
+    P = {"o": np.array([0.5, 2.0, 0.0]), "r": np.array([5.0, 9.0, 0.0])}
+    goals = []
+    for tours in (True, False):
+        ex = ExplorationManager(w_spread=0.0, seen_cost_m=0.0, tours=tours)
+        ex.frontiers = [Frontier(b, b, 20)]
+        ex.tasks["o"] = _Task(np.array([2.0, 2.0]), np.array([[0.5, 2.0], [2.0, 2.0]]))
+        goals.append(ex._goals({"r": P["r"]}, g, P)["r"])
+    assert goals[0] is None
+    assert goals[1] is not None and np.allclose(goals[1], b)

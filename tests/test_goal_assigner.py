@@ -48,6 +48,23 @@ def test_previous_goal_anchors_against_switching() -> None:
     np.testing.assert_allclose(goals["a"], [5, 0])
 
 
+def test_a_forbidden_frontier_is_never_given_even_when_nothing_else_is_left() -> None:
+    ga = GoalAssigner()
+    poses = {"a": [0, 0, 0], "b": [10, 0, np.pi]}
+    frontiers = [[1, 0], [9, 0]]
+    goals = ga.assign(
+        poses, frontiers, forbidden={"a": np.array([True, False]), "b": np.zeros(2, bool)}
+    )
+    # a may not take [1, 0], its nearest: it takes [9, 0], and b the one left
+    np.testing.assert_allclose(goals["a"], [9, 0])
+    np.testing.assert_allclose(goals["b"], [1, 0])
+    goals = ga.assign(
+        poses, frontiers[:1], forbidden={"a": np.array([True]), "b": np.array([True])}
+    )
+    assert goals == {"a": None, "b": None}
+    assert ga.goals == {}  # nothing given, nothing remembered
+
+
 def test_vanished_goal_gets_a_pending_one_and_no_frontier_halts() -> None:
     ga = GoalAssigner()
     ga.assign({"a": [0, 0, 0]}, [[3, 0], [0, 7]])

@@ -4,8 +4,10 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 OUT ?= runs/latest
-# pytest-xdist workers for `make test` (CI has 2 cores; 0: one process, no workers)
-TEST_WORKERS ?= 2
+# pytest-xdist workers for `make test` (0: one process). 2 runs the suite in ~390 s
+# instead of ~530 s on 2 cores, but two timing-sensitive tests (test_bench_runs_a_tiny_soak,
+# test_node_does_not_grow_while_no_keyframe_arrives) failed under that load once: off.
+TEST_WORKERS ?= 0
 
 .PHONY: venv run test lint clean
 

@@ -39,7 +39,7 @@ def shared_data() -> Path:
 
 def pytest_collection_modifyitems(items: list[pytest.Item]) -> None:
     """Tests that start real processes (marked `e2e`, 20-90 s each) run first, in their
-    files' order: `make test` runs two pytest-xdist workers that steal work from each
-    other, so the long ones are spread over both and the short ones fill in behind,
-    instead of one long test finishing alone at the end."""
+    files' order: with pytest-xdist workers (`make test TEST_WORKERS=2`, work stealing)
+    the long ones are spread over both and the short ones fill in behind, instead of
+    one long test finishing alone at the end."""
     items.sort(key=lambda item: item.get_closest_marker("e2e") is None)

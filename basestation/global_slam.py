@@ -25,6 +25,7 @@ from __future__ import annotations
 import functools
 import logging
 import time
+from collections import deque
 from collections.abc import Callable, Sequence
 from typing import Any
 
@@ -50,6 +51,7 @@ from basestation.whole_map_search import WholeMapSearch, tie
 from common.config import Config
 from common.errors import CollabSlamError
 from common.geometry import quat_to_yaw, se2_between, se2_compose, se2_inverse
+from common.metrics import TIMINGS_KEPT
 from common.trajectory_io import Trajectory
 from protocol import Keyframe
 from protocol.messages import Scan2D
@@ -84,7 +86,8 @@ class GlobalSlam:
         self.cc = b.constraints
         self.builder = ConstraintBuilder(self.cc) if self.cc.enabled else None
         self.loops = LoopClosureManager(self.graph, self.cc, self._chain_covariance)
-        self.update_ms: list[float] = []
+        self.updates = 0  # iSAM2 updates; the latest TIMINGS_KEPT of their latencies:
+        self.update_ms: deque[float] = deque(maxlen=TIMINGS_KEPT)
         self.update_series = UpdateSeries(b.update_series_period_s)  # latencies over time
         self._new_nodes: list[NodeKey] = []
         self._constraints_added = False  # verified matches handed over since the last update
@@ -233,6 +236,7 @@ class GlobalSlam:
         self.graph.update(extra_iterations=1 if self._constraints_added else 0)
         self._constraints_added = False
         ms = (time.perf_counter() - t0) * 1e3
+        self.updates += 1
         self.update_ms.append(ms)
         self.update_series.add(ms)
 

@@ -19,6 +19,7 @@ import logging
 import queue
 import threading
 import time
+from collections import deque
 from pathlib import Path
 from typing import Any
 
@@ -39,7 +40,7 @@ from common.geodesy import GeoOrigin, geodetic_to_enu
 from common.geometry import pose4_to_pose7, pose7_to_pose4
 from common.map_io import read_wgs84_origin, write_map
 from common.memory import HeapTrimmer
-from common.metrics import percentiles
+from common.metrics import TIMINGS_KEPT, percentiles
 from common.picture import render_map_picture
 from common.scenario import Scenario
 from common.trajectory_io import write_tum
@@ -97,20 +98,18 @@ class BaseStationNode:
         self.explorer = make_explorer(cfg) if cfg.exploration.enabled else None
         self._last_explore = 0.0
         self._path_id = 0
-        self._explore_ms: list[float] = []  # wall time of each exploration step
+        self._explore_ms: deque[float] = deque(maxlen=TIMINGS_KEPT)  # wall time of the steps
         self.inbox = KeyframeInbox()  # bounded (see basestation/inbox.py)
         self.gnss_inbox: queue.Queue[GnssFix] = queue.Queue()  # basestation.gps.enabled
         self.states: dict[str, RobotState] = {}
         self.neighbours = NeighbourRelay()
         self.epoch = 0
-        self.unknown_robot_drops = 0
-        self.intake_pauses = 0
+        self.unknown_robot_drops = self.intake_pauses = 0
         self._last_map = 0.0
         self._map_dirty = False
         self._lock = threading.Lock()
         # lock-step handshake: the simulator's latest request (sim time) and our answer
-        self._sync_requested = -1.0
-        self._sync_answered = -1.0
+        self._sync_requested = self._sync_answered = -1.0
         self.syncs = 0
         self.map_history = MapHistory(max_snapshots=cfg.basestation.map_history_max_snapshots)
         self.links: dict[str, dict[str, int]] = {}  # agent -> {"joins": n, "losses": n}
@@ -479,6 +478,7 @@ class BaseStationNode:
         while self.map.pending:  # the written map is drawn at the final poses everywhere
             self.map.work(OUTPUT_REDRAW_CHUNK_S)
             self.heap.trim()  # the redraws' freed temporaries, back to the system
+        self.heap.trim()  # and a last memory sample, however short the mission was
         trajs = self.slam.trajectories()
         for rid, traj in trajs.items():
             write_tum(out / "trajectories" / f"{rid}.tum", traj, wgs84_origin=self.wgs84_origin)

@@ -13,7 +13,7 @@ if TYPE_CHECKING:
 def slam_stats(slam: GlobalSlam) -> dict[str, Any]:
     """Per-robot keyframe counts, iSAM2 latencies, match counts, the verifier's and
     PCM's statistics, and GPS's: the global-SLAM part of basestation.json."""
-    upd = np.array(slam.update_ms) if slam.update_ms else np.zeros(1)
+    upd = np.array(slam.update_ms) if slam.update_ms else np.zeros(1)  # the latest ones
     out: dict[str, Any] = {
         "robots": {
             rid: {
@@ -26,7 +26,7 @@ def slam_stats(slam: GlobalSlam) -> dict[str, Any]:
             }
             for rid, r in slam.store.robots.items()
         },
-        "isam2_updates": len(slam.update_ms),
+        "isam2_updates": slam.updates,
         "isam2_update_ms_p50": float(np.percentile(upd, 50)),
         "isam2_update_ms_p95": float(np.percentile(upd, 95)),
         "isam2_update_ms_series": slam.update_series.to_json(),

@@ -284,6 +284,11 @@ def min_separation(trajectories: list[Trajectory]) -> float | None:
     return best
 
 
+# latencies a long-running process keeps for its percentiles: the latest ones (a deque
+# with this maxlen), not every one of a mission that runs for hours
+TIMINGS_KEPT = 10_000
+
+
 def percentiles(prefix: str, values: ArrayLike) -> dict[str, float | None]:
     """{prefix_p50, prefix_p95, prefix_max} of a list of timings (None when empty)."""
     v = np.asarray(values, dtype=np.float64).ravel()

@@ -118,6 +118,9 @@ def _settle(node: BaseStationNode) -> None:
 def test_node_does_not_grow_while_no_keyframe_arrives(cfg: Config, endpoint: str) -> None:
     cfg.zenoh.listen = [endpoint]
     cfg.basestation.map_update_period_s = 0.0
+    # exploration steps by count, not by the wall clock (1 s): how many of them fall in
+    # the warm-up and how many in the measured steps must not depend on machine load
+    cfg.exploration.period_s = 1e9
     kfs = _tour("r0", 120)
     with Bus(cfg.zenoh, cfg.fleet) as bus:
         node = BaseStationNode(cfg, bus, None)
@@ -129,17 +132,21 @@ def test_node_does_not_grow_while_no_keyframe_arrives(cfg: Config, endpoint: str
                            kfs[-1].pose_odom)  # fmt: skip
         _settle(node)
         tracemalloc.start()  # before the warm-up: what it frees must be counted too
-        for _ in range(50):  # warm up caches (logging, zenoh publishers, exploration)
+        for k in range(50):  # warm up caches (logging, zenoh publishers, exploration)
             node._on_state(state, "")
             node.process([kfs[-1]])
             node.step(timeout=0.0)
+            if k % 5 == 4:
+                node.explore()
         _settle(node)
         gc.collect()
         before = tracemalloc.get_traced_memory()[0]
-        for _ in range(500):  # hovering: states and resent (duplicate) keyframes only
+        for k in range(500):  # hovering: states and resent (duplicate) keyframes only
             node._on_state(state, "")
             node.process([kfs[-1]])
             node.step(timeout=0.0)
+            if k % 50 == 49:  # exploring now and then (its latencies: a bounded deque)
+                node.explore()
         _settle(node)
         gc.collect()
         grown = tracemalloc.get_traced_memory()[0] - before

@@ -41,7 +41,7 @@ def _fly(out: Path, keep_m: float) -> tuple[dict, dict[str, dict]]:
             # without the guard: lock-step, quicker)
             "sim.clock": "realtime" if keep_m > 0 else "lockstep",
             # below real time: agents that share two cores with other tests still fly
-            # every control tick in time (at 1.0 one hit a wall under two test workers)
+            # every control tick in time (at 1.0 one run under two test workers had a contact)
             "sim.rate": 0.6,
             "sim.seed": 0,
         }

@@ -24,6 +24,41 @@ __all__ = ["BlockGrid", "block_grid", "cast_rays"]
 
 
 @njit(cache=True)
+def _clip_beam(gx, gy, dx, dy, w, h, max_cells):  # noqa: ANN001, ANN202 (numba kernel)
+    """The stretch [t0, t1] (cells along the beam) of [0, max_cells] inside the grid
+    box [0, w] x [0, h] (slab method); t0 > t1 when the beam misses the box."""
+    t0 = 0.0
+    t1 = max_cells
+    if dx != 0.0:
+        ta = (0.0 - gx) / dx
+        tb = (w - gx) / dx
+        t0 = max(t0, min(ta, tb))
+        t1 = min(t1, max(ta, tb))
+    elif gx < 0.0 or gx >= w:
+        return 1.0, 0.0
+    if dy != 0.0:
+        ta = (0.0 - gy) / dy
+        tb = (h - gy) / dy
+        t0 = max(t0, min(ta, tb))
+        t1 = min(t1, max(ta, tb))
+    elif gy < 0.0 or gy >= h:
+        return 1.0, 0.0
+    return t0, t1
+
+
+@njit(cache=True)
+def _axis_start(p, i, d, t, size):  # noqa: ANN001, ANN202 (numba kernel)
+    """One axis of a grid traversal over cells `size` wide, at position p (cells) in
+    cell i at beam parameter t, direction component d: (step, t of the next cell
+    boundary, t between boundaries)."""
+    if d > 0.0:
+        return 1, t + ((i + 1) * size - p) / d, size / d
+    if d < 0.0:
+        return -1, t + (p - i * size) / -d, size / -d
+    return 0, np.inf, np.inf
+
+
+@njit(cache=True)
 def _cast_kernel(
     occupied: NDArray[np.bool_],
     gx: float,
@@ -41,25 +76,7 @@ def _cast_kernel(
         a = yaw + angles[k]
         dx = math.cos(a)
         dy = math.sin(a)
-        # Clip the beam [0, max_cells] against the grid box [0, w] x [0, h] (slab method).
-        t0 = 0.0
-        t1 = max_cells
-        if dx != 0.0:
-            ta = (0.0 - gx) / dx
-            tb = (w - gx) / dx
-            t0 = max(t0, min(ta, tb))
-            t1 = min(t1, max(ta, tb))
-        elif gx < 0.0 or gx >= w:
-            out[k] = inf
-            continue
-        if dy != 0.0:
-            ta = (0.0 - gy) / dy
-            tb = (h - gy) / dy
-            t0 = max(t0, min(ta, tb))
-            t1 = min(t1, max(ta, tb))
-        elif gy < 0.0 or gy >= h:
-            out[k] = inf
-            continue
+        t0, t1 = _clip_beam(gx, gy, dx, dy, w, h, max_cells)
         if t0 > t1:
             out[k] = inf
             continue
@@ -67,30 +84,8 @@ def _cast_kernel(
         py = gy + t0 * dy
         ix = min(max(int(math.floor(px)), 0), w - 1)
         iy = min(max(int(math.floor(py)), 0), h - 1)
-        if dx > 0.0:
-            step_x = 1
-            t_max_x = t0 + (ix + 1.0 - px) / dx
-            t_delta_x = 1.0 / dx
-        elif dx < 0.0:
-            step_x = -1
-            t_max_x = t0 + (px - ix) / -dx
-            t_delta_x = -1.0 / dx
-        else:
-            step_x = 0
-            t_max_x = np.inf
-            t_delta_x = np.inf
-        if dy > 0.0:
-            step_y = 1
-            t_max_y = t0 + (iy + 1.0 - py) / dy
-            t_delta_y = 1.0 / dy
-        elif dy < 0.0:
-            step_y = -1
-            t_max_y = t0 + (py - iy) / -dy
-            t_delta_y = -1.0 / dy
-        else:
-            step_y = 0
-            t_max_y = np.inf
-            t_delta_y = np.inf
+        step_x, t_max_x, t_delta_x = _axis_start(px, ix, dx, t0, 1)
+        step_y, t_max_y, t_delta_y = _axis_start(py, iy, dy, t0, 1)
         t = t0
         result = inf
         while t <= t1:
@@ -134,24 +129,7 @@ def _cast_blocks_kernel(
         a = yaw + angles[k]
         dx = math.cos(a)
         dy = math.sin(a)
-        t0 = 0.0
-        t1 = max_cells
-        if dx != 0.0:
-            ta = (0.0 - gx) / dx
-            tb = (w - gx) / dx
-            t0 = max(t0, min(ta, tb))
-            t1 = min(t1, max(ta, tb))
-        elif gx < 0.0 or gx >= w:
-            out[k] = inf
-            continue
-        if dy != 0.0:
-            ta = (0.0 - gy) / dy
-            tb = (h - gy) / dy
-            t0 = max(t0, min(ta, tb))
-            t1 = min(t1, max(ta, tb))
-        elif gy < 0.0 or gy >= h:
-            out[k] = inf
-            continue
+        t0, t1 = _clip_beam(gx, gy, dx, dy, w, h, max_cells)
         if t0 > t1:
             out[k] = inf
             continue
@@ -159,30 +137,8 @@ def _cast_blocks_kernel(
         py = gy + t0 * dy
         cbx = min(max(int(math.floor(px / bsize)), 0), wb - 1)
         cby = min(max(int(math.floor(py / bsize)), 0), hb - 1)
-        if dx > 0.0:
-            cstep_x = 1
-            ct_max_x = t0 + ((cbx + 1) * bsize - px) / dx
-            ct_delta_x = bsize / dx
-        elif dx < 0.0:
-            cstep_x = -1
-            ct_max_x = t0 + (px - cbx * bsize) / -dx
-            ct_delta_x = bsize / -dx
-        else:
-            cstep_x = 0
-            ct_max_x = np.inf
-            ct_delta_x = np.inf
-        if dy > 0.0:
-            cstep_y = 1
-            ct_max_y = t0 + ((cby + 1) * bsize - py) / dy
-            ct_delta_y = bsize / dy
-        elif dy < 0.0:
-            cstep_y = -1
-            ct_max_y = t0 + (py - cby * bsize) / -dy
-            ct_delta_y = bsize / -dy
-        else:
-            cstep_y = 0
-            ct_max_y = np.inf
-            ct_delta_y = np.inf
+        cstep_x, ct_max_x, ct_delta_x = _axis_start(px, cbx, dx, t0, bsize)
+        cstep_y, ct_max_y, ct_delta_y = _axis_start(py, cby, dy, t0, bsize)
         t = t0
         result = inf
         done = False
@@ -197,24 +153,8 @@ def _cast_blocks_kernel(
                 qy = gy + t * dy
                 ix = min(max(int(math.floor(qx)), x_lo), x_hi)
                 iy = min(max(int(math.floor(qy)), y_lo), y_hi)
-                if dx > 0.0:
-                    ft_max_x = t + (ix + 1.0 - qx) / dx
-                    ft_delta_x = 1.0 / dx
-                elif dx < 0.0:
-                    ft_max_x = t + (qx - ix) / -dx
-                    ft_delta_x = -1.0 / dx
-                else:
-                    ft_max_x = np.inf
-                    ft_delta_x = np.inf
-                if dy > 0.0:
-                    ft_max_y = t + (iy + 1.0 - qy) / dy
-                    ft_delta_y = 1.0 / dy
-                elif dy < 0.0:
-                    ft_max_y = t + (qy - iy) / -dy
-                    ft_delta_y = -1.0 / dy
-                else:
-                    ft_max_y = np.inf
-                    ft_delta_y = np.inf
+                _, ft_max_x, ft_delta_x = _axis_start(qx, ix, dx, t, 1)
+                _, ft_max_y, ft_delta_y = _axis_start(qy, iy, dy, t, 1)
                 tt = t
                 while tt <= t1:
                     if occupied[iy, ix]:

@@ -59,6 +59,33 @@ def _axis_start(p, i, d, t, size):  # noqa: ANN001, ANN202 (numba kernel)
 
 
 @njit(cache=True)
+def _walk(occupied, px, py, dx, dy, t, t1, x_lo, x_hi, y_lo, y_hi):  # noqa: ANN001, ANN202
+    """Cell by cell (Amanatides-Woo) from (px, py) (cells) at beam parameter t, inside
+    the cells [x_lo, x_hi] x [y_lo, y_hi]: (True, t where the beam enters the first
+    occupied cell), or (False, t) once past t1 or out of those cells."""
+    ix = min(max(int(math.floor(px)), x_lo), x_hi)
+    iy = min(max(int(math.floor(py)), y_lo), y_hi)
+    step_x, t_max_x, t_delta_x = _axis_start(px, ix, dx, t, 1)
+    step_y, t_max_y, t_delta_y = _axis_start(py, iy, dy, t, 1)
+    while t <= t1:
+        if occupied[iy, ix]:
+            return True, t
+        if t_max_x < t_max_y:
+            t = t_max_x
+            t_max_x += t_delta_x
+            ix += step_x
+            if ix < x_lo or ix > x_hi:
+                break
+        else:
+            t = t_max_y
+            t_max_y += t_delta_y
+            iy += step_y
+            if iy < y_lo or iy > y_hi:
+                break
+    return False, t
+
+
+@njit(cache=True)
 def _cast_kernel(
     occupied: NDArray[np.bool_],
     gx: float,
@@ -82,29 +109,8 @@ def _cast_kernel(
             continue
         px = gx + t0 * dx
         py = gy + t0 * dy
-        ix = min(max(int(math.floor(px)), 0), w - 1)
-        iy = min(max(int(math.floor(py)), 0), h - 1)
-        step_x, t_max_x, t_delta_x = _axis_start(px, ix, dx, t0, 1)
-        step_y, t_max_y, t_delta_y = _axis_start(py, iy, dy, t0, 1)
-        t = t0
-        result = inf
-        while t <= t1:
-            if occupied[iy, ix]:
-                result = np.float32(t * resolution)
-                break
-            if t_max_x < t_max_y:
-                t = t_max_x
-                t_max_x += t_delta_x
-                ix += step_x
-                if ix < 0 or ix >= w:
-                    break
-            else:
-                t = t_max_y
-                t_max_y += t_delta_y
-                iy += step_y
-                if iy < 0 or iy >= h:
-                    break
-        out[k] = result
+        hit, t = _walk(occupied, px, py, dx, dy, t0, t1, 0, w - 1, 0, h - 1)
+        out[k] = np.float32(t * resolution) if hit else inf
 
 
 @njit(cache=True)
@@ -151,28 +157,9 @@ def _cast_blocks_kernel(
                 y_hi = min(y_lo + bsize, h) - 1
                 qx = gx + t * dx
                 qy = gy + t * dy
-                ix = min(max(int(math.floor(qx)), x_lo), x_hi)
-                iy = min(max(int(math.floor(qy)), y_lo), y_hi)
-                _, ft_max_x, ft_delta_x = _axis_start(qx, ix, dx, t, 1)
-                _, ft_max_y, ft_delta_y = _axis_start(qy, iy, dy, t, 1)
-                tt = t
-                while tt <= t1:
-                    if occupied[iy, ix]:
-                        result = np.float32(tt * resolution)
-                        done = True
-                        break
-                    if ft_max_x < ft_max_y:
-                        tt = ft_max_x
-                        ft_max_x += ft_delta_x
-                        ix += cstep_x
-                        if ix < x_lo or ix > x_hi:
-                            break
-                    else:
-                        tt = ft_max_y
-                        ft_max_y += ft_delta_y
-                        iy += cstep_y
-                        if iy < y_lo or iy > y_hi:
-                            break
+                done, tt = _walk(occupied, qx, qy, dx, dy, t, t1, x_lo, x_hi, y_lo, y_hi)
+                if done:
+                    result = np.float32(tt * resolution)
                 if done or tt > t1:
                     break
             if ct_max_x < ct_max_y:

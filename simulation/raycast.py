@@ -24,26 +24,24 @@ __all__ = ["BlockGrid", "block_grid", "cast_rays"]
 
 
 @njit(cache=True)
+def _slab(g, d, n, t0, t1):  # noqa: ANN001, ANN202 (numba kernel)
+    """[t0, t1] narrowed to where g + t d (cells along one axis) lies in [0, n]; t0 > t1
+    when it never does."""
+    if d != 0.0:
+        ta = (0.0 - g) / d
+        tb = (n - g) / d
+        return max(t0, min(ta, tb)), min(t1, max(ta, tb))
+    if g < 0.0 or g >= n:
+        return 1.0, 0.0
+    return t0, t1
+
+
+@njit(cache=True)
 def _clip_beam(gx, gy, dx, dy, w, h, max_cells):  # noqa: ANN001, ANN202 (numba kernel)
     """The stretch [t0, t1] (cells along the beam) of [0, max_cells] inside the grid
     box [0, w] x [0, h] (slab method); t0 > t1 when the beam misses the box."""
-    t0 = 0.0
-    t1 = max_cells
-    if dx != 0.0:
-        ta = (0.0 - gx) / dx
-        tb = (w - gx) / dx
-        t0 = max(t0, min(ta, tb))
-        t1 = min(t1, max(ta, tb))
-    elif gx < 0.0 or gx >= w:
-        return 1.0, 0.0
-    if dy != 0.0:
-        ta = (0.0 - gy) / dy
-        tb = (h - gy) / dy
-        t0 = max(t0, min(ta, tb))
-        t1 = min(t1, max(ta, tb))
-    elif gy < 0.0 or gy >= h:
-        return 1.0, 0.0
-    return t0, t1
+    t0, t1 = _slab(gx, dx, w, 0.0, max_cells)
+    return _slab(gy, dy, h, t0, t1)
 
 
 @njit(cache=True)

@@ -80,7 +80,6 @@ class ExplorationManager:
     gain_full_m2: float = 25.0  # m^2: about a half disc of gain_radius_m, a room's door
     gain_near_m: float = 5.0  # m of travel: nearer, less (a pocket is taken in passing)
     gain_radius_m: float = 4.0  # m: how far a look from a frontier counts (unknown_in_view)
-    gain_radius_team_m: float = 8.0  # m: the same with three or more robots
     w_own: float = 0.5  # cost per m a frontier is closer to a robot than to all others
     own_cap_m: float = 10.0  # m, up to this much
     # goals only from the robot's own share of the min-max tours (`frontier_tours`)

@@ -58,8 +58,7 @@ def frontier_costs(
     # another's shadow: it goes once the robot turns or the other moves, not worth a trip
     D = np.where(D < ex.near_frontier_m, D + ex.near_frontier_cost_m, D)
     D -= ex.w_own * own_ground(D_all, D, rows, ex.own_cap_m)  # closer to it than others
-    radius = ex.gain_radius_m if len(P) < 3 else ex.gain_radius_team_m
-    gain = unknown_in_view(grid, F, radius) if ex.w_gain > 0.0 else None
+    gain = unknown_in_view(grid, F, ex.gain_radius_m) if ex.w_gain > 0.0 else None
     seen = np.zeros(len(F), dtype=bool)
     if ex.seen_cost_m > 0.0 and flying:  # in sight of another robot's way there
         for r in (r for r in flying if r in P):

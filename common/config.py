@@ -394,7 +394,6 @@ class ExplorationConfig:
     gain_full_m2: float = 25.0  # m^2
     gain_near_m: float = 5.0  # m of travel: the cost x min(1, travel / gain_near_m)
     gain_radius_m: float = 4.0  # m
-    gain_radius_team_m: float = 8.0  # m, with 3+ robots (docs/architecture.md: Information)
     inflation_m: float = 0.35  # m, no-collision zone around obstacles
     robot_clearance_m: float = 1.0  # m, disc around other robots and their paths
     # RRT* work per path: validity checks (~0.2 s here), so plans do not depend on the

@@ -62,7 +62,7 @@ def validate(cfg: Config) -> None:
         cfg.exploration,
         (
             "period_s", "frontier_radius_m", "planning_time_s", "planning_checks",
-            "seen_range_m", "gain_radius_m", "gain_radius_team_m", "gain_near_m",
+            "seen_range_m", "gain_radius_m", "gain_near_m",
         ),
     )  # fmt: skip
     _non_negative_fields(

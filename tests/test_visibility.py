@@ -1,11 +1,9 @@
-"""basestation.visibility: frontiers in sight of a robot's way, and what a look takes in."""
+"""basestation.visibility: frontiers in sight of a robot's way."""
 
 from __future__ import annotations
 
 import numpy as np
 
-from basestation.exploration import ExplorationManager
-from basestation.goal_costs import frontier_costs
 from basestation.visibility import seen_from, unknown_in_view, viewpoints
 from common.map_io import GridMap
 
@@ -63,25 +61,3 @@ def test_unknown_in_view_is_the_unknown_area_a_look_round_takes_in() -> None:
     (walled,) = unknown_in_view(g, pts[1:], 3.0)
     assert 0.7 * 0.6 * 6.0 < walled < 0.6 * 6.0  # about 0.6 m x the 6 m chord
     assert unknown_in_view(g, np.zeros((0, 2)), 3.0).shape == (0,)
-
-
-def test_a_team_of_three_or_more_counts_what_a_look_takes_in_further_out() -> None:
-    """`frontier_costs`: `gain_radius_m` for one or two robots, `gain_radius_team_m`
-    for three or more (a look down a corridor counts for more with more robots)."""
-    data = np.full((200, 200), -1, np.int8)  # 10 x 10 m, the west half known free
-    data[:, :100] = 0
-    g = GridMap(data, 0.05, (0.0, 0.0, 0.0))
-    F = np.array([[4.9, 5.0]])  # a frontier at the known half's edge
-    ex = ExplorationManager(w_own=0.0, gain_full_m2=100.0)
-    assert (ex.gain_radius_m, ex.gain_radius_team_m) == (4.0, 8.0)
-    poses = [np.array([1.0, 1.0 + k, 0.0]) for k in range(3)]
-    cost = {}
-    for n in (1, 2, 3):
-        P = {f"r{k}": poses[k] for k in range(n)}
-        D, _, _ = frontier_costs(ex, g, F, np.full((n, 1), 6.0), [0], [], [], P)
-        cost[n] = float(D[0, 0])
-    short_4m = 100.0 - unknown_in_view(g, F, 4.0)[0]  # m^2 short of gain_full_m2
-    short_8m = 100.0 - unknown_in_view(g, F, 8.0)[0]
-    assert short_8m < short_4m - 15.0
-    assert cost[1] == cost[2] == 6.0 + 0.25 * short_4m
-    assert abs(cost[3] - (6.0 + 0.25 * short_8m)) < 1e-9

@@ -105,6 +105,7 @@ class AgentNode:
             neighbour_keep_m=a.neighbour_keep_m
             if cfg.exploration.enabled or a.neighbour_guard_tours
             else 0.0,
+            velocity_lag_s=a.velocity_lag_s,
         )
         self._neighbours: Neighbours | None = None  # the base station's latest relay
         self._twist: tuple[float, np.ndarray] | None = None  # odometry's (stamp, vx vy)

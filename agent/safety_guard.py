@@ -28,6 +28,16 @@ station plans once a second: this is the net under its plans (a leader that stop
 a plan that came late). The agent turns it off on scripted tours unless told
 otherwise (`agent.neighbour_guard_tours`): they are not deconflicted.
 
+Last, the guard checks the command against the vehicle's own response (`velocity_lag_s`:
+its velocity follows the command through a first-order lag, the acceleration capped
+at `max_accel`, as `simulation/quadrotor.py` models it): the command held for
+`HOLD_S`, then a stop, predicted from the current velocity, must keep the disc
+`margin_m` clear of every scan point (or, already closer, no closer than now). If not,
+the command is scaled down to the largest fraction that does. The corridor checks
+above look straight along the command and along the motion; in a turn the motion
+sweeps between the two, and a drone turning at speed round the end of a thin wall
+came within 1 cm of it (`tests/test_safety_guard.py`).
+
 All in the body frame of the latest scan (x forward, y left; the laser at the
 origin), metres and seconds; the vehicle's own limits still apply after this.
 """
@@ -45,6 +55,10 @@ DEAD_AHEAD = np.sin(np.radians(10.0))  # a neighbour within 10 deg of the way: p
 # Slower than this (m/s), a drone turns in full while it brakes: the lag's exponential
 # decay would hold its turn back for a second more, for the last centimetre.
 TURN_WHILE_BRAKING_MPS = 0.1
+HOLD_S = 0.1  # s the command is held in the prediction before the stop (latency, a tick)
+HOLD_STEPS = 4  # integration steps over HOLD_S
+SCALES = np.linspace(1.0, 0.0, 11)  # fractions of the command tried when it is not safe
+SLACK_M = 0.01  # m of predicted clearance given up for more of the command, if none is safe
 
 
 class SafetyGuard:
@@ -57,6 +71,7 @@ class SafetyGuard:
         blocked_after_s: float,
         horizon_m: float = 4.0,
         neighbour_keep_m: float = 1.3,
+        velocity_lag_s: float = 0.2,
     ) -> None:
         self.corridor = radius_m + margin_m  # half-width swept by the drone, m
         self.stop_margin = margin_m  # m left between the disc and a point when stopped
@@ -64,7 +79,10 @@ class SafetyGuard:
         self.reaction_s = reaction_s
         self.blocked_after_s = blocked_after_s
         self.horizon = horizon_m
+        self.velocity_lag = velocity_lag_s
         self.points: NDArray[np.float64] = np.zeros((0, 2))
+        self._range: NDArray[np.float64] = np.zeros(0)  # of each point, m
+        self.predicted_ticks = 0  # commands the predicted response scaled down
         self.neighbour_keep = neighbour_keep_m  # m between drone centres
         self.neighbours: NDArray[np.float64] = np.zeros((0, 2))  # their centres
         self.neighbour_ticks = 0  # commands the neighbours limited
@@ -78,6 +96,7 @@ class SafetyGuard:
         keep = np.isfinite(r) & (r < self.horizon)
         a = np.asarray(angles, dtype=np.float64)[keep]
         self.points = np.column_stack([r[keep] * np.cos(a), r[keep] * np.sin(a)])
+        self._range = r[keep]
 
     def set_neighbours(self, centres: NDArray[np.float64]) -> None:
         """The other drones' centres now ((k, 2), body frame)."""
@@ -106,7 +125,10 @@ class SafetyGuard:
             if done:
                 break
         if velocity is not None:
-            v = self._brake_along_motion(v, np.asarray(velocity, dtype=np.float64)[:2])
+            moving = np.asarray(velocity, dtype=np.float64)[:2]
+            v = self._brake_along_motion(v, moving)
+            if np.all(np.isfinite(moving)):
+                v = self._stoppable(v, moving)
         limited = float(np.hypot(*v)) < wanted - 1e-6
         self.limited_ticks += int(limited)
         held = wanted > 0.05 and float(np.hypot(*v)) < 0.05
@@ -173,6 +195,55 @@ class SafetyGuard:
             v = self._apart_from_neighbours(self._clear_of_scan(u * along + turn))
         return v
 
+    def _stoppable(
+        self, v: NDArray[np.float64], velocity: NDArray[np.float64]
+    ) -> NDArray[np.float64]:
+        """`v`, or the largest fraction of it from which the predicted response (held for
+        `HOLD_S`, then a stop) keeps clear of the scan (see the module doc)."""
+        fastest = max(float(np.hypot(*velocity)), float(np.hypot(*v)))
+        if len(self.points) == 0 or fastest < 1e-3:
+            return v
+        reach = fastest * (HOLD_S + self.velocity_lag) + fastest**2 / (2.0 * self.max_accel)
+        near = self.points[self._range < reach + self.corridor]
+        if len(near) == 0:
+            return v
+        need = min(self.corridor, float(self._range.min())) - 1e-3
+        if self._clearance(v[None], velocity, near)[0] >= need:
+            return v
+        tries = SCALES[:, None] * v[None]
+        clear = self._clearance(tries, velocity, near)
+        ok = clear >= need
+        if not ok.any():  # no way to keep the margin now: the most of the command that
+            ok = clear >= clear.max() - SLACK_M  # comes within SLACK_M of the best
+        self.predicted_ticks += 1
+        return tries[int(np.argmax(ok))]
+
+    def _clearance(
+        self, commands: NDArray[np.float64], velocity: NDArray[np.float64], points: NDArray
+    ) -> NDArray[np.float64]:
+        """For each command ((k, 2)), the closest the drone's centre comes to `points` if
+        it follows the command for `HOLD_S` from `velocity` and then stops: first-order
+        lag of `velocity_lag`, acceleration capped at `max_accel`. A stop is a straight
+        line along the velocity (the braking acceleration opposes it): at `max_accel`
+        down to `max_accel * lag`, then the lag's exponential tail."""
+        dt = HOLD_S / HOLD_STEPS
+        a, tau = self.max_accel, max(self.velocity_lag, dt)
+        vel = np.repeat(velocity[None], len(commands), axis=0)
+        held = np.zeros_like(vel)
+        for _ in range(HOLD_STEPS):
+            accel = (commands - vel) / tau
+            norm = np.hypot(accel[:, 0], accel[:, 1])[:, None]
+            new = vel + accel * np.minimum(1.0, a / np.maximum(norm, 1e-12)) * dt
+            held += 0.5 * (vel + new) * dt
+            vel = new
+        speed = np.hypot(vel[:, 0], vel[:, 1])
+        slow = a * tau  # below this speed the lag, not the cap, sets the deceleration
+        stop = np.where(speed > slow, (speed**2 - slow**2) / (2.0 * a) + slow * tau, speed * tau)
+        end = held + vel * (stop / np.maximum(speed, 1e-12))[:, None]
+        return np.minimum(
+            _to_segments(points, np.zeros_like(held), held), _to_segments(points, held, end)
+        )
+
     def _apart_from_neighbours(
         self, v: NDArray[np.float64], give_way: bool = False
     ) -> NDArray[np.float64]:
@@ -216,6 +287,19 @@ class SafetyGuard:
         """A new path: forget being blocked."""
         self._held_since = None
         self.blocked = False
+
+
+def _to_segments(
+    points: NDArray[np.float64], start: NDArray[np.float64], end: NDArray[np.float64]
+) -> NDArray[np.float64]:
+    """The distance from the nearest of `points` ((p, 2)) to each segment start -> end
+    ((k, 2) each): (k,)."""
+    d = end - start
+    rel = points[None, :, :] - start[:, None, :]  # (k, p, 2)
+    length2 = np.maximum(np.einsum("kj,kj->k", d, d), 1e-18)[:, None]
+    t = np.clip(np.einsum("kpj,kj->kp", rel, d) / length2, 0.0, 1.0)
+    off = rel - t[:, :, None] * d[:, None, :]
+    return np.sqrt(np.min(off[..., 0] ** 2 + off[..., 1] ** 2, axis=1))
 
 
 def neighbours_in_body(

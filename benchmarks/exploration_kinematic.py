@@ -111,7 +111,7 @@ def fly_kinematic(
     guard = {
         r: SafetyGuard(
             a.vehicle_radius_m, a.safety_margin_m, a.max_accel_mps2, a.safety_reaction_s,
-            a.blocked_after_s, neighbour_keep_m=a.neighbour_keep_m,
+            a.blocked_after_s, neighbour_keep_m=a.neighbour_keep_m, velocity_lag_s=a.velocity_lag_s,
         )
         for r in ids
     }  # fmt: skip

@@ -208,12 +208,12 @@ class AgentConfig:
     yaw_gain: float = 1.5  # 1/s, heading controller gain
     full_speed_off_nose_deg: float = 60.0  # deg: flies at full speed this far off the nose
     max_off_nose_deg: float = 105.0  # deg: turns first beyond (keep within the laser's view)
-    # Safety guard on every command (agent/safety_guard.py): the speed along the commanded
-    # direction is capped so the drone stops before any point of the live scan within
-    # vehicle_radius_m + safety_margin_m of its track.
+    # Safety guard on every command (agent/safety_guard.py): the drone must be able to stop
+    # with its disc vehicle_radius_m + safety_margin_m clear of every live scan point.
     vehicle_radius_m: float = 0.25  # m, the drone's collision disc
     safety_margin_m: float = 0.05  # m, keep below exploration.inflation_m - vehicle_radius_m
     safety_reaction_s: float = 0.3  # s of travel before braking: latency + velocity lag
+    velocity_lag_s: float = 0.2  # s, the vehicle's velocity time constant (guard's model)
     blocked_after_s: float = 2.0  # s held still by the guard: report "blocked" (replan)
     # Neighbour guard (the same): other drones' centres, relayed by the base station in
     # answer to each RobotState, kept neighbour_keep_m away (the 1 m target + what

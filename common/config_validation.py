@@ -138,6 +138,7 @@ def _validate_agent(cfg: Config) -> None:
         (
             "safety_margin_m",
             "safety_reaction_s",
+            "velocity_lag_s",
             "malloc_arenas",
             "neighbour_keep_m",  # 0: no neighbour guard
             "neighbour_max_age_s",

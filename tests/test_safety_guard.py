@@ -235,3 +235,45 @@ def test_a_drone_turning_a_corner_at_speed_gets_round_it() -> None:
         assert not g.blocked, (k, q.pose)
     assert q.collisions == 0 and q.min_clearance > 0.05
     assert np.hypot(*(q.pose[:2] - [3.275, 7.825])) < 1.0  # at the end of the next leg
+
+
+def test_a_drone_turned_back_in_a_doorway_keeps_off_its_post() -> None:
+    """floor30x25, the kinematic exploration model's 3-drone seed 3 at 42 s: a drone
+    heading for the door in a 0.1 m thin wall at 0.87 m/s gets a new path back along the
+    wall; its velocity swings from the door toward the west post (7.30, 4.97) as it
+    turns. The straight-corridor checks alone let it pass the post 0.015 m off (disc
+    edge); the predicted stop keeps the margin, and it flies on along the new path."""
+    world = World.load("floor30x25")
+    laser = LaserModel(1081, np.radians(270.0), 0.1, 30.0, 0.0)
+    q = Quadrotor([7.99, 5.27, 1.0, -2.78], max_accel=1.0, time_constant=0.2)
+    q.velocity_world[:2] = [-0.70, -0.53]
+    q.yaw_rate = 1.0
+    follower = PathFollower.from_config(load_config(None).agent)
+    path = [[7.99, 5.27], [7.82, 5.34], [7.65, 5.41], [7.48, 5.48], [7.23, 5.47], [6.99, 5.47]]
+    follower.set_path(np.array(path))
+    g = SafetyGuard(0.25, 0.05, 1.0, 0.3, 2.0, velocity_lag_s=0.2)
+    for k in range(120):  # 3 s at 40 Hz
+        r = laser.measure(world, q.pose[[0, 1, 3]], np.random.default_rng(0))
+        g.update(laser.angles, np.where(r < laser.range_max, r, np.inf))
+        vx, vy, vz, yaw_rate = follower.command(q.pose)
+        vx, vy = g.limit(k * 0.025, vx, vy, velocity=q.velocity_body[:2])
+        q.step((vx, vy, vz, yaw_rate), 0.025, world)
+    assert g.predicted_ticks > 0  # the prediction, not the corridors, slowed it
+    assert q.collisions == 0 and q.min_clearance >= 0.05, q.min_clearance
+    assert np.hypot(*(q.pose[:2] - path[-1])) < 0.3  # at the end of the new path
+
+
+def test_the_predicted_stop_follows_the_vehicle_model() -> None:
+    """The guard's predicted stop from 1 m/s (nothing commanded) is the simulator's: 1 m/s^2
+    down to 0.2 m/s, then the 0.2 s lag's tail (0.48 + 0.04 m), straight ahead."""
+    data = np.zeros((100, 100), dtype=np.int8)
+    world = World(GridMap(data=data, resolution=0.05, origin=(0.0, 0.0, 0.0)))
+    q = Quadrotor([1.0, 2.5, 1.0, 0.0], max_accel=1.0, time_constant=0.2)
+    q.velocity_world[:2] = [1.0, 0.0]
+    for _ in range(2000):  # 5 s
+        q.step((0.0, 0.0, 0.0, 0.0), 0.0025, world)
+    g = SafetyGuard(0.25, 0.05, 1.0, 0.3, 2.0, velocity_lag_s=0.2)
+    g.points = np.array([[5.0, 0.0]])
+    stop = 5.0 - g._clearance(np.zeros((1, 2)), np.array([1.0, 0.0]), g.points)[0]
+    assert stop == pytest.approx(q.pose[0] - 1.0, abs=0.01)
+    assert stop == pytest.approx(0.52, abs=0.01)

@@ -391,6 +391,7 @@ class AgentNode:
             "matches_gated": self.frontend.gated_matches,
             "odometry_rejected": self.frontend.rejected_odometry,
             "guard_limited_ticks": self.guard.limited_ticks,
+            "guard_predicted_ticks": self.guard.predicted_ticks,
             "guard_neighbour_ticks": self.guard.neighbour_ticks,
             # sim time since the state the neighbours' relay answered (the latest ticks)
             **percentiles("neighbour_news_age_s", self._news_ages),

@@ -27,6 +27,8 @@ import logging
 import time
 from collections import deque
 from collections.abc import Callable, Sequence
+from itertools import groupby
+from operator import itemgetter
 from typing import Any
 
 import numpy as np
@@ -140,30 +142,22 @@ class GlobalSlam:
         through the same admission path and the same loop-closure manager (PCM), batch by
         batch in the order they were first written; the graph is optimized before each
         batch of matches, as it was then. Stored matches are not verified again."""
-        kfs: dict[int, list[Keyframe]] = {}
-        for b, kf in rec.keyframes:
-            kfs.setdefault(b, []).append(kf)
         cons: dict[int, list[StoredConstraint]] = {}
         for c in rec.constraints:
             cons.setdefault(c.batch, []).append(c)
-        for b in sorted(kfs.keys() | cons.keys()):
-            for kf in kfs.get(b, []):
+        pending = sorted(cons)  # batches whose matches are not replayed yet
+        for b, group in groupby(rec.keyframes, key=itemgetter(0)):  # read as it goes
+            while pending and pending[0] < b:  # batches of matches only
+                self._replay_matches(cons[pending.pop(0)])
+            kfs = [kf for _, kf in group]
+            for kf in kfs:
                 if self.admit(kf) == 0:
                     log.error("stored keyframe %s/%d was not admitted", kf.robot_id, kf.seq)
-            self.saved(Batch(kfs.get(b, [])))  # on disk already
-            if b not in cons:
-                continue
-            self.optimize()
-            for c in cons[b]:
-                m = c.measurement
-                try:
-                    self.loops.add(
-                        (m.robot_a, m.index_a), (m.robot_b, m.index_b), m.T_a_b,
-                        m.covariance, c.kind, measurement_id=m.id,
-                    )  # fmt: skip
-                except CollabSlamError as e:
-                    log.error("stored match %d not restored: %s", m.id, e)
-            self.optimize()
+            self.saved(Batch(kfs))  # on disk already: the scans may leave memory
+            if pending and pending[0] == b:
+                self._replay_matches(cons[pending.pop(0)])
+        for b in pending:
+            self._replay_matches(cons[b])
         self.optimize()
         self._new_nodes.clear()  # their candidates were searched before the crash
         frames = self._frames(self.graph.components())
@@ -173,6 +167,21 @@ class GlobalSlam:
         differ = sum(c.in_graph != (c.measurement.id in accepted) for c in rec.constraints)
         if differ:
             log.warning("%d restored matches changed in/out of the graph on replay", differ)
+
+    def _replay_matches(self, stored: list[StoredConstraint]) -> None:
+        """One batch's stored matches through the loop-closure manager (not verified
+        again), the graph optimized before and after, as when they were first added."""
+        self.optimize()
+        for c in stored:
+            m = c.measurement
+            try:
+                self.loops.add(
+                    (m.robot_a, m.index_a), (m.robot_b, m.index_b), m.T_a_b,
+                    m.covariance, c.kind, measurement_id=m.id,
+                )  # fmt: skip
+            except CollabSlamError as e:
+                log.error("stored match %d not restored: %s", m.id, e)
+        self.optimize()
 
     def _add_node(self, kf: Keyframe) -> None:
         rid = kf.robot_id

@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import logging
 import sqlite3
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -38,6 +39,7 @@ from protocol import Keyframe, decode, encode
 log = logging.getLogger(__name__)
 
 SCHEMA_VERSION = 1
+READ_PAGE = 1000  # stored keyframes decoded at a time while recovering
 EPOCH_BLOCK = 1000  # correction epochs reserved per write
 
 _SCHEMA = """
@@ -91,11 +93,40 @@ class Batch:
         return bool(self.keyframes or self.constraints or self.in_graph or self.paths)
 
 
+class StoredKeyframes:
+    """The stored keyframes as (batch, keyframe) in admission order, read and decoded
+    `READ_PAGE` at a time each time they are iterated: a long mission's keyframes,
+    scans included (~2.5 kB each), need not all be in memory while a restart replays
+    them (`GlobalSlam.restore` lets each batch's scans go once it is admitted)."""
+
+    def __init__(self, db: sqlite3.Connection) -> None:
+        self._db = db
+        self._count = int(db.execute("SELECT count(*) FROM keyframes").fetchone()[0])
+
+    def __len__(self) -> int:
+        return self._count
+
+    def __iter__(self) -> Iterator[tuple[int, Keyframe]]:
+        last = -1
+        while True:
+            rows = self._db.execute(
+                "SELECT rowid, batch, payload FROM keyframes WHERE rowid > ? "
+                "ORDER BY rowid LIMIT ?",
+                (last, READ_PAGE),
+            ).fetchall()
+            if not rows:
+                return
+            for _, b, payload in rows:
+                yield int(b), decode(payload, Keyframe, max_bytes=len(payload) + 1)
+            last = rows[-1][0]
+
+
 @dataclass
 class Recovered:
     """The stored state, in the order it was written."""
 
-    keyframes: list[tuple[int, Keyframe]]  # (batch, keyframe) in admission order
+    # (batch, keyframe) in admission order (batches ascending)
+    keyframes: StoredKeyframes | list[tuple[int, Keyframe]]
     constraints: list[StoredConstraint]  # by id (= the order they were added)
     epoch: int  # every epoch sent before is below this
     path_id: int  # highest path id sent
@@ -186,11 +217,9 @@ class KeyframeDatabase:
 
     # --- reading ------------------------------------------------------------------------
     def load(self) -> Recovered:
-        """Everything stored, decoded; keyframes in admission order."""
-        rows = self._db.execute("SELECT batch, payload FROM keyframes ORDER BY rowid").fetchall()
-        keyframes = []
-        for b, payload in rows:
-            keyframes.append((int(b), decode(payload, Keyframe, max_bytes=len(payload) + 1)))
+        """Everything stored; keyframes in admission order, decoded as they are read
+        (`StoredKeyframes`: iterate them before anything is written again)."""
+        keyframes = StoredKeyframes(self._db)
         constraints = []
         for row in self._db.execute(
             "SELECT id, batch, robot_a, index_a, robot_b, index_b, x, y, yaw, covariance, "

@@ -208,10 +208,11 @@ d[:, 0] = d[:, -1] = d[0, :] = d[-1, :] = 100
 d[:80, 48:52] = 100
 d[20:, 25:27] = 100  # a second wall
 grid = GridMap(d, 0.1, (0.0, 0.0, 0.0))
-stop = []
+stop, rounds = [], [0]
 def hog():  # holds the GIL in turns with the planner's validity checks
     while not stop:
         sum(range(2000))
+        rounds[0] += 1
 if sys.argv[1] == "loaded":
     for _ in range(3):
         threading.Thread(target=hog, daemon=True).start()
@@ -221,13 +222,14 @@ planner = PathPlanner(inflation_m=0.3, time_budget_s=60.0, seed=7, check_budget=
 # check, so RRT* gets its whole budget on every question
 planner._grid_path = lambda grid, pm, s, g: np.array([s, g])
 t0 = time.perf_counter()
+rounds[0] = 0  # from here on: while it plans
 paths = []
 for s, g in [([1.0, 1.0], [9.0, 1.0]), ([1.5, 8.5], [8.5, 2.0]), ([3.5, 2.0], [9.0, 5.0])]:
     p = planner.plan(grid, s, g)
     paths.append(None if p is None else np.round(p, 9).tolist())
 stop.append(1)
 print(json.dumps({"paths": paths, "checks": planner.validity_checks,
-                  "wall_s": time.perf_counter() - t0}))
+                  "wall_s": time.perf_counter() - t0, "hog_rounds": rounds[0]}))
 """
 
 
@@ -249,7 +251,9 @@ def test_plans_are_the_same_however_loaded_the_machine_is(tmp_path) -> None:
     assert all(p is not None for p in out["idle"]["paths"])
     assert out["loaded"]["paths"] == out["idle"]["paths"]
     assert out["loaded"]["checks"] == out["idle"]["checks"]
-    assert out["loaded"]["wall_s"] > 1.5 * out["idle"]["wall_s"]  # the load did slow it
+    # the planner shared the interpreter with the hogs while it planned (its wall time
+    # against the idle run's is no proof: on a busy machine both are slow)
+    assert out["loaded"]["hog_rounds"] > 100 and out["idle"]["hog_rounds"] == 0
 
 
 def test_a_robot_outside_every_wall_zone_is_given_no_way_into_one() -> None:

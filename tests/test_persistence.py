@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 from process_helpers import synthetic_keyframe
 
+from basestation import persistence
 from basestation.global_slam import GlobalSlam
 from basestation.node import BaseStationNode
 from basestation.pcm import LoopMeasurement
@@ -40,7 +41,8 @@ def _measurement(i: int) -> LoopMeasurement:
     return LoopMeasurement(i, "r0", i, "r1", i + 3, np.array([0.1, -0.2, 0.3]), np.eye(3) * 0.01)
 
 
-def test_round_trip_and_wal(tmp_path: Path) -> None:
+def test_round_trip_and_wal(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setattr(persistence, "READ_PAGE", 4)  # keyframes are read in pages
     path = tmp_path / "base.db"
     db = KeyframeDatabase(path)
     assert db.journal_mode() == "wal"
@@ -59,6 +61,7 @@ def test_round_trip_and_wal(tmp_path: Path) -> None:
     again = KeyframeDatabase(path)
     rec = again.load()
     assert rec.starts == 2 and rec.epoch == 1000 and rec.path_id == 7
+    assert len(rec.keyframes) == 6 and not rec.empty
     assert [(b, k.robot_id, k.seq) for b, k in rec.keyframes] == [
         (1, "r0", 0), (1, "r0", 1), (1, "r0", 2), (2, "r0", 3), (2, "r1", 0), (2, "r1", 1)
     ]  # fmt: skip
@@ -107,9 +110,13 @@ def test_null_database() -> None:
     assert db.load().empty
 
 
-def test_global_slam_rebuilt_from_database(tmp_path: Path, cfg: Config) -> None:
+def test_global_slam_rebuilt_from_database(
+    tmp_path: Path, cfg: Config, monkeypatch: pytest.MonkeyPatch
+) -> None:
     """Keyframes and matches written as the base station writes them (one batch per
-    step) give, replayed, the same graph: same nodes, same accepted matches, same poses."""
+    step) give, replayed, the same graph: same nodes, same accepted matches, same poses;
+    the keyframes read 5 at a time, across batches."""
+    monkeypatch.setattr(persistence, "READ_PAGE", 5)
     cfg.basestation.constraints.enabled = False  # matches are fed by hand below
     starts = {"r0": np.zeros(3), "r1": np.array([0.5, 0.5, 0.0])}
     db = KeyframeDatabase(tmp_path / "base.db")

@@ -153,7 +153,8 @@ class GlobalSlam:
             for kf in kfs:
                 if self.admit(kf) == 0:
                     log.error("stored keyframe %s/%d was not admitted", kf.robot_id, kf.seq)
-            self.saved(Batch(kfs))  # on disk already: the scans may leave memory
+            self.saved(Batch(kfs))  # on disk already: the scans may leave memory, and
+            self._unsaved.clear()  # the journal need not keep the keyframes till the end
             if pending and pending[0] == b:
                 self._replay_matches(cons[pending.pop(0)])
         for b in pending:

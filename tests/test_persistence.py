@@ -141,7 +141,16 @@ def test_global_slam_rebuilt_from_database(
     db2 = KeyframeDatabase(tmp_path / "base.db")
     rec = db2.load()
     back = GlobalSlam(cfg, starts)
+    stored, held = rec.keyframes, []
+
+    def watched():  # what the replay holds while it reads on
+        for item in stored:
+            held.append(len(back._unsaved))
+            yield item
+
+    rec.keyframes = watched()
     back.restore(rec)
+    assert len(held) == 33 and max(held) <= 8  # one batch at most, never all of them
     for rid in ("r0", "r1"):
         assert back.graph.num_nodes(rid) == slam.graph.num_nodes(rid)
         assert back.store.acked_seq(rid) == slam.store.acked_seq(rid)

@@ -85,7 +85,7 @@ class GpsFixQueue:
         """Pop every fix of ``robot_id`` that two nodes now bracket (stamps increasing),
         if a batch is due (``flush``: whether or not)."""
         queue = self._pending.get(robot_id)
-        if not queue or not node_stamps:
+        if not queue or len(node_stamps) == 0:
             return []
         last = self._last_release.get(robot_id)
         if not flush and last is not None and node_stamps[-1] - last < self._batch_period_s:

@@ -184,7 +184,9 @@ class LoopClosureManager:
                 self.accepted_kinds[group.kinds[mid]] += 1
                 self.changes[mid] = True
                 if m.robot_a != m.robot_b:
-                    pair = self.links.setdefault((m.robot_a, m.robot_b), Rows(3, np.int64))
+                    pair = self.links.get((m.robot_a, m.robot_b))
+                    if pair is None:
+                        pair = self.links[(m.robot_a, m.robot_b)] = Rows(3, np.int64)
                     pair.append((mid, m.index_a, m.index_b))
             elif mid not in consistent and mid in group.in_graph:
                 self.graph.remove_constraint(group.in_graph.pop(mid))

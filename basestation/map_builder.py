@@ -32,7 +32,7 @@ import numpy as np
 from basestation.node_keys import NodeKeys
 from common.config import MapConfig
 from common.geometry import wrap_angle
-from common.growable import grown
+from common.growable import empty, grown
 from common.map_io import GridMap
 from common.occupancy_grid import OccupancyGrid
 from protocol.messages import Scan2D
@@ -80,15 +80,15 @@ class MapBuilder:
         self._rows: dict[str, np.ndarray] = {}  # robot -> row of each index (-1: none)
         # row -> key, as numbers (a tuple per keyframe would cost ~90 bytes)
         self._robot_ids: list[str] = []  # robot code -> robot id
-        self._key_robot = np.zeros(0, dtype=np.int32)  # row -> robot code
-        self._key_index = np.zeros(0, dtype=np.int32)  # row -> keyframe index
+        self._key_robot = empty((), np.int32)  # row -> robot code
+        self._key_index = empty((), np.int32)  # row -> keyframe index
         self._source = scan_source
         self._held: list[Scan2D] = []  # row -> scan, without a scan_source
-        self._pose = np.zeros((0, 3), np.float32)  # latest pose given, [x, y, yaw] in map
+        self._pose = empty((3,), np.float32)  # latest pose given, [x, y, yaw] in map
         # pose it was last drawn (or marked) at; float32: only compared with the pose (moves
         # of a centimetre and more), and a box around it redrawn
-        self._drawn = np.zeros((0, 3), np.float32)
-        self._reach = np.zeros(0, dtype=np.float32)  # farthest ray end (m)
+        self._drawn = empty((3,), np.float32)
+        self._reach = empty((), np.float32)  # farthest ray end (m)
         self._n = 0
         self._angles: dict[tuple[float, float, int], np.ndarray] = {}
         self._anchor = np.zeros(2)  # world xy of the tile lattice's corner (0, 0)
@@ -156,7 +156,8 @@ class MapBuilder:
         for name in ("_pose", "_drawn", "_reach", "_key_robot", "_key_index"):
             setattr(self, name, grown(getattr(self, name), n + k))
         for j, (key, scan) in enumerate(zip(keys, scans, strict=True)):
-            rows = self._rows.get(key[0], np.zeros(0, dtype=np.int32))
+            rows = self._rows.get(key[0])
+            rows = empty((), np.int32) if rows is None else rows
             self._rows[key[0]] = rows = grown(rows, key[1] + 1, fill=-1)
             rows[key[1]] = n + j
             if key[0] not in self._robot_ids:

@@ -51,6 +51,7 @@ from basestation.pose_graph_state import (
 from common.config import BaseStationConfig
 from common.errors import CollabSlamError
 from common.geometry import se2_compose, se2_inverse
+from common.growable import empty
 
 logger = logging.getLogger(__name__)
 
@@ -119,6 +120,7 @@ class PoseGraph(EstimateMixin, GaugeMixin, GpsMixin, ReductionMixin, RebuildMixi
         self._guesses = gtsam.Values()  # every initial guess handed to iSAM2 (for batch)
         self._new_guesses: list[gtsam.Values] = []  # the latest updates' (merged in batches)
         self._estimate = np.zeros((0, 3))  # committed poses, rows in key order
+        self._estimate_buffers = [empty((3,), np.float64), empty((3,), np.float64)]
         self._estimate_valid = True  # False: recompute on the next full-estimate query
         self._init_gps(gps_weighting, max_pending_gps_fixes, gps_batch_period_s)
         self._init_reduction(
@@ -216,7 +218,7 @@ class PoseGraph(EstimateMixin, GaugeMixin, GpsMixin, ReductionMixin, RebuildMixi
         if stamp is None:
             chain.stamps = None
         elif chain.stamps is not None:
-            chain.stamps.append(float(stamp))
+            chain.stamps.append([stamp])
         self._attach_gps(robot_id)
 
     def add_constraint(

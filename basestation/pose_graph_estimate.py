@@ -15,6 +15,7 @@ from basestation.pose_graph_reduction import CHAR_SHIFT
 from basestation.pose_graph_state import FloatArray, PoseGraphState
 from common.errors import CollabSlamError
 from common.geometry import se2_compose, wrap_angle
+from common.growable import grown, on_disk
 
 
 class EstimateMixin(PoseGraphState):
@@ -23,6 +24,7 @@ class EstimateMixin(PoseGraphState):
     if TYPE_CHECKING:  # provided by PoseGraph
         _isam: gtsam.ISAM2
         _estimate: FloatArray
+        _estimate_buffers: list[FloatArray]
         _estimate_valid: bool
         _change_epsilon: float
 
@@ -42,7 +44,7 @@ class EstimateMixin(PoseGraphState):
         chains = list(self._chains.values())
         per_chain = sum(
             c.alias_key.nbytes + c.alias_offset.nbytes
-            + (0 if c.stamps is None else c.stamps.itemsize * len(c.stamps))
+            + (0 if c.stamps is None else c.stamps.nbytes)
             for c in chains
         )  # fmt: skip
         return self._estimate.nbytes + per_chain
@@ -54,17 +56,30 @@ class EstimateMixin(PoseGraphState):
             self._estimate_valid = True
         return self._estimate
 
+    def _estimate_rows(self, n: int) -> FloatArray:
+        """Room for the next estimate's n rows. Kept on disk like the other per-node
+        arrays (the base station: common.growable), in two buffers taken in turn (the
+        last estimate stays valid while the next is made); else a new array."""
+        bufs = self._estimate_buffers
+        if not on_disk(bufs[0]):
+            return np.empty((n, 3))
+        bufs.reverse()
+        bufs[0] = grown(bufs[0], n)
+        return bufs[0][:n]
+
     def _extract(self, values: gtsam.Values) -> FloatArray:
         """Every committed node's pose, chain after chain in index order."""
         # Keys sort by (character, index), so rows come chain after chain in index order.
         rows = np.asarray(gtsam.utilities.extractPose2(values), dtype=np.float64).reshape(-1, 3)
         expected = sum(c.num_committed for c in self._chains.values())
+        out = self._estimate_rows(expected)
         if not self.reducing:
             if rows.shape[0] != expected:
                 raise CollabSlamError(f"estimate has {rows.shape[0]} poses, expected {expected}")
-            return rows
+            out[:] = rows
+            return out
+        done = 0
         keys = np.fromiter(values.keys(), dtype=np.int64, count=values.size())
-        out = []
         for chain in self._chains.values():
             n = chain.num_committed
             chain.grow_aliases(n)
@@ -77,8 +92,9 @@ class EstimateMixin(PoseGraphState):
             poses = rows[at] if n else np.zeros((0, 3))
             mask = aliases >= 0
             poses[mask] = se2_compose(poses[mask], chain.alias_offset[:n][mask])
-            out.append(poses)
-        return np.vstack(out) if out else np.zeros((0, 3))
+            out[done : done + n] = poses
+            done += n
+        return out
 
     def _changed_robots(
         self, old: FloatArray, new: FloatArray, old_counts: list[int]

@@ -72,7 +72,7 @@ class GpsMixin(PoseGraphState):
             if chain.stamps is not None and self._gps.pending(robot_id):
                 raise CollabSlamError(f"robot {robot_id!r}: GPS fixes wait, nodes need stamps")
         elif chain.stamps is not None:
-            if not np.isfinite(stamp) or (chain.stamps and stamp <= chain.stamps[-1]):
+            if not np.isfinite(stamp) or (len(chain.stamps) and stamp <= chain.stamps[-1, 0]):
                 raise CollabSlamError(f"robot {robot_id!r}: node stamps must increase, got {stamp}")
 
     def _attach_gps(self, robot_id: str, flush: bool = False) -> int:
@@ -82,7 +82,7 @@ class GpsMixin(PoseGraphState):
             return 0
         w = self._gps_weighting
         added = 0
-        for b in self._gps.ready(robot_id, chain.stamps, flush):
+        for b in self._gps.ready(robot_id, chain.stamps.view()[:, 0], flush):
             if any(i < len(chain.alias_key) and chain.alias_key[i] >= 0 for i in (b.i, b.j)):
                 self.gps_dropped_reduced += 1  # a fix late enough to find its nodes reduced
                 continue

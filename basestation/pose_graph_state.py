@@ -12,7 +12,6 @@ covariances 3x3 in the node's body frame (m^2 / rad^2).
 from __future__ import annotations
 
 import math
-from array import array
 from dataclasses import dataclass, field
 from typing import Literal, NamedTuple
 
@@ -21,7 +20,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from common.errors import CollabSlamError
-from common.growable import grown
+from common.growable import Rows, empty, grown
 
 FloatArray = NDArray[np.float64]
 FactorKind = Literal["odometry", "start", "gauge", "constraint", "gps"]  # start: known-start prior
@@ -61,12 +60,12 @@ class Chain:
     start_sigmas: FloatArray | None = None  # loose start prior (GPS: virtual ENU origin)
     # node stamps (s; float64 in an array: 8 bytes a node, not a 32-byte float object each);
     # None: unstamped
-    stamps: array | None = field(default_factory=lambda: array("d"))
+    stamps: Rows | None = field(default_factory=lambda: Rows(1))
     # reduced pose graph (pose_graph_reduction): node i is an alias of variable
     # alias_key[i] (-1: its own variable) at T_anchor_node = alias_offset[i] (float32: an
     # offset is at most a few metres, 1e-7 of it is far below the map's resolution)
-    alias_key: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
-    alias_offset: np.ndarray = field(default_factory=lambda: np.zeros((0, 3), np.float32))
+    alias_key: np.ndarray = field(default_factory=lambda: empty((), np.int64))
+    alias_offset: np.ndarray = field(default_factory=lambda: empty((3,), np.float32))
     reduce_next: int = 1  # first node the reduction pass has not looked at
     # nodes with a loop closure or inter-robot constraint (reducing graphs only; from
     # LINK_KEYFRAMES behind reduce_next on: the reduction pass drops older ones)

@@ -6,8 +6,8 @@ robot as separate processes over loopback Zenoh) flying scripted tours
 each long enough for the whole sim time at cruise speed. While it runs, every
 `sample_s` of wall time the bench records:
 
-- the base station's resident memory (VmRSS of its process, MB) and the agents'
-  (the largest of them);
+- the base station's resident memory (VmRSS of its process, MB; and RssAnon, the part
+  not backed by a file) and the agents' (the largest of them);
 - each robot's outbox length (from the RobotState every agent publishes each
   `agent.state_period_s` of sim time; the bench joins the fleet's Zenoh network as
   a client of the base station once it listens, which takes a few seconds, so the
@@ -25,8 +25,11 @@ line fitted to the base station's RSS over the second half of the mission
 process start-up, imports and tour planning come before it). The base station keeps every
 keyframe's node in iSAM2 (its scan only in a bounded cache, older ones in the database),
 so it must grow with the keyframes;
-`rss_mb_per_1000_keyframes_second_half` gives that slope per keyframe for comparison
-(docs/architecture.md "Soak benchmark" has the measured numbers).
+`rss_mb_per_1000_keyframes_second_half` gives that slope per keyframe for comparison;
+the `rss_anon_*` keys the same for the anonymous part: the base station keeps its
+per-keyframe arrays in memory-mapped files (common/growable.py), whose pages count in
+VmRSS while they are cached but which the kernel writes back and drops when it needs
+the memory (docs/architecture.md "Soak benchmark" has the measured numbers).
 """
 
 from __future__ import annotations
@@ -58,8 +61,9 @@ log = logging.getLogger(__name__)
 TOUR_MARGIN = 1.1  # tour length = margin * sim time * cruise speed
 
 
-def rss_mb(pid: int) -> tuple[float, float] | None:
-    """(VmRSS, VmHWM) of a process in MB (resident now, peak resident); None if gone."""
+def rss_mb(pid: int) -> tuple[float, float, float] | None:
+    """(VmRSS, VmHWM, RssAnon) of a process in MB (resident now, peak resident, resident
+    and not backed by a file: what the kernel cannot drop); None if gone."""
     try:
         text = Path(f"/proc/{pid}/status").read_text()
     except OSError:
@@ -67,11 +71,12 @@ def rss_mb(pid: int) -> tuple[float, float] | None:
     kb = {}
     for line in text.splitlines():
         key, _, value = line.partition(":")
-        if key in ("VmRSS", "VmHWM"):
+        if key in ("VmRSS", "VmHWM", "RssAnon"):
             kb[key] = float(value.split()[0])
     if "VmRSS" not in kb:
         return None  # a zombie
-    return kb["VmRSS"] / 1024.0, kb.get("VmHWM", kb["VmRSS"]) / 1024.0
+    rss = kb["VmRSS"]
+    return rss / 1024.0, kb.get("VmHWM", rss) / 1024.0, kb.get("RssAnon", rss) / 1024.0
 
 
 def cpu_seconds(pid: int) -> float | None:
@@ -161,6 +166,7 @@ class _Sampler:
         self.t0 = time.monotonic()
         self.t0_unix = time.time()
         self.rss: list[list[float]] = []
+        self.rss_anon: list[list[float]] = []
         self.agent_rss: list[list[float]] = []
         self.rss_peak = 0.0
         self.agent_peak: dict[str, float] = {}
@@ -189,6 +195,7 @@ class _Sampler:
         base = _child(self.launcher, "basestation")
         if base is not None and (m := rss_mb(base.proc.pid)) is not None:
             self.rss.append([round(t, 2), round(m[0], 2)])
+            self.rss_anon.append([round(t, 2), round(m[2], 2)])
             self.rss_peak = max(self.rss_peak, m[1])
             self._sample_cpu(t, base.proc.pid)
             ep = _listen_endpoint(base)
@@ -304,6 +311,11 @@ def _result(
         "rss_peak_mb": round(max([s.rss_peak, *(r[1] for r in s.rss)]), 2),
         "rss_growth_mb_per_min_second_half": slope_per_min(s.rss, half, end),
         "rss_mb_per_1000_keyframes_second_half": kf_vs_rss,
+        "rss_anon_mb": s.rss_anon,
+        "rss_anon_growth_mb_per_min_second_half": slope_per_min(s.rss_anon, half, end),
+        "rss_anon_mb_per_1000_keyframes_second_half": _rss_per_keyframe(
+            s.rss_anon, s.acked, half, end
+        ),
         "basestation_cpu": s.cpu,
         "basestation_cpu_cores_mean": _mean_between(s.cpu, start, end),
         "load_average_mean": _mean_between(s.cpu, start, end, col=2),

@@ -120,13 +120,18 @@ def _segment(text: str | None) -> tuple[float | None, float | None]:
 
 def cmd_basestation(args: argparse.Namespace) -> int:
     from basestation.node import BaseStationNode
+    from common.growable import keep_on_disk
     from common.memory import fix_mmap_threshold, limit_malloc_arenas
     from common.scenario import read_scenario
     from common.shutdown import install_signal_handlers
 
     cfg = load_cfg(args)
-    limit_malloc_arenas(cfg.basestation.malloc_arenas)  # before Zenoh starts its threads
-    fix_mmap_threshold(cfg.basestation.malloc_mmap_threshold_kb)
+    b = cfg.basestation
+    limit_malloc_arenas(b.malloc_arenas)  # before Zenoh starts its threads
+    fix_mmap_threshold(b.malloc_mmap_threshold_kb)
+    if b.arrays_dir != "memory":  # "": next to the database, else the temporary directory
+        db_dir = str(Path(b.db_path).resolve().parent) if b.db_path else ""
+        keep_on_disk(b.arrays_dir or db_dir)
     scenario = read_scenario(args.scenario) if args.scenario else None
     stop = threading.Event()
     install_signal_handlers(stop)

@@ -344,15 +344,16 @@ class BaseStationConfig:
     # a restart with the same file resumes the mission. Empty: no persistence.
     db_path: str = ""
     update_series_period_s: float = 10.0  # s wall per row of iSAM2 latencies over time
-    # glibc malloc arenas the base station process may use (0: glibc's default, 8 per
-    # core). Its Zenoh and verifier threads each got an arena of their own, and the
-    # free memory left in them grew with the mission (common/memory.py).
+    # glibc malloc arenas of the base station process (0: glibc's default, 8 per core; its
+    # threads' arenas kept free memory that grew with the mission: common/memory.py)
     malloc_arenas: int = 2
     # KiB from which malloc maps a block on its own and unmaps it when freed (0: glibc's
-    # threshold, which rises to every freed mapped block's size, up to 32 MB): the
-    # per-update arrays over all keyframes then leave the heap with the update
-    # (common/memory.py; an offline soak replay: ~15 MB lower, 419 against 435 MB peak).
+    # threshold, rising up to 32 MB): per-update arrays over all keyframes leave the heap
     malloc_mmap_threshold_kb: int = 256
+    # Where the per-keyframe arrays live (~150 bytes a keyframe; common/growable.py):
+    # memory-mapped temporary files in this directory ("": the database's directory, or
+    # the system's temporary one without a database; not a tmpfs) or "memory"
+    arrays_dir: str = ""
     # Map snapshots kept for coverage over time (exploration): beyond this many, every
     # other one is dropped and the sync stride doubles (~40 kB each for 30 x 25 m; 0: all).
     map_history_max_snapshots: int = 1000

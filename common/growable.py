@@ -4,15 +4,94 @@ Capacity grows by a quarter (`grown_capacity`), not by doubling: at most a fifth
 an array is unused, and a long mission's memory rises with its keyframes instead of
 in doubling steps (a 10-robot soak's per-robot arrays doubling at 8,192 keyframes
 each added ~10 MB at once).
+
+A process may keep these arrays on disk (`keep_on_disk`, the base station does): each
+is then a shared memory map of its own unnamed temporary file, which grows in place
+(the file is extended and mapped again: no copy). Their pages are the kernel's page
+cache, not the process's heap: written back to the file and dropped from memory when
+the machine needs it, read in again when touched. A mission's private memory then
+does not grow with its keyframes (~150 bytes a keyframe in the base station, ~15 MB
+an hour for 10 drones); arrays made before the call, or from `np.zeros` rather than
+`empty`, stay in memory.
 """
 
 from __future__ import annotations
 
+import mmap
+import os
+import tempfile
+
 import numpy as np
 from numpy.typing import ArrayLike
 
+from common.errors import ConfigError
+
 GROWTH = 1.25  # new capacity / old when an array is full
 MIN_CAPACITY = 64
+
+_disk_dir: str | None = None  # where new arrays are kept (None: in memory)
+
+
+def keep_on_disk(directory: str | None) -> None:
+    """Arrays made by `empty` from now on live in memory-mapped temporary files in
+    `directory` ("": the system's temporary directory; None: in memory again)."""
+    global _disk_dir
+    if directory:
+        if not os.path.isdir(directory) or not os.access(directory, os.W_OK):
+            raise ConfigError(f"per-keyframe arrays: {directory!r} is not a writable directory")
+    _disk_dir = None if directory is None else (directory or tempfile.gettempdir())
+
+
+class _File:
+    """An unnamed temporary file (removed from its directory at once), closed when no
+    map of it is left."""
+
+    def __init__(self, directory: str) -> None:
+        fd, path = tempfile.mkstemp(prefix="collabslam-arrays-", dir=directory)
+        os.unlink(path)
+        self.fd = fd
+
+    def __del__(self) -> None:
+        os.close(self.fd)
+
+
+class _Mapping(mmap.mmap):
+    """A shared map of a whole temporary file, which it keeps to grow it."""
+
+    file: _File
+
+
+def _mapped(file: _File, shape: tuple[int, ...], dtype: np.dtype) -> np.ndarray:
+    """The file's first rows as an array of `shape` (the file extended to hold them)."""
+    count = int(np.prod(shape))
+    size = max(count * dtype.itemsize, mmap.PAGESIZE)  # an empty map is not allowed
+    if os.fstat(file.fd).st_size < size:
+        os.ftruncate(file.fd, size)  # new bytes read as zeros, take no room until written
+    m = _Mapping(file.fd, size)
+    m.file = file
+    return np.frombuffer(m, dtype, count=count).reshape(shape)
+
+
+def _mapping_of(a: np.ndarray) -> _Mapping | None:
+    base = a
+    while isinstance(base, np.ndarray):
+        base = base.base
+    if isinstance(base, memoryview):
+        base = base.obj
+    return base if isinstance(base, _Mapping) else None
+
+
+def on_disk(a: np.ndarray) -> bool:
+    """True if `a` lives in a memory-mapped file (`keep_on_disk`)."""
+    return _mapping_of(a) is not None
+
+
+def empty(tail: tuple[int, ...], dtype: type | np.dtype) -> np.ndarray:
+    """A (0, *tail) array of `dtype` to grow with `grown`: on disk after `keep_on_disk`."""
+    dtype = np.dtype(dtype)
+    if _disk_dir is None:
+        return np.zeros((0, *tail), dtype)
+    return _mapped(_File(_disk_dir), (0, *tail), dtype)
 
 
 def grown_capacity(capacity: int, needed: int) -> int:
@@ -22,19 +101,28 @@ def grown_capacity(capacity: int, needed: int) -> int:
 
 def grown(a: np.ndarray, needed: int, fill: float = 0) -> np.ndarray:
     """`a` (rows along axis 0) with room for `needed` rows, new rows set to `fill`;
-    `a` itself when it has room."""
+    `a` itself when it has room. An array on disk grows in its file (`a`'s rows and
+    every view of them stay valid: they share the file)."""
     if needed <= len(a):
         return a
-    out = np.full((grown_capacity(len(a), needed), *a.shape[1:]), fill, dtype=a.dtype)
-    out[: len(a)] = a
+    capacity = grown_capacity(len(a), needed)
+    m = _mapping_of(a)
+    if m is None:
+        out = np.full((capacity, *a.shape[1:]), fill, dtype=a.dtype)
+        out[: len(a)] = a
+        return out
+    out = _mapped(m.file, (capacity, *a.shape[1:]), a.dtype)
+    if fill != 0:
+        out[len(a) :] = fill
     return out
 
 
 class Rows:
-    """A growable (n, k) array: rows appended one at a time."""
+    """A growable (n, k) array: rows appended one at a time (on disk after
+    `keep_on_disk`)."""
 
     def __init__(self, k: int, dtype: type = np.float64) -> None:
-        self._a = np.zeros((0, k), dtype)
+        self._a = empty((k,), dtype)
         self._n = 0
 
     def append(self, row: ArrayLike) -> None:

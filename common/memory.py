@@ -122,26 +122,29 @@ def _sqlite_memory_used() -> Callable[[], int] | None:
 _MALLINFO2 = _mallinfo2()
 _SQLITE_MEMORY_USED = _sqlite_memory_used()
 MEMORY_COLUMNS = [
-    "t_s", "rss_mb", "heap_in_use_mb", "heap_free_mb", "malloc_mmap_mb", "sqlite_mb",
+    "t_s", "rss_mb", "rss_anon_mb", "heap_in_use_mb", "heap_free_mb", "malloc_mmap_mb", "sqlite_mb",
     "py_blocks_k", "arrays_mb", "factors", "count",
 ]  # fmt: skip
 
 
 def memory_sample() -> list[float]:
-    """[rss_mb, heap_in_use_mb, heap_free_mb, malloc_mmap_mb, sqlite_mb, py_blocks_k] of
-    this process now (the heap columns NaN without glibc's mallinfo2, sqlite_mb without
-    a reachable SQLite library)."""
+    """[rss_mb, rss_anon_mb, heap_in_use_mb, heap_free_mb, malloc_mmap_mb, sqlite_mb,
+    py_blocks_k] of this process now (rss_anon_mb: the resident pages not backed by a
+    file, which the kernel cannot drop; the heap columns NaN without glibc's mallinfo2,
+    sqlite_mb without a reachable SQLite library)."""
     try:
         with open("/proc/self/statm") as f:
-            rss = int(f.read().split()[1]) * os.sysconf("SC_PAGE_SIZE") / 2**20
+            resident, shared = (int(v) for v in f.read().split()[1:3])  # shared: file-backed
+        mb = os.sysconf("SC_PAGE_SIZE") / 2**20
+        rss, anon = resident * mb, (resident - shared) * mb
     except OSError:
-        rss = float("nan")
+        rss = anon = float("nan")
     heap = [float("nan")] * 3
     if _MALLINFO2 is not None:
         m = _MALLINFO2()
         heap = [m.uordblks / 2**20, m.fordblks / 2**20, m.hblkhd / 2**20]
     sqlite = float("nan") if _SQLITE_MEMORY_USED is None else _SQLITE_MEMORY_USED() / 2**20
-    return [rss, *heap, sqlite, sys.getallocatedblocks() / 1000.0]
+    return [rss, anon, *heap, sqlite, sys.getallocatedblocks() / 1000.0]
 
 
 class HeapTrimmer:

@@ -41,8 +41,8 @@ def test_update_series_rows_per_period() -> None:
 
 
 def test_memory_helpers() -> None:
-    now, peak = rss_mb(os.getpid()) or (0.0, 0.0)
-    assert 0.0 < now <= peak
+    now, peak, anon = rss_mb(os.getpid()) or (0.0, 0.0, 0.0)
+    assert 0.0 < anon < now <= peak
     assert rss_mb(2**22 + 12345) is None  # beyond pid_max: no such process
     line = [[t, 100.0 + 0.5 * t] for t in np.arange(0.0, 120.0, 5.0)]
     assert slope_per_min(line, 60.0, 120.0) == pytest.approx(30.0)

@@ -186,7 +186,8 @@ class LoopClosureManager:
                 if m.robot_a != m.robot_b:
                     pair = self.links.get((m.robot_a, m.robot_b))
                     if pair is None:
-                        pair = self.links[(m.robot_a, m.robot_b)] = Rows(3, np.int64)
+                        pair = Rows(3, np.int64, memory=True)  # per constraint
+                        self.links[(m.robot_a, m.robot_b)] = pair
                     pair.append((mid, m.index_a, m.index_b))
             elif mid not in consistent and mid in group.in_graph:
                 self.graph.remove_constraint(group.in_graph.pop(mid))

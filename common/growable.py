@@ -34,12 +34,23 @@ _disk_dir: str | None = None  # where new arrays are kept (None: in memory)
 
 def keep_on_disk(directory: str | None) -> None:
     """Arrays made by `empty` from now on live in memory-mapped temporary files in
-    `directory` ("": the system's temporary directory; None: in memory again)."""
+    `directory` ("": the system's temporary directory; None: in memory again). Each
+    holds two file descriptors (its file and its map), so the process's soft limit on
+    open files is raised to the hard one."""
     global _disk_dir
     if directory:
         if not os.path.isdir(directory) or not os.access(directory, os.W_OK):
             raise ConfigError(f"per-keyframe arrays: {directory!r} is not a writable directory")
     _disk_dir = None if directory is None else (directory or tempfile.gettempdir())
+    if _disk_dir is not None:
+        try:
+            import resource
+
+            soft, hard = resource.getrlimit(resource.RLIMIT_NOFILE)
+            if soft != resource.RLIM_INFINITY and (hard == resource.RLIM_INFINITY or hard > soft):
+                resource.setrlimit(resource.RLIMIT_NOFILE, (hard, hard))
+        except (ImportError, ValueError, OSError):  # not on this system: keep the limit
+            pass
 
 
 class _File:
@@ -86,10 +97,11 @@ def on_disk(a: np.ndarray) -> bool:
     return _mapping_of(a) is not None
 
 
-def empty(tail: tuple[int, ...], dtype: type | np.dtype) -> np.ndarray:
-    """A (0, *tail) array of `dtype` to grow with `grown`: on disk after `keep_on_disk`."""
+def empty(tail: tuple[int, ...], dtype: type | np.dtype, memory: bool = False) -> np.ndarray:
+    """A (0, *tail) array of `dtype` to grow with `grown`: on disk after `keep_on_disk`
+    unless `memory` (arrays of a few rows, not one per keyframe: not worth a file)."""
     dtype = np.dtype(dtype)
-    if _disk_dir is None:
+    if _disk_dir is None or memory:
         return np.zeros((0, *tail), dtype)
     return _mapped(_File(_disk_dir), (0, *tail), dtype)
 
@@ -119,10 +131,10 @@ def grown(a: np.ndarray, needed: int, fill: float = 0) -> np.ndarray:
 
 class Rows:
     """A growable (n, k) array: rows appended one at a time (on disk after
-    `keep_on_disk`)."""
+    `keep_on_disk`, unless `memory`)."""
 
-    def __init__(self, k: int, dtype: type = np.float64) -> None:
-        self._a = empty((k,), dtype)
+    def __init__(self, k: int, dtype: type = np.float64, memory: bool = False) -> None:
+        self._a = empty((k,), dtype, memory)
         self._n = 0
 
     def append(self, row: ArrayLike) -> None:

@@ -45,6 +45,7 @@ def test_an_array_on_disk_grows_in_its_file(arrays_dir: Path) -> None:
         r.append((i, -i))
     assert on_disk(r.view()) and r[999].tolist() == [999, -999] and len(r) == 1000
     assert not on_disk(r.view() + 1) and not on_disk(np.zeros(3))
+    assert not on_disk(grown(empty((2,), np.int64, memory=True), 5))
     keep_on_disk(None)
     assert not on_disk(empty((3,), np.float32)) and not on_disk(Rows(2).view())
 

@@ -17,6 +17,7 @@ an hour for 10 drones); arrays made before the call, or from `np.zeros` rather t
 
 from __future__ import annotations
 
+import logging
 import mmap
 import os
 import tempfile
@@ -25,6 +26,8 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from common.errors import ConfigError
+
+log = logging.getLogger(__name__)
 
 GROWTH = 1.25  # new capacity / old when an array is full
 MIN_CAPACITY = 64
@@ -57,13 +60,16 @@ class _File:
     """An unnamed temporary file (removed from its directory at once), closed when no
     map of it is left."""
 
+    fd = -1
+
     def __init__(self, directory: str) -> None:
         fd, path = tempfile.mkstemp(prefix="collabslam-arrays-", dir=directory)
         os.unlink(path)
         self.fd = fd
 
     def __del__(self) -> None:
-        os.close(self.fd)
+        if self.fd >= 0:
+            os.close(self.fd)
 
 
 class _Mapping(mmap.mmap):
@@ -77,7 +83,12 @@ def _mapped(file: _File, shape: tuple[int, ...], dtype: np.dtype) -> np.ndarray:
     count = int(np.prod(shape))
     size = max(count * dtype.itemsize, mmap.PAGESIZE)  # an empty map is not allowed
     if os.fstat(file.fd).st_size < size:
-        os.ftruncate(file.fd, size)  # new bytes read as zeros, take no room until written
+        # the room reserved now: a full disk is an OSError here, not a SIGBUS when a page
+        # of a sparse file is first written; new bytes read as zeros
+        if hasattr(os, "posix_fallocate"):
+            os.posix_fallocate(file.fd, 0, size)
+        else:
+            os.ftruncate(file.fd, size)
     m = _Mapping(file.fd, size)
     m.file = file
     return np.frombuffer(m, dtype, count=count).reshape(shape)
@@ -101,9 +112,14 @@ def empty(tail: tuple[int, ...], dtype: type | np.dtype, memory: bool = False) -
     """A (0, *tail) array of `dtype` to grow with `grown`: on disk after `keep_on_disk`
     unless `memory` (arrays of a few rows, not one per keyframe: not worth a file)."""
     dtype = np.dtype(dtype)
-    if _disk_dir is None or memory:
-        return np.zeros((0, *tail), dtype)
-    return _mapped(_File(_disk_dir), (0, *tail), dtype)
+    if _disk_dir is not None and not memory:
+        try:
+            return _mapped(_File(_disk_dir), (0, *tail), dtype)
+        except OSError as exc:
+            log.warning(
+                "per-keyframe arrays: no file in %s (%s): this one in memory", _disk_dir, exc
+            )
+    return np.zeros((0, *tail), dtype)
 
 
 def grown_capacity(capacity: int, needed: int) -> int:
@@ -119,13 +135,17 @@ def grown(a: np.ndarray, needed: int, fill: float = 0) -> np.ndarray:
         return a
     capacity = grown_capacity(len(a), needed)
     m = _mapping_of(a)
-    if m is None:
-        out = np.full((capacity, *a.shape[1:]), fill, dtype=a.dtype)
-        out[: len(a)] = a
-        return out
-    out = _mapped(m.file, (capacity, *a.shape[1:]), a.dtype)
-    if fill != 0:
-        out[len(a) :] = fill
+    if m is not None:
+        try:
+            out = _mapped(m.file, (capacity, *a.shape[1:]), a.dtype)
+        except OSError as exc:  # e.g. the disk is full: go on in memory
+            log.warning("per-keyframe arrays: cannot grow on disk (%s): in memory from now on", exc)
+        else:
+            if fill != 0:
+                out[len(a) :] = fill
+            return out
+    out = np.full((capacity, *a.shape[1:]), fill, dtype=a.dtype)
+    out[: len(a)] = a
     return out
 
 

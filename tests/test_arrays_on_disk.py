@@ -4,6 +4,9 @@ them in memory does."""
 
 from __future__ import annotations
 
+import logging
+import resource
+import signal
 from pathlib import Path
 
 import numpy as np
@@ -103,3 +106,24 @@ def test_a_base_station_with_its_arrays_on_disk_makes_the_same_map_and_poses(
         np.testing.assert_array_equal(other.positions, t.positions)
         np.testing.assert_array_equal(other.quats_xyzw, t.quats_xyzw)
     np.testing.assert_array_equal(disk.map.grid.log_odds, plain.map.grid.log_odds)
+
+
+def test_an_array_the_disk_has_no_room_for_goes_on_in_memory(
+    arrays_dir: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    """A full disk (here: a file-size limit) makes growth an error it survives, not a
+    SIGBUS when a page of the file is first written."""
+    a = grown(empty((4,), np.float64), 100, fill=1.0)
+    assert on_disk(a)
+    limit = resource.getrlimit(resource.RLIMIT_FSIZE)
+    handler = signal.signal(signal.SIGXFSZ, signal.SIG_IGN)  # EFBIG instead of a kill
+    try:
+        resource.setrlimit(resource.RLIMIT_FSIZE, (a.nbytes + 8192, limit[1]))
+        with caplog.at_level(logging.WARNING, logger="common.growable"):
+            b = grown(a, 1000, fill=2.0)
+    finally:
+        resource.setrlimit(resource.RLIMIT_FSIZE, limit)
+        signal.signal(signal.SIGXFSZ, handler)
+    assert not on_disk(b) and len(b) == 1000
+    assert np.all(b[:100] == 1.0) and np.all(b[100:] == 2.0)
+    assert "cannot grow on disk" in caplog.text

@@ -34,10 +34,15 @@ def plot_soak(result: dict[str, Any], path: Path) -> None:
 
     t, mb = _xy(result["rss_mb"])
     ax_mem.plot(t, mb, color="tab:blue", lw=1.2, label="base station")
+    if result.get("rss_anon_mb"):
+        t, mb = _xy(result["rss_anon_mb"])
+        ax_mem.plot(t, mb, color="tab:blue", lw=0.8, ls="--", label="base station, anonymous")
     t, mb = _xy(result["agent_rss_max_mb"])
     ax_mem.plot(t, mb, color="tab:orange", lw=1.0, label="largest agent")
     slope = result.get("rss_growth_mb_per_min_second_half")
     slope_txt = "n/a" if slope is None else f"{slope:+.2f} MB/min"
+    anon = result.get("rss_anon_growth_mb_per_min_second_half")
+    slope_txt += "" if anon is None else f" ({anon:+.2f} anonymous)"
     ax_mem.set_title(
         f"{result['robots']} robots, {result['sim_minutes']:g} sim min on {result['world']}: "
         f"base peak {result['rss_peak_mb']:.0f} MB, 2nd-half growth {slope_txt}",

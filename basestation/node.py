@@ -7,9 +7,8 @@ basestation/persistence.py; a restart with the same database resumes), publishes
 each robot's T_map_odom after every optimization, and keeps the global occupancy
 grid up to date. At shutdown it writes the map, the trajectories and its statistics.
 
-Threads: Zenoh callbacks only enqueue (a robot's state is answered there, with where
-the others are); the constraint builder verifies matches on its own worker;
-everything else runs on `run()`'s thread.
+Threads: Zenoh callbacks only enqueue (a robot's state is answered there, with where the
+others are); the constraint builder verifies matches on its worker; the rest is `run()`'s.
 """
 
 from __future__ import annotations
@@ -58,9 +57,8 @@ from protocol import Path as PathMsg
 
 log = logging.getLogger(__name__)
 
-# s of tile redraws between two heap trims when the outputs are written: finishing every
-# tile of a long mission at once left the redraw threads' freed temporaries in glibc's
-# arenas (resident, not live)
+# s of tile redraws between two heap trims when the outputs are written (all at once left
+# the redraw threads' freed temporaries in glibc's arenas: resident, not live)
 OUTPUT_REDRAW_CHUNK_S = 1.0
 
 
@@ -69,11 +67,10 @@ class BaseStationNode:
         self.cfg = cfg
         self.bus = bus
         self.keys = bus.keys
-        # With a scenario the roster is closed (other robot ids are dropped). Its start
-        # poses are used when basestation.known_start_poses is true; otherwise only the
-        # first robot's (it defines the map frame) and the others are found by matching.
-        # With GPS and unknown start poses, robots start from their first GNSS fix with the
-        # scenario's start heading (standing in for the autopilot's compass, seed 000 III-C).
+        # With a scenario the roster is closed (other ids dropped). Its start poses are used
+        # if basestation.known_start_poses; else the first robot's (the map frame) and the
+        # others found by matching; with GPS, each starts at its first GNSS fix with the
+        # scenario's heading (standing in for the autopilot's compass, seed 000 III-C).
         starts: dict[str, np.ndarray] = {}
         headings: dict[str, float] = {}
         self.roster: set[str] | None = None
@@ -108,8 +105,12 @@ class BaseStationNode:
         self._last_map = 0.0
         self._map_dirty = False
         self._lock = threading.Lock()
-        # lock-step handshake: the simulator's latest request (sim time) and our answer
+        # lock-step handshake: the simulator's latest request (sim time) and our answer; its
+        # clock alone paces exploration (a wall-clock step before the first handshake planned
+        # on the scans in so far, paths held for seconds) unless none comes for the timeout
         self._sync_requested = self._sync_answered = -1.0
+        lockstep = scenario is not None and cfg.base_sync_period_s() > 0.0
+        self._wall_pacing_from = lockstep * (time.monotonic() + cfg.sim.basestation_timeout_s)
         self.syncs = 0
         self.map_history = MapHistory(max_snapshots=cfg.basestation.map_history_max_snapshots)
         self.links: dict[str, dict[str, int]] = {}  # agent -> {"joins": n, "losses": n}
@@ -245,6 +246,7 @@ class BaseStationNode:
         elif (
             self.explorer is not None
             and self._sync_answered < 0.0  # no lock-step simulator: pace by the wall clock
+            and now >= self._wall_pacing_from
             and now - self._last_explore >= self.cfg.exploration.period_s
         ):
             self._last_explore = now
@@ -274,12 +276,10 @@ class BaseStationNode:
         self.bus.publish(self.keys.clock("basestation"), ClockSync("basestation", stamp))
 
     def _await_first_keyframes(self, timeout_s: float) -> None:
-        """Before the first answer to the simulator (t = 0): take keyframes until every
-        robot of the scenario's roster (without one: every agent that is up) has its
-        first one in, or `timeout_s` (wall) has passed. They race the clock over Zenoh
-        (the outbox resends one that was published before the route to us existed; an
-        agent's liveliness token may not have reached us yet either); a robot missing
-        from the first exploration step would wait a period for its first path."""
+        """Before the first answer to the simulator (t = 0): take keyframes until every robot
+        of the roster (without one: every agent up) has its first one in, or `timeout_s`
+        (wall) has passed: they race the clock over Zenoh (outbox resends, liveliness), and
+        a robot missing from the first exploration step would wait a period for its path."""
         deadline = time.monotonic() + timeout_s
         while True:
             with self._lock:

@@ -112,9 +112,8 @@ class SimConfig:
     rate: float = 1.0  # sim seconds per wall second when clock = realtime
     seed: int = 0
     lockstep_timeout_s: float = 2.0  # s wall: re-publish a tick if an agent has not answered
-    # Lock-step with exploration: every exploration.period_s of sim time the clock also
-    # waits for the base station (map refresh + exploration step), so exploration does not
-    # depend on machine load. Waits longer than basestation_timeout_s (wall) are given up.
+    # Lock-step with exploration: every exploration.period_s of sim time the clock waits for
+    # the base station's step (Config.base_sync_period_s); waits > basestation_timeout_s end.
     sync_basestation: bool = True
     basestation_timeout_s: float = 60.0  # s wall
     # The first handshake is at t = 0: the base station answers it once every agent that is
@@ -252,11 +251,9 @@ class MapConfig:
     max_free_range_m: float = 10.0  # m, no-return beams clear free space up to here
     pose_moved_m: float = 0.02  # m: a keyframe that moved more than this forces a re-render
     pose_moved_rad: float = 0.005  # rad: likewise for heading
-    # Re-rendering after a correction (basestation/map_builder.py) redraws the moved region
-    # tile by tile (square tiles of this side, m; a multiple of resolution_m), most-moved
-    # tile first, spending at most rerender_budget_s of the base station's main thread per
-    # map refresh; the rest continues at the next refreshes. The map written at shutdown
-    # finishes every pending tile.
+    # After a correction the moved region is redrawn tile by tile (tiles of this side, a
+    # multiple of resolution_m), most-moved first, at most rerender_budget_s of the main
+    # thread per map refresh (basestation/map_builder.py); outputs finish every tile.
     rerender_tile_m: float = 12.0  # m (8: 1.7x the CPU of 12 for a full redraw; 16: 0.9x)
     rerender_budget_s: float = 0.1  # s wall per map refresh
 
@@ -304,15 +301,12 @@ class BaseStationConfig:
     # fill-in exceeds this x the last ordering's; 0: never. city10000 at 1.5: +8% CPU: off.
     adaptive_reorder_threshold: float = 0.0
     track_changes: bool = False  # O(n) UpdateStats.changed_robots per update (not needed)
-    # Reduced pose graph (basestation/pose_graph_reduction.py): once the graph has
-    # reduce_after_nodes nodes, a node reduce_lag keyframes old becomes an alias of a variable
-    # within reduce_distance_m (0: never), two factors away, of its robot or of one it shares
-    # several inter-robot constraints with: memory stays flat. From 2,000 nodes on: below,
-    # an update stays under ~1 ms unreduced and frozen offsets would only cost accuracy
-    # (Intel, 4,078 nodes: 0.0151 m unreduced, 0.0162 m reduced from the first node);
-    # city10000 from 2,000 nodes: p95 as low as reduced from the first node, offset from
-    # the batch optimum 0.019 m instead of 0.027 m; from 10,000 nodes: p95 21 ms. A tie
-    # budget also leaves out odometry between places already joined (pose_graph_reduction).
+    # Reduced pose graph (basestation/pose_graph_reduction.py): from reduce_after_nodes
+    # nodes on, a node reduce_lag keyframes old becomes an alias of a variable within
+    # reduce_distance_m (0: never) of its robot or of one it shares several inter-robot
+    # constraints with: variables grow with the area, not the time flown. Below 2,000 nodes
+    # an update stays under ~1 ms unreduced and frozen offsets cost accuracy (Intel: 0.0151
+    # m unreduced, 0.0162 m reduced from the first node; city10000: docs/results.md).
     reduce_distance_m: float = 0.5
     reduce_lag: int = 20
     reduce_after_nodes: int = 2000
@@ -418,6 +412,12 @@ class Config:
     basestation: BaseStationConfig = field(default_factory=BaseStationConfig)
     exploration: ExplorationConfig = field(default_factory=ExplorationConfig)
     protocol: ProtocolConfig = field(default_factory=ProtocolConfig)
+
+    def base_sync_period_s(self) -> float:
+        """Sim s between a lock-step simulator's clock handshakes with the base station,
+        which explores only then (0: none; it paces itself by the wall clock)."""
+        e, s = self.exploration, self.sim
+        return e.period_s if e.enabled and s.sync_basestation and s.clock == "lockstep" else 0.0
 
 
 # --- loading -------------------------------------------------------------------------------

@@ -122,11 +122,7 @@ class Simulator:
         self._cond = threading.Condition()
         self._alive: set[str] = set()
         # lock-step handshake with the base station (exploration decisions in sim time)
-        self.sync_period = (
-            cfg.exploration.period_s
-            if cfg.exploration.enabled and cfg.sim.sync_basestation and cfg.sim.clock == "lockstep"
-            else 0.0
-        )
+        self.sync_period = cfg.base_sync_period_s()
         self._base_clock = -1.0
         self.base_syncs = 0
         self.base_sync_timeouts = 0

@@ -42,6 +42,11 @@ ROBOT_COLOURS = (
 FRONTIER_COLOUR = "#ff7f0e"
 GREY_UNKNOWN = 0.75
 HEADING_ARROW_M = 0.8
+# The map is drawn from an RGBA raster of at most this many pixels a side (blocks of cells,
+# the darkest of each: thin walls stay). matplotlib resamples an image in floats, an RGB
+# one in float64 (its alpha channel np.ones): a 1536 x 1483 map (60-minute soak) took
+# ~180 MB for a picture ~1000 pixels across; RGBA uint8 stays in float32.
+MAX_RASTER_PX = 800
 
 
 def map_rgb(grid: GridMap) -> NDArray[np.uint8]:
@@ -53,6 +58,21 @@ def map_rgb(grid: GridMap) -> NDArray[np.uint8]:
     shade[grid.occupied_mask()] = 0.0
     grey = (shade * 255.0).astype(np.uint8)
     return np.repeat(grey[..., None], 3, axis=2)
+
+
+def _raster(grid: GridMap) -> tuple[NDArray[np.uint8], tuple[float, float, float, float]]:
+    """`map_rgb` as opaque RGBA in blocks of k x k cells (k so it fits `MAX_RASTER_PX`;
+    the darkest cell of each, so a wall one cell thick stays), with its extent (m)."""
+    grey = map_rgb(grid)[..., 0]
+    x0, _, y0, _ = grid.extent
+    k = max(1, math.ceil(max(grey.shape) / MAX_RASTER_PX))
+    h, w = -(-grey.shape[0] // k), -(-grey.shape[1] // k)  # blocks, the last ones padded
+    if k > 1:
+        grey = np.pad(grey, ((0, h * k - grey.shape[0]), (0, w * k - grey.shape[1])), "edge")
+        grey = grey.reshape(h, k, w, k).min(axis=(1, 3))
+    rgba = np.dstack([grey, grey, grey, np.full_like(grey, 255)])
+    res = grid.resolution * k
+    return rgba, (x0, x0 + w * res, y0, y0 + h * res)
 
 
 def _xy(points: ArrayLike, what: str) -> NDArray[np.float64]:
@@ -98,10 +118,11 @@ def render_map_picture(
     fig = Figure(figsize=(FIG_WIDTH_IN, min(max(FIG_WIDTH_IN * aspect, 3.0), 16.0) + 0.8))
     FigureCanvasAgg(fig)
     ax = fig.add_subplot()
+    raster, extent = _raster(grid)
     ax.imshow(
-        map_rgb(grid),
+        raster,
         origin="lower",
-        extent=(x0, x1, y0, y1),
+        extent=extent,
         interpolation="nearest",
         zorder=0,
     )

@@ -65,3 +65,26 @@ def test_render_map_only_and_bad_input(tmp_path: Path) -> None:
     assert (tmp_path / "bare.png").stat().st_size > 5_000
     with pytest.raises(CollabSlamError, match="trajectories"):
         render_map_picture(tmp_path / "bad.png", _grid(), trajectories={"r0": np.zeros(5)})
+
+
+def test_a_large_map_is_drawn_in_blocks_and_its_thin_walls_stay(tmp_path: Path) -> None:
+    """A 2,001-cell map is drawn from a raster of at most MAX_RASTER_PX a side (matplotlib
+    resamples in float64: the memory is the raster's), the darkest cell of each block:
+    a wall one cell thick still crosses the picture from side to side."""
+    from common.picture import MAX_RASTER_PX, _raster
+
+    data = np.zeros((2001, 2001), dtype=np.int8)  # 100 x 100 m of free space at 0.05 m
+    data[:, 1000] = 100  # a wall one cell thick at x = 50.0-50.05 m
+    grid = GridMap(data=data, resolution=0.05, origin=(0.0, 0.0, 0.0))
+    raster, extent = _raster(grid)
+    assert max(raster.shape[:2]) <= MAX_RASTER_PX and raster.dtype == np.uint8
+    assert extent[0] == 0.0 and extent[1] >= 100.05 and extent[3] >= 100.05  # covers it
+    dark = np.flatnonzero((raster[..., 0] == 0).all(axis=0))
+    assert len(dark) == 1  # one block column, every row of it
+    x = extent[0] + (dark[0] + 0.5) * (extent[1] - extent[0]) / raster.shape[1]
+    assert abs(x - 50.0) < 0.2
+    render_map_picture(tmp_path / "big.png", grid)
+    with Image.open(tmp_path / "big.png") as img:
+        grey = np.asarray(img.convert("L"), dtype=np.int16)
+    rows = grey[grey.shape[0] // 4 : 3 * grey.shape[0] // 4]  # inside the axes
+    assert (rows.min(axis=1) < 60).all()  # the wall in every row of the picture

@@ -8,29 +8,14 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from process_helpers import synthetic_keyframe
 
 from basestation.node import BaseStationNode
 from common.bus import Bus
 from common.config import ZenohConfig, load_config
-from common.geometry import pose4_to_pose7
 from common.map_io import GridMap, write_map
 from common.scenario import RobotScenario, Scenario
-from protocol import ClockSync, Keyframe, Scan2D
-
-
-def _keyframe(seq: int) -> Keyframe:
-    angles = np.linspace(-np.pi / 2, np.pi / 2, 181)
-    ranges = 2.0 / np.maximum(np.cos(angles), 0.2)
-    return Keyframe(
-        "r0",
-        seq,
-        0.5 * seq,
-        pose4_to_pose7([0.2 * seq, 0, 1, 0]),
-        pose4_to_pose7([0.2 if seq else 0.0, 0, 0, 0]),
-        np.eye(6) * 1e-4,
-        Scan2D.from_ranges(-np.pi / 2, np.pi / 180, 30.0, ranges),
-        None,
-    )
+from protocol import ClockSync
 
 
 def _explore(tmp_path: Path, endpoint: str, sets: dict, clock_at_s: float | None) -> tuple:
@@ -54,7 +39,9 @@ def _explore(tmp_path: Path, endpoint: str, sets: dict, clock_at_s: float | None
         with Bus(ZenohConfig(connect=[endpoint]), "default") as sim_bus:
             time.sleep(0.5)
             for seq in range(2):
-                sim_bus.publish(sim_bus.keys.robot("r0", "keyframe"), _keyframe(seq))
+                step = np.array([0.2 if seq else 0.0, 0.0, 0.0])
+                kf = synthetic_keyframe("r0", seq, step * seq, step)
+                sim_bus.publish(sim_bus.keys.robot("r0", "keyframe"), kf)
             t0 = time.monotonic()
             while time.monotonic() - t0 < 3.0:
                 node.step(timeout=0.05)

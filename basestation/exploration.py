@@ -85,9 +85,6 @@ class ExplorationManager:
     # goals only from the robot's own share of the min-max tours (`frontier_tours`)
     tours: bool = True
     support_min_m: float = 1.0  # m, shortest move worth sending an idle robot
-    # steps a robot whose frontier only the others block (not the map) hovers for its
-    # way to clear before it is sent to support (0: at once)
-    hold_steps: int = 4
     busy_radius_factor: float = 2.0  # frontiers within this x clearance of a busy goal: taken
     goal_shift_m: float = 1.0  # m a frontier goal may move to get out of the inflation
     # A path around other robots (their discs, or their routes) longer than this factor
@@ -105,7 +102,6 @@ class ExplorationManager:
     _stopped: set[str] = field(default_factory=set)
     _unplanned: set[str] = field(default_factory=set)  # this step's robots still to plan
     _stopping: dict[str, NDArray[np.float64]] = field(default_factory=dict)  # see `_conflict`
-    _held: dict[str, int] = field(default_factory=dict)  # steps held so (`_plan`)
 
     def step(
         self,
@@ -182,18 +178,20 @@ class ExplorationManager:
                 out[r] = self._plan(r, self._goals({r: P[r]}, grid, P).get(r), grid, P)
         if self.coordinated:  # robots left without a frontier move up behind the others
             for r in [r for r in need if out[r] is None]:
-                if r in self._held and self._held[r] < self.hold_steps:
-                    self._held[r] += 1  # waits where it is for its way to clear
-                    continue
                 out[r] = self._support(r, grid, P)
             self._recheck(out, grid, P)
         moving = bool(self.tasks) or any(p is not None for p in out.values())
         self.give_up.note_progress(moving, [f.goal for f in self.frontiers])
         for r, path in out.items():
-            t, to = self.tasks.get(r), "stop"
-            if path is not None and t is not None:
-                to = f"{path_length(path):.1f} m to {np.round(t.goal, 2)}{' (support)' * t.support}"
-            log.debug("robot %s at %s: %s", r, np.round(P[r][:2], 2), to)
+            task = self.tasks.get(r)
+            log.debug(
+                "robot %s at %s: %s",
+                r,
+                np.round(P[r][:2], 2),
+                "stop" if path is None or task is None
+                else f"{path_length(path):.1f} m to {np.round(task.goal, 2)}"
+                + (" (support)" if task.support else ""),
+            )  # fmt: skip
         return out
 
     def _note_stopping(self, P: dict[str, NDArray[np.float64]]) -> None:
@@ -209,9 +207,10 @@ class ExplorationManager:
         grid: GridMap,
         P: dict[str, NDArray[np.float64]],
     ) -> None:
-        """Re-plan (into `out`) every robot whose path now conflicts with the others (one
-        that holds or took a new way may be in the way of one planned around it before:
-        rooms15, a drone flew 0.91 m past one that was to leave and then held), until
+        """Re-plan (into `out`) every robot whose path now conflicts with the others: one
+        that holds, or took a new way, may be in the way of a robot planned around it
+        earlier, in an earlier step or in this one before it (at the start of a rooms15
+        run a drone flew 0.91 m past one that was to have left and then held). Until
         none changes: a re-planned robot that now holds may be in another's way."""
         for _ in range(len(P)):
             changed = False
@@ -300,7 +299,6 @@ class ExplorationManager:
         that avoids their remaining paths by the clearance and passes that check too
         (bshape seed 8: a way round another's route ended 0.85 m from where it hovered)."""
         tried: list[NDArray[np.float64]] = []
-        held = self._held.pop(r, 0)
         while goal is not None:
             path = self._path_among_others(r, goal, grid, P)
             if path is not None:
@@ -310,8 +308,6 @@ class ExplorationManager:
             # blocked by the map itself (not just by another robot for now)?
             if self.planner.plan(grid, P[r][:2], goal) is None:
                 self.give_up.failed(goal)
-            else:  # only by the others: it may wait (`hold_steps`)
-                self._held[r] = held
             log.debug("robot %s: no path to frontier %s", r, goal)
             tried.append(goal)
             if not self.coordinated or len(tried) > self.alternatives:

@@ -461,28 +461,3 @@ def test_frontiers_are_given_up_after_repeated_failures_or_when_the_team_stalls(
     assert not gu.given_up(b)
     gu.note_progress(False, [a, b])  # the fifth step in a row: all left are given up
     assert gu.given_up(b) and gu.stalled == 0
-
-
-@pytest.mark.parametrize("hold_steps", [4, 0])
-def test_a_robot_whose_frontier_only_another_blocks_waits_before_it_supports(
-    hold_steps: int,
-) -> None:
-    """rooms15 (kinematic, 48 seeds): a drone whose frontiers lay behind another's route
-    was sent at once toward the nearest frontier, another robot's, the other way, and
-    came back seconds later. Now it hovers where it is for up to `hold_steps` steps, and
-    only then moves up behind the others (`_support`). Here a's one frontier (upper
-    left) is through the door b is coming down by; b's goal (lower right) is busy."""
-    g = _door_floor()
-    g.data[160:199, 1:40] = -1  # unknown: upper left (a's frontier) ...
-    g.data[1:40, 440:479] = -1  # ... and lower right (b's)
-    m = ExplorationManager(planner=PathPlanner(0.35, 1.0, 0.2), hold_steps=hold_steps)
-    m.frontiers = m.detector.update(g)
-    mine = next(f.goal for f in m.frontiers if f.goal[1] < 5.0)
-    P = {"a": np.array([1.0, 1.0, np.pi / 2]), "b": np.array([2.6, 7.5, -np.pi / 2])}
-    m.tasks["b"] = _Task(mine, np.array([[2.6, 7.5], [2.6, 3.0], mine]))
-    for step in range(hold_steps + 1):
-        out = m.step(g, P)
-        assert "b" not in out  # b flies on
-        if step < hold_steps:  # a waits where it is (a stop), no task
-            assert out == {"a": None} and "a" not in m.tasks
-    assert m.tasks["a"].support and out["a"] is not None  # then it moves up (support)

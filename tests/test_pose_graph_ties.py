@@ -101,3 +101,28 @@ def test_with_a_tie_budget_odometry_between_places_already_joined_is_left_out():
     err = {b: np.linalg.norm(g.poses("a")[:, :2] - truth[:, :2], axis=1) for b, g in graphs.items()}
     assert np.isfinite(err[0.5]).all()
     assert err[0.5].max() < 0.15 and err[0.5].mean() < 1.2 * err[0.0].mean()  # 0.045 / 0.040
+
+
+def test_a_long_final_constraint_is_folded_whatever_the_budget(monkeypatch):
+    """Matches 2.0-2.6 m long (far ends wandering over 0.6 m): under a budget never
+    reached, those longer than LONG_TIE_M still go into the ties already there (long
+    ties make iSAM2's fill-in), at no cost in accuracy."""
+    import basestation.pose_graph_reduction as reduction
+
+    graphs = {}
+    for long_m in (np.inf, reduction.LONG_TIE_M):
+        monkeypatch.setattr(reduction, "LONG_TIE_M", long_m)
+        graph = PoseGraph(
+            heads_last=True, reduce_distance_m=0.5, reduce_lag=10, reduce_batch_nodes=1,
+            tie_budget=100.0,
+        )  # fmt: skip
+        graph.add_robot("a", [0, 0, 0])
+        truth = fly_with_window(graph, 6, 5, spread=4)
+        graphs[long_m] = graph
+    plain, folded = graphs[np.inf].reduction_stats(), graphs[reduction.LONG_TIE_M].reduction_stats()
+    assert plain["folded_constraints"] == 0
+    assert folded["folded_constraints"] > 40  # 66
+    assert folded["final_ties"] < 0.75 * plain["final_ties"]  # 67 against 101
+    err = {k: np.linalg.norm(g.poses("a")[:, :2] - truth[:, :2], axis=1) for k, g in graphs.items()}
+    assert err[reduction.LONG_TIE_M].max() < 0.2
+    assert err[reduction.LONG_TIE_M].mean() < 1.2 * err[np.inf].mean()

@@ -27,6 +27,7 @@ from basestation.frontier_give_up import FrontierGiveUp
 from basestation.frontiers import Box, Frontier, FrontierDetector
 from basestation.goal_assigner import AssignmentWeights, GoalAssigner, spaced
 from basestation.goal_costs import frontier_costs
+from basestation.goal_handover import handovers
 from basestation.path_planner import PathPlanner, PlanningMap, path_length
 from basestation.path_schedule import points_along, schedule_conflict, turn_delay_s
 from basestation.travel_distance import travel_distances
@@ -85,6 +86,7 @@ class ExplorationManager:
     # goals only from the robot's own share of the min-max tours (`frontier_tours`)
     tours: bool = True
     support_min_m: float = 1.0  # m, shortest move worth sending an idle robot
+    handover_m: float = 2.0  # m: a robot this much nearer another's goal competes for it
     busy_radius_factor: float = 2.0  # frontiers within this x clearance of a busy goal: taken
     goal_shift_m: float = 1.0  # m a frontier goal may move to get out of the inflation
     # A path around other robots (their discs, or their routes) longer than this factor
@@ -160,6 +162,7 @@ class ExplorationManager:
                 stop += more
             return {r: None for r in stop}
         self._stopped.clear()
+        need += handovers(self, need, grid, P)  # a far goal another robot is nearer now
         if not need:
             return {}
         for r in need:

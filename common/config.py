@@ -382,9 +382,8 @@ class ExplorationConfig:
     # their goals) costs it w_own per m of that lead less, up to own_cap_m (0: off).
     w_own: float = 0.5
     own_cap_m: float = 10.0  # m
-    # Tours (basestation/frontier_tours.py): every frontier on one robot's tour, the longest
-    # tour as short as can be; a robot takes goals from its own tour only (false: off).
-    tours: bool = True
+    tours: bool = True  # goals from the robot's own min-max tour only (frontier_tours.py)
+    handover_m: float = 2.0  # m: a free robot this much nearer another's goal competes for it
     w_gain: float = 0.25  # information (0: off): m per m^2 in view short of gain_full_m2
     gain_full_m2: float = 25.0  # m^2
     gain_near_m: float = 5.0  # m of travel: the cost x min(1, travel / gain_near_m)

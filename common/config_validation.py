@@ -68,8 +68,11 @@ def validate(cfg: Config) -> None:
     _non_negative_fields(
         "exploration",
         cfg.exploration,
-        ("seen_cost_m", "seen_fov_deg", "w_own", "own_cap_m", "w_gain", "gain_full_m2"),
-    )
+        (
+            "seen_cost_m", "seen_fov_deg", "w_own", "own_cap_m", "w_gain", "gain_full_m2",
+            "handover_m",
+        ),
+    )  # fmt: skip
     if cfg.exploration.strategy not in ("coordinated", "greedy"):
         raise ConfigError(
             "exploration.strategy: expected coordinated or greedy, "

@@ -2,8 +2,9 @@
 
 `ExplorationManager.step` takes the latest global grid (and the boxes the map changed
 in), every robot's pose in `map` and returns a new path in `map` for each robot that
-needs one: it has none, reached its goal, its goal is no longer a frontier, or the
-map or another robot now blocks its path. Frontier goals (`FrontierDetector`) are
+needs one: it has none, reached its goal, its goal is no longer a frontier, the map
+or another robot now blocks its path, or a free robot is nearer its goal
+(`goal_handover`). Frontier goals (`FrontierDetector`) are
 moved out of the inflation (`PathPlanner.approachable`), assigned jointly (eq. 3,
 `GoalAssigner`) and planned with RRT* (`PathPlanner`) around the other robots and
 their paths, unless that makes a long detour (the robot waits or goes elsewhere). A

@@ -2,38 +2,41 @@
 
 A straight-line distance sends a robot to the frontier just behind a wall; what
 matters is how far it must fly. `travel_distances` runs Dijkstra (8-connected,
-scipy's csgraph) on a coarse copy of the grid in which a cell is passable when
+`basestation.grid_search`) on a coarse copy of the grid in which a cell is passable when
 its centre is more than `clearance_m` from every occupied cell (unknown counts as
 passable, as for the planner). Robots and frontiers off the passable cells are
 snapped to the nearest passable cell. Unreachable pairs get `inf`.
 
-`grid_path` is the same Dijkstra on a given passable mask, returning the cell path:
-the planner's fallback when RRT* finds nothing within its time budget.
+`grid_path` is a shortest cell path (A*) on a given passable mask: the planner's
+reference for RRT* and its fallback when RRT* finds nothing within its budget.
 """
 
 from __future__ import annotations
 
+import zlib
+
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from scipy import ndimage
-from scipy.sparse import coo_matrix
-from scipy.sparse.csgraph import dijkstra
 
+from basestation.grid_search import grid_astar, grid_distances
 from common.map_io import GridMap
 
+_last_wall_distance: tuple[tuple[tuple[int, ...], float, int], NDArray[np.float64]] | None = None
 
-def _graph(passable: NDArray[np.bool_], cell_m: float) -> coo_matrix:
-    h, w = passable.shape
-    idx = np.arange(h * w).reshape(h, w)
-    rows, cols, vals = [], [], []
-    for dy, dx, length in ((0, 1, 1.0), (1, 0, 1.0), (1, 1, np.sqrt(2.0)), (1, -1, np.sqrt(2.0))):
-        x0, x1 = max(0, -dx), w - max(0, dx)  # cells (y, x) whose neighbour (y+dy, x+dx) exists
-        both = passable[: h - dy, x0:x1] & passable[dy:, x0 + dx : x1 + dx]
-        rows.append(idx[: h - dy, x0:x1][both])
-        cols.append(idx[dy:, x0 + dx : x1 + dx][both])
-        vals.append(np.full(int(both.sum()), length * cell_m))
-    r, c, v = np.concatenate(rows), np.concatenate(cols), np.concatenate(vals)
-    return coo_matrix((v, (r, c)), shape=(h * w, h * w))
+
+def wall_distance(occupied: NDArray[np.bool_], resolution: float) -> NDArray[np.float64]:
+    """Distance (m) from every cell to the nearest occupied one (read-only). One
+    exploration step plans many paths and asks for many travel distances on the same
+    grid: the last result is reused while the occupied cells are the same (a CRC of
+    the mask, ~0.1 ms, against 10-20 ms for the transform of a 30 x 25 m map)."""
+    global _last_wall_distance
+    key = (occupied.shape, float(resolution), zlib.crc32(np.ascontiguousarray(occupied)))
+    if _last_wall_distance is None or _last_wall_distance[0] != key:
+        dist = ndimage.distance_transform_edt(~occupied) * resolution
+        dist.flags.writeable = False
+        _last_wall_distance = (key, dist)
+    return _last_wall_distance[1]
 
 
 def travel_distances(
@@ -52,7 +55,7 @@ def travel_distances(
     step = max(1, int(round(cell_m / grid.resolution)))
     cell = step * grid.resolution
     occupied = grid.data > 0
-    clear = ndimage.distance_transform_edt(~occupied) * grid.resolution > clearance_m
+    clear = wall_distance(occupied, grid.resolution) > clearance_m
     passable = clear[step // 2 :: step, step // 2 :: step]
     if not passable.any():
         return out
@@ -64,10 +67,9 @@ def travel_distances(
     def node(xy: NDArray[np.float64]) -> NDArray[np.int64]:
         ij = np.floor((xy - origin) / cell).astype(np.int64)
         ix, iy = np.clip(ij[:, 0], 0, w - 1), np.clip(ij[:, 1], 0, h - 1)
-        return ny[iy, ix] * w + nx[iy, ix]
+        return (ny[iy, ix] * w + nx[iy, ix]).astype(np.int64)
 
-    d = dijkstra(_graph(passable, cell).tocsr(), directed=False, indices=node(src))
-    return np.asarray(d, dtype=np.float64).reshape(len(src), -1)[:, node(dst)]
+    return grid_distances(np.ascontiguousarray(passable), cell, node(src), node(dst))
 
 
 def grid_path(
@@ -88,16 +90,10 @@ def grid_path(
     if not passable[ij[:, 1], ij[:, 0]].all():
         return None
     src, dst = (int(i[1] * w + i[0]) for i in ij)
-    d, pred = dijkstra(
-        _graph(passable, resolution).tocsr(), directed=False, indices=src,
-        return_predecessors=True, limit=float(limit_m),
-    )  # fmt: skip
-    if not np.isfinite(d[dst]):
+    nodes = grid_astar(np.ascontiguousarray(passable), resolution, src, dst, float(limit_m))
+    if not len(nodes):
         return None
-    nodes = [dst]
-    while nodes[-1] != src:
-        nodes.append(int(pred[nodes[-1]]))
-    iy, ix = np.divmod(np.array(nodes[::-1]), w)
+    iy, ix = np.divmod(nodes, w)
     path = o + (np.column_stack([ix, iy]) + 0.5) * resolution
     path[0], path[-1] = ends
     return path

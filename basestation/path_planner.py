@@ -388,14 +388,15 @@ class PathPlanner:
             bounds.setHigh(k, float(pm.origin[k] + pm.extent[k]))
         space.setBounds(bounds)
         ss = og.SimpleSetup(space)
-        blocked, origin, res = pm.blocked, pm.origin, pm.resolution
-        h, w = blocked.shape
+        h, w = pm.blocked.shape
+        blocked = pm.blocked.tobytes()  # one byte a cell: read faster than the array
+        ox, oy, res = float(pm.origin[0]), float(pm.origin[1]), pm.resolution
 
         def valid(state: ob.State) -> bool:
             self.validity_checks += 1
-            ix = int((state[0] - origin[0]) / res)
-            iy = int((state[1] - origin[1]) / res)
-            return 0 <= ix < w and 0 <= iy < h and not blocked[iy, ix]
+            ix = int((state[0] - ox) / res)
+            iy = int((state[1] - oy) / res)
+            return 0 <= ix < w and 0 <= iy < h and not blocked[iy * w + ix]
 
         ss.setStateValidityChecker(valid)
         si = ss.getSpaceInformation()

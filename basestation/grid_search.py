@@ -13,6 +13,8 @@ a shortest one) from one cell to another. Both keep an indexed binary heap keyed
 the same answer. Written out here rather than run through scipy's csgraph, which
 needs the graph built as a sparse matrix first: an exploration step asks for paths
 and distances hundreds of times, and building the graph cost more than the search.
+The neighbour loop is written out in both kernels on purpose: moved into helper
+functions, numba made both kernels twice as slow.
 """
 
 from __future__ import annotations

@@ -13,8 +13,8 @@ a shortest one) from one cell to another. Both keep an indexed binary heap keyed
 the same answer. Written out here rather than run through scipy's csgraph, which
 needs the graph built as a sparse matrix first: an exploration step asks for paths
 and distances hundreds of times, and building the graph cost more than the search.
-The neighbour loop is written out in both kernels on purpose: moved into helper
-functions, numba made both kernels twice as slow.
+Both searches share one kernel (`_search`), the neighbour loop written out in it:
+moved into helper functions, numba ran it at half the speed.
 """
 
 from __future__ import annotations
@@ -77,6 +77,58 @@ def _pop(heap, pos, key, size):  # noqa: ANN001, ANN202 (numba kernel)
 
 
 @njit(cache=True)
+def _search(flat, h, w, cell_m, src, wanted, left, goal, limit_m, g, f, pred, done, heap, pos):  # noqa: ANN001, ANN202, E501 (numba kernel)
+    """Settle cells from `src` (g: cost so far, `pred`: the cell before) until the
+    `left` cells marked `wanted` are settled or no cell is left within `limit_m`;
+    returns how many wanted cells were not reached. `goal` >= 0: A*, the heap keyed
+    by g plus the octile distance to `goal`; -1: Dijkstra, keyed by g. `g` and `f` are
+    inf, `done` False and `pos` -1 everywhere on entry; `pos` is -1 again on return.
+    One loop for both searches: moved into helper functions, numba ran it at half
+    the speed."""
+    gy, gx = (goal // w, goal % w) if goal >= 0 else (0, 0)
+    g[src] = 0.0
+    f[src] = 0.0
+    heap[0] = src
+    pos[src] = 0
+    size = 1
+    while size > 0 and left > 0:
+        u = _pop(heap, pos, f, size)
+        size -= 1
+        done[u] = True
+        if wanted[u]:
+            left -= 1
+        if not flat[u]:
+            continue
+        uy, ux = u // w, u % w
+        for d in range(8):
+            vy, vx = uy + _DY[d], ux + _DX[d]
+            if vy < 0 or vy >= h or vx < 0 or vx >= w:
+                continue
+            v = vy * w + vx
+            if done[v] or not flat[v]:
+                continue
+            ng = g[u] + (cell_m * SQRT2 if _DIAGONAL[d] else cell_m)
+            if ng < g[v] and ng <= limit_m:
+                g[v] = ng
+                pred[v] = u
+                if goal >= 0:  # + the octile distance (summed in this order: same keys)
+                    ay, ax = abs(vy - gy), abs(vx - gx)
+                    f[v] = ng + cell_m * (max(ay, ax) - min(ay, ax)) + cell_m * SQRT2 * min(ay, ax)
+                else:
+                    f[v] = ng
+                if pos[v] < 0:
+                    heap[size] = v
+                    size += 1
+                    _sift_up(heap, pos, f, size - 1)
+                else:
+                    _sift_up(heap, pos, f, pos[v])
+    while size > 0:  # stopped early: empty the heap
+        size -= 1
+        pos[heap[size]] = -1
+    return left
+
+
+@njit(cache=True)
 def grid_distances(
     passable: NDArray[np.bool_],
     cell_m: float,
@@ -90,55 +142,26 @@ def grid_distances(
     n = h * w
     flat = passable.ravel()
     out = np.full((len(sources), len(targets)), np.inf)
-    dist = np.empty(n)
-    done = np.zeros(n, dtype=np.bool_)
+    g, f = np.empty(n), np.empty(n)
+    pred = np.empty(n, dtype=np.int64)
+    done = np.empty(n, dtype=np.bool_)
     heap = np.empty(n, dtype=np.int64)
     pos = np.full(n, -1, dtype=np.int64)
     wanted = np.zeros(n, dtype=np.bool_)
+    left = 0
+    for t in targets:
+        if not wanted[t]:
+            wanted[t] = True
+            left += 1
     for k in range(len(sources)):
-        dist[:] = np.inf
+        g[:] = np.inf
+        f[:] = np.inf
         done[:] = False
-        wanted[:] = False
-        left = 0
-        for t in targets:
-            if not wanted[t]:
-                wanted[t] = True
-                left += 1
-        s = sources[k]
-        dist[s] = 0.0
-        heap[0] = s
-        pos[s] = 0
-        size = 1
-        while size > 0 and left > 0:
-            u = _pop(heap, pos, dist, size)
-            size -= 1
-            done[u] = True
-            if wanted[u]:
-                left -= 1
-            if not flat[u]:
-                continue
-            uy, ux = u // w, u % w
-            for d in range(8):
-                vy, vx = uy + _DY[d], ux + _DX[d]
-                if vy < 0 or vy >= h or vx < 0 or vx >= w:
-                    continue
-                v = vy * w + vx
-                if done[v] or not flat[v]:
-                    continue
-                nd = dist[u] + (cell_m * SQRT2 if _DIAGONAL[d] else cell_m)
-                if nd < dist[v]:
-                    dist[v] = nd
-                    if pos[v] < 0:
-                        heap[size] = v
-                        size += 1
-                        _sift_up(heap, pos, dist, size - 1)
-                    else:
-                        _sift_up(heap, pos, dist, pos[v])
-        while size > 0:  # stopped early: empty the heap for the next source
-            size -= 1
-            pos[heap[size]] = -1
+        _search(
+            flat, h, w, cell_m, sources[k], wanted, left, -1, np.inf, g, f, pred, done, heap, pos
+        )
         for j in range(len(targets)):
-            out[k, j] = dist[targets[j]]
+            out[k, j] = g[targets[j]]
     return out
 
 
@@ -154,47 +177,14 @@ def grid_astar(
     flat = passable.ravel()
     if not (flat[src] and flat[dst]):
         return np.empty(0, dtype=np.int64)
-    g = np.full(n, np.inf)
-    f = np.full(n, np.inf)
+    g, f = np.full(n, np.inf), np.full(n, np.inf)
     pred = np.full(n, -1, dtype=np.int64)
     done = np.zeros(n, dtype=np.bool_)
     heap = np.empty(n, dtype=np.int64)
     pos = np.full(n, -1, dtype=np.int64)
-    dy0, dx0 = dst // w, dst % w
-    g[src] = 0.0
-    f[src] = 0.0
-    heap[0] = src
-    pos[src] = 0
-    size = 1
-    found = False
-    while size > 0:
-        u = _pop(heap, pos, f, size)
-        size -= 1
-        if u == dst:
-            found = True
-            break
-        done[u] = True
-        uy, ux = u // w, u % w
-        for d in range(8):
-            vy, vx = uy + _DY[d], ux + _DX[d]
-            if vy < 0 or vy >= h or vx < 0 or vx >= w:
-                continue
-            v = vy * w + vx
-            if done[v] or not flat[v]:
-                continue
-            ng = g[u] + (cell_m * SQRT2 if _DIAGONAL[d] else cell_m)
-            if ng < g[v] and ng <= limit_m:
-                g[v] = ng
-                pred[v] = u
-                ay, ax = abs(vy - dy0), abs(vx - dx0)
-                f[v] = ng + cell_m * (max(ay, ax) - min(ay, ax)) + cell_m * SQRT2 * min(ay, ax)
-                if pos[v] < 0:
-                    heap[size] = v
-                    size += 1
-                    _sift_up(heap, pos, f, size - 1)
-                else:
-                    _sift_up(heap, pos, f, pos[v])
-    if not found:
+    wanted = np.zeros(n, dtype=np.bool_)
+    wanted[dst] = True
+    if _search(flat, h, w, cell_m, src, wanted, 1, dst, limit_m, g, f, pred, done, heap, pos):
         return np.empty(0, dtype=np.int64)
     count = 1
     v = dst

@@ -27,6 +27,7 @@ from typing import Any
 import numpy as np
 
 from agent.control_log import ControlRecorder, write_control_log
+from agent.downlink_gate import DownlinkGate
 from agent.keyframe_selector import KeyframeSelector
 from agent.local_trajectory_builder import LocalSlamResult, LocalTrajectoryBuilder
 from agent.odometry_tracker import OdometryTracker
@@ -45,7 +46,9 @@ from common.row_spool import RowSpool
 from common.trajectory_io import Trajectory, write_tum
 from protocol import (
     Altimeter,
+    ClockSync,
     ControlPose,
+    DownlinkMark,
     Imu,
     Keyframe,
     KeyframeAck,
@@ -108,6 +111,7 @@ class AgentNode:
             velocity_lag_s=a.velocity_lag_s,
         )
         self._neighbours: Neighbours | None = None  # the base station's latest relay
+        self.downlink = DownlinkGate(cfg.sim.sync_wait_s)  # lock-step: ticks wait for it
         self._twist: tuple[float, np.ndarray] | None = None  # odometry's (stamp, vx vy)
         self._on_map = T_map_odom is not None  # its map pose is known (start or correction)
         self._news_ages: deque[float] = deque(maxlen=20000)  # s, the relay's answer at use
@@ -131,6 +135,7 @@ class AgentNode:
         self.scans = 0
         self.local_trajectory = RowSpool(5)  # every scan: stamp, T_odom_base [x y z yaw]
         self.base_links = {"joins": 0, "losses": 0}  # base-station liveliness events
+        self._base_up = threading.Event()
 
     # --- wiring -------------------------------------------------------------------------
     def start(self) -> None:
@@ -143,13 +148,24 @@ class AgentNode:
         self.bus.subscribe(self.keys.robot(rid, "correction"), PoseCorrection, self._on_correction)
         self.bus.subscribe(self.keys.robot(rid, "path"), PathMsg, self._on_path)
         self.bus.subscribe(self.keys.robot(rid, "neighbours"), Neighbours, self._on_neighbours)
+        self.bus.subscribe(self.keys.robot(rid, "clock"), DownlinkMark, self._on_mark)
         self.bus.watch_alive("basestation", self._on_base_alive)
+        if self.cfg.base_sync_period_s() > 0.0:  # lock-step: its first messages count too
+            self._await_base(self.cfg.sim.sync_wait_s)
         self.bus.declare_alive("agent", rid)
+
+    def _await_base(self, timeout_s: float) -> None:
+        """Wait (at most `timeout_s`) for the base station's token: it comes after the base
+        station's subscriptions on the same link, so then a state or command sent reaches
+        it (a lock-step simulator starts its clock when every agent's token is up)."""
+        if not self._base_up.wait(timeout_s):
+            log.warning("no base station after %.0f s: starting without it", timeout_s)
 
     def _on_base_alive(self, name: str, alive: bool) -> None:
         """Base-station liveliness (Zenoh thread). Gone: keep flying on local SLAM, the
         outbox keeps every keyframe. Back: resend from the oldest unacknowledged at once."""
         self.base_links["joins" if alive else "losses"] += 1
+        (self._base_up.set if alive else self._base_up.clear)()
         if alive:
             if self.base_links["joins"] > 1:
                 log.info("base station %s is back: resending %d keyframes", name, len(self.outbox))
@@ -165,6 +181,7 @@ class AgentNode:
         self.outbox.ack(msg.acked_seq)
 
     def _on_correction(self, msg: PoseCorrection, key: str) -> None:
+        self.downlink.on_correction(msg.epoch)
         with self._corr_lock:
             if msg.epoch <= self.epoch:
                 return
@@ -178,6 +195,10 @@ class AgentNode:
         with self._corr_lock:
             if self._neighbours is None or msg.stamp >= self._neighbours.stamp:
                 self._neighbours = msg
+        self.downlink.on_neighbours(msg.stamp)
+
+    def _on_mark(self, msg: DownlinkMark, key: str) -> None:
+        self.downlink.on_mark(msg)
 
     def _on_path(self, msg: PathMsg, key: str) -> None:
         """A new path from the base station (exploration); empty: stop here."""
@@ -189,6 +210,7 @@ class AgentNode:
             self._new_path = True
             self.guard.clear()
             self.mission_over = len(wp) == 0 and msg.path_id == 0
+        self.downlink.on_path()
 
     # --- main loop ----------------------------------------------------------------------
     def run(
@@ -218,11 +240,14 @@ class AgentNode:
             self.frontend.add_altitude(msg.stamp, msg.altitude)
         elif isinstance(msg, LaserScan):
             self.on_scan(msg)
+        elif isinstance(msg, ClockSync):  # a lock-step simulator's, before its next tick
+            self.downlink.on_clock(msg.stamp)
 
     def on_scan(self, scan: LaserScan) -> None:
         if self.last_scan_stamp is not None and scan.stamp == self.last_scan_stamp:
             self._command(scan.stamp)  # a re-sent lock-step tick: answer again
             return
+        self.downlink.wait()  # lock-step: the base station's paths and answers for it
         ranges = np.asarray(scan.ranges, dtype=np.float64)
         self.guard.update(scan.angle_min + scan.angle_increment * np.arange(len(ranges)), ranges)
         result = self.frontend.add_scan(scan)
@@ -242,6 +267,7 @@ class AgentNode:
             self.last_state_stamp = scan.stamp
             self._take_path()  # the state's status reflects a path that just came
             self.publish_state(scan.stamp)
+            self.downlink.state_sent(scan.stamp)
         self._command(scan.stamp)
 
     def _send_keyframe(self, scan: LaserScan, result: LocalSlamResult) -> None:
@@ -323,7 +349,8 @@ class AgentNode:
         moving = self._twist  # the guard brakes along it (a turn lags the command)
         fresh = moving is not None and abs(stamp - moving[0]) <= TWIST_MAX_AGE_S
         vx, vy = self.guard.limit(stamp, vx, vy, velocity=moving[1] if fresh else None)
-        self.vehicle.command(stamp, vx, vy, vz, yaw_rate)
+        sent = (self.next_seq, max(self.last_state_stamp, -1.0))  # for a lock-step base station
+        self.vehicle.command(stamp, vx, vy, vz, yaw_rate, *sent)
 
     def _resend(self) -> None:
         key = self.keys.robot(self.robot_id, "keyframe")
@@ -385,6 +412,8 @@ class AgentNode:
             "outbox_high_water": self.outbox.high_water,
             "keyframes_deferred": self.outbox.deferred,
             "base_station_links": dict(self.base_links),
+            "lockstep_downlink_waits": self.downlink.waits,
+            "lockstep_downlink_timeouts": self.downlink.timeouts,
             "scans": self.scans,
             "odom_distance_m": self.frontend.distance_m,
             "scans_rejected": self.frontend.rejected_scans,

@@ -26,9 +26,13 @@ from agent.carmen_log import CarmenLaser, CarmenOdometry, odometry_stamps_regula
 from common.bus import Bus
 from common.errors import ConfigError
 from common.geometry import pose4_to_pose7, wrap_angle
-from protocol import Altimeter, Imu, LaserScan, Odometry
+from protocol import Altimeter, ClockSync, GnssFix, Imu, LaserScan, Odometry
 
 log = logging.getLogger(__name__)
+
+
+# on robot/<id>/sensor/*: ClockSync is a lock-step simulator's (agent/downlink_gate.py)
+SENSOR_MESSAGES = (Odometry, Imu, Altimeter, LaserScan, ClockSync, GnssFix)
 
 
 class SensorSource(Protocol):
@@ -41,23 +45,24 @@ class ZenohSensors:
     """A drone's sensors over Zenoh (`robot/<id>/sensor/*`), from the simulator or a driver.
 
     Keyframes carry the altimeter's height, so scans that come before the altimeter's
-    first reading are dropped (the topics are separate: at start-up a scan can overtake
-    the reading published before it, and the first keyframe then said z = 0, a 1 m error
-    in one robot's ATE in about every other `make run`); the simulator's lock-step sends
-    such a tick again. After `max_scans_before_altitude` such scans, a drone with no
-    altimeter flies on at z = 0 (warned once)."""
+    first reading are dropped (when each topic had its own subscriber, a scan could
+    overtake the reading published before it, and the first keyframe then said z = 0,
+    a 1 m error in one robot's ATE in about every other `make run`; a driver may also
+    start its laser first); the simulator's lock-step sends such a tick again. After
+    `max_scans_before_altitude` such scans, a drone with no altimeter flies on at z = 0
+    (warned once)."""
 
     def __init__(self, bus: Bus, robot_id: str, max_scans_before_altitude: int = 5) -> None:
         self._queue: queue.Queue[Any] = queue.Queue()
         self._robot_id = robot_id
         self._scans_waiting = max_scans_before_altitude  # left to drop; 0: pass them on
-        for kind, typ in (
-            ("odom", Odometry),
-            ("imu", Imu),
-            ("altimeter", Altimeter),
-            ("scan", LaserScan),
-        ):
-            bus.subscribe(bus.keys.sensor(robot_id, kind), typ, lambda m, k: self._queue.put(m))
+        # one subscriber for all of them: Zenoh keeps a sender's samples in order per
+        # subscriber, not between two (a scan overtook the altimeter's reading of its tick)
+        bus.subscribe(bus.keys.robot(robot_id, "sensor/*"), SENSOR_MESSAGES, self._put)
+
+    def _put(self, msg: Any, key: str) -> None:
+        if not isinstance(msg, GnssFix):  # the base station's (a wildcard brings it too)
+            self._queue.put(msg)
 
     def messages(self, stop: threading.Event) -> Iterator[Any | None]:
         while not stop.is_set():

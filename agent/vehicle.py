@@ -17,10 +17,22 @@ class ZenohVehicle:
         self._robot_id = robot_id
         self._key = bus.keys.robot(robot_id, "cmd")
 
-    def command(self, stamp: float, vx: float, vy: float, vz: float, yaw_rate: float) -> None:
-        self._bus.publish(self._key, VehicleCommand(self._robot_id, stamp, vx, vy, vz, yaw_rate))
+    def command(
+        self,
+        stamp: float,
+        vx: float,
+        vy: float,
+        vz: float,
+        yaw_rate: float,
+        keyframes_sent: int = 0,
+        state_stamp: float = -1.0,
+    ) -> None:
+        msg = VehicleCommand(
+            self._robot_id, stamp, vx, vy, vz, yaw_rate, keyframes_sent, state_stamp
+        )
+        self._bus.publish(self._key, msg)
 
 
 class NullVehicle:
-    def command(self, stamp: float, vx: float, vy: float, vz: float, yaw_rate: float) -> None:
+    def command(self, stamp: float, *args: float) -> None:
         """Replayed data: there is no vehicle to command."""

@@ -151,7 +151,9 @@ def hypothesis_poses(
 
 
 class ConstraintBuilder:
-    def __init__(self, cfg: ConstraintConfig, verifier: ScanVerifier | None = None) -> None:
+    def __init__(
+        self, cfg: ConstraintConfig, verifier: ScanVerifier | None = None, threaded: bool = True
+    ) -> None:
         self.cfg = cfg
         self.verifier = verifier or ScanVerifier(
             linear_window=cfg.linear_window_m,
@@ -174,8 +176,17 @@ class ConstraintBuilder:
         self.stats = collections.Counter()
         self._busy = False
         self._busy_kind: str | None = None
-        self._thread = threading.Thread(target=self._work, name="constraint-builder", daemon=True)
-        self._thread.start()
+        self._thread: threading.Thread | None = None
+        if threaded:
+            self.start()
+
+    def start(self) -> None:
+        """Start the worker thread (once); without it, `run_pending` verifies on the caller's."""
+        if self._thread is None:
+            self._thread = threading.Thread(
+                target=self._work, name="constraint-builder", daemon=True
+            )
+            self._thread.start()
 
     def submit(self, job: Job) -> None:
         with self._lock:
@@ -253,7 +264,41 @@ class ConstraintBuilder:
     def close(self) -> None:
         self._stop.set()
         self._wake.set()
-        self._thread.join(timeout=10)
+        if self._thread is not None:
+            self._thread.join(timeout=10)
+
+    def run_pending(self, budget: float) -> int:
+        """Without the worker thread (a lock-step simulation): verify queued jobs on this
+        thread, in the worker's order, until `budget` candidates' worth is spent (a global
+        search costs `GLOBAL_SEARCH_COST`) or none is left; returns how many ran. The same
+        queues in give the same results out, however loaded the machine is."""
+        if self._thread is not None:
+            return 0
+        ran, spent = 0, 0.0
+        while spent < budget:
+            with self._lock:
+                job = self._next_job()
+            if job is None:
+                break
+            self._finish(job, self._try_verify(job))
+            spent += GLOBAL_SEARCH_COST if job.kind == "global" else 1
+            ran += 1
+        return ran
+
+    def _try_verify(self, job: Job) -> VerifiedMatch | None:
+        try:
+            return self._verify(job)
+        except Exception:
+            log.exception("verification of %s failed", job.kind)
+            return None
+
+    def _finish(self, job: Job, match: VerifiedMatch | None) -> None:
+        with self._lock:
+            self.stats[f"verified_{job.kind}" if match else f"failed_{job.kind}"] += 1
+            if match is not None:
+                self._results.append(Verified(job, match))
+            self._busy = False
+            self._busy_kind = None
 
     def _work(self) -> None:
         period = 1.0 / self.cfg.max_candidates_per_s
@@ -267,17 +312,7 @@ class ConstraintBuilder:
                 self._wake.clear()
                 continue
             t0 = time.monotonic()
-            try:
-                match = self._verify(job)
-            except Exception:
-                log.exception("verification of %s failed", job.kind)
-                match = None
-            with self._lock:
-                self.stats[f"verified_{job.kind}" if match else f"failed_{job.kind}"] += 1
-                if match is not None:
-                    self._results.append(Verified(job, match))
-                self._busy = False
-                self._busy_kind = None
+            self._finish(job, self._try_verify(job))
             rest = period - (time.monotonic() - t0)
             if rest > 0:
                 self._stop.wait(rest)

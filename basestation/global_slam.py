@@ -70,6 +70,7 @@ class GlobalSlam:
         known_starts: dict[str, np.ndarray] | None = None,
         start_headings: dict[str, float] | None = None,  # rad in ENU, GPS only
         scan_reader: ScanReader | None = None,  # old scans from the database; None: in RAM
+        threaded_verification: bool = True,  # False: verify_pending() does it (lock-step)
     ) -> None:
         self.cfg = cfg
         b = cfg.basestation
@@ -86,7 +87,9 @@ class GlobalSlam:
         self._early_fixes: dict[str, list[tuple[float, np.ndarray, np.ndarray]]] = {}
         self._node_stamps: dict[str, float] = {}  # robot -> stamp of its latest node
         self.cc = b.constraints
-        self.builder = ConstraintBuilder(self.cc) if self.cc.enabled else None
+        self.builder = (
+            ConstraintBuilder(self.cc, threaded=threaded_verification) if self.cc.enabled else None
+        )
         self.loops = LoopClosureManager(self.graph, self.cc, self._chain_covariance)
         self.updates = 0  # iSAM2 updates; the latest TIMINGS_KEPT of their latencies:
         self.update_ms: deque[float] = deque(maxlen=TIMINGS_KEPT)
@@ -418,6 +421,16 @@ class GlobalSlam:
         job = self.whole_map.job(key, poses, frame, self._query)
         if job is not None:
             self.builder.submit(job)
+
+    def verify_pending(self, budget: float) -> int:
+        """Verify waiting candidates on this thread (no worker thread; see `ConstraintBuilder.
+        run_pending`), up to `budget` candidates' worth; returns how many ran."""
+        return 0 if self.builder is None else self.builder.run_pending(budget)
+
+    def start_verifier(self) -> None:
+        """Verify candidates on the worker thread from now on."""
+        if self.builder is not None:
+            self.builder.start()
 
     def integrate_constraints(self) -> int:
         """Hand verified matches to the loop-closure manager; returns how many arrived."""

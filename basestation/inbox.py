@@ -24,11 +24,13 @@ class KeyframeInbox:
         self._q: queue.Queue[Keyframe] = queue.Queue(maxsize=max_keyframes)
         self.max_keyframes = max_keyframes
         self.drops = 0
+        self._highest: dict[str, int] = {}  # robot -> highest seq queued (one Zenoh thread)
 
     def put(self, kf: Keyframe) -> bool:
         """Queue a keyframe (any thread); False if the inbox was full and it was dropped."""
         try:
             self._q.put_nowait(kf)
+            self._highest[kf.robot_id] = max(self._highest.get(kf.robot_id, -1), kf.seq)
             return True
         except queue.Full:
             self.drops += 1
@@ -51,6 +53,10 @@ class KeyframeInbox:
         except queue.Empty:
             pass
         return batch
+
+    def highest_seq(self, robot_id: str) -> int:
+        """The highest seq of `robot_id` ever queued here (-1: none)."""
+        return self._highest.get(robot_id, -1)
 
     def empty(self) -> bool:
         return self._q.empty()

@@ -10,6 +10,11 @@ velocities (the difference of their last two states' `odom` positions, turned in
 come several times a second). Robots whose last state is older than `max_age_s`
 of the asking robot's time are left out, and so are robots without a correction yet
 (their `map` pose is not known: correction epoch -1).
+
+In a lock-step simulation (`strictly_earlier`) every robot reports at the same stamps,
+and which of two states of one stamp arrives first is up to the machine's load: the
+answer to a state of stamp t then holds each other robot's latest state before t, so
+that it is the same on every run.
 """
 
 from __future__ import annotations
@@ -32,10 +37,14 @@ class _Track:
 
 
 class NeighbourRelay:
-    def __init__(self, max_age_s: float = 2.0, max_dt_s: float = 2.0) -> None:
+    def __init__(
+        self, max_age_s: float = 2.0, max_dt_s: float = 2.0, strictly_earlier: bool = False
+    ) -> None:
         self.max_age_s = max_age_s  # s, older positions are not relayed
         self.max_dt_s = max_dt_s  # s, states further apart give no velocity
+        self.strictly_earlier = strictly_earlier
         self._tracks: dict[str, _Track] = {}
+        self._previous: dict[str, _Track] = {}  # each robot's track before its latest
 
     def on_state(self, msg: RobotState) -> Neighbours:
         """Take `msg`'s position; the answer to send back to its robot."""
@@ -49,14 +58,20 @@ class NeighbourRelay:
             d = (odom_xy - old.odom_xy) / (msg.stamp - old.stamp)
             velocity = np.array([c * d[0] - s * d[1], s * d[0] + c * d[1]])
         if old is None or msg.stamp > old.stamp:  # a late or repeated state changes nothing
+            if old is not None:
+                self._previous[msg.robot_id] = old
             self._tracks[msg.robot_id] = _Track(
                 msg.stamp, msg.correction_epoch, xy, odom_xy, velocity
             )
-        others = [
-            t
-            for rid, t in self._tracks.items()
-            if rid != msg.robot_id and t.stamp >= msg.stamp - self.max_age_s and t.epoch >= 0
-        ]
+        others: list[_Track] = []
+        for rid in sorted(self._tracks):  # not in order of arrival
+            t: _Track | None = self._tracks[rid]
+            if rid == msg.robot_id:
+                continue
+            if self.strictly_earlier and t.stamp >= msg.stamp:
+                t = self._previous.get(rid)
+            if t is not None and t.stamp >= msg.stamp - self.max_age_s and t.epoch >= 0:
+                others.append(t)
         return Neighbours(
             robot_id=msg.robot_id,
             stamp=msg.stamp,
@@ -68,3 +83,4 @@ class NeighbourRelay:
     def forget(self, robot_id: str) -> None:
         """A robot that went away (liveliness lost) is no longer anyone's neighbour."""
         self._tracks.pop(robot_id, None)
+        self._previous.pop(robot_id, None)

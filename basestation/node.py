@@ -27,6 +27,7 @@ import numpy as np
 from basestation.exploration_setup import make_explorer
 from basestation.global_slam import GlobalSlam
 from basestation.inbox import KeyframeInbox
+from basestation.lockstep import LockstepClock
 from basestation.map_builder import MapBuilder
 from basestation.map_history import MapHistory
 from basestation.neighbour_relay import NeighbourRelay
@@ -50,6 +51,7 @@ from protocol import (
     KeyframeAck,
     PoseCorrection,
     RobotState,
+    VehicleCommand,
     decode,
     encode,
 )
@@ -83,7 +85,12 @@ class BaseStationNode:
             elif not cfg.basestation.known_start_poses:
                 starts = dict(list(starts.items())[:1])
         self.db = open_database(cfg.basestation.db_path)
-        self.slam = GlobalSlam(cfg, starts, headings, self.db.scan_reader())
+        # a lock-step simulator's clock paces everything (basestation/lockstep.py)
+        lockstep = scenario is not None and cfg.base_sync_period_s() > 0.0
+        self.clock = LockstepClock(lockstep, cfg.sim.basestation_timeout_s)
+        self.slam = GlobalSlam(
+            cfg, starts, headings, self.db.scan_reader(), threaded_verification=not lockstep
+        )
         # With a scenario, map is the world frame: ENU at the world's WGS84 origin (if any).
         self.wgs84_origin = None
         if scenario is not None:
@@ -99,18 +106,12 @@ class BaseStationNode:
         self.inbox = KeyframeInbox()  # bounded (see basestation/inbox.py)
         self.gnss_inbox: queue.Queue[GnssFix] = queue.Queue()  # basestation.gps.enabled
         self.states: dict[str, RobotState] = {}
-        self.neighbours = NeighbourRelay()
+        self.neighbours = NeighbourRelay(strictly_earlier=lockstep)
         self.epoch = 0
         self.unknown_robot_drops = self.intake_pauses = 0
         self._last_map = 0.0
         self._map_dirty = False
         self._lock = threading.Lock()
-        # lock-step handshake: the simulator's latest request (sim time) and our answer; its
-        # clock alone paces exploration (a wall-clock step before the first handshake planned
-        # on the scans in so far, paths held for seconds) unless none comes for the timeout
-        self._sync_requested = self._sync_answered = -1.0
-        lockstep = scenario is not None and cfg.base_sync_period_s() > 0.0
-        self._wall_pacing_from = lockstep * (time.monotonic() + cfg.sim.basestation_timeout_s)
         self.syncs = 0
         self.map_history = MapHistory(max_snapshots=cfg.basestation.map_history_max_snapshots)
         self.links: dict[str, dict[str, int]] = {}  # agent -> {"joins": n, "losses": n}
@@ -169,8 +170,10 @@ class BaseStationNode:
             self.keys.all_robots("keyframe"), Keyframe, lambda m, k: self.inbox.put(m)
         )
         self.bus.subscribe(self.keys.all_robots("state"), RobotState, self._on_state)
-        if self.explorer is not None:
-            self.bus.subscribe(self.keys.clock("sim"), ClockSync, self._on_sim_clock)
+        if self.clock.active:
+            self.bus.subscribe(self.keys.clock("sim"), ClockSync, self.clock.on_request)
+            cmds = self.keys.all_robots("cmd")
+            self.bus.subscribe(cmds, VehicleCommand, self.clock.on_command)
         self.bus.watch_alive("agent", self._on_agent_alive)
         if self.cfg.basestation.gps.enabled:
             self.bus.subscribe(
@@ -182,10 +185,6 @@ class BaseStationNode:
                 acked = self.slam.store.acked_seq(rid)
                 self.bus.publish(self.keys.robot(rid, "ack"), KeyframeAck(rid, acked))
             self.publish_corrections()
-
-    def _on_sim_clock(self, msg: ClockSync, key: str) -> None:
-        with self._lock:
-            self._sync_requested = max(self._sync_requested, msg.stamp)
 
     def _on_state(self, msg: RobotState, key: str) -> None:
         """(Zenoh thread) keep it; answer with where the others are (neighbour guard)."""
@@ -218,7 +217,15 @@ class BaseStationNode:
             self.step(timeout=0.05)
 
     def step(self, timeout: float = 0.0) -> int:
-        """Process one batch of keyframes and verified constraints; returns #admitted."""
+        """Process one batch of keyframes and verified constraints; returns #admitted.
+        In a lock-step simulation: answer the clock's request, if one comes."""
+        if self.clock.paced_by_sim():
+            stamp = self.clock.wait_request(timeout)
+            admitted = 0 if stamp is None else self.sync(stamp)
+            self._release_lost()
+            self.heap.maybe_trim()
+            return admitted
+        self.slam.start_verifier()  # no lock-step simulator came: verify on the worker
         limit = self.cfg.basestation.pause_intake_backlog
         if limit and self.slam.backlog() > limit:
             self.intake_pauses += 1
@@ -229,24 +236,15 @@ class BaseStationNode:
             admitted = self._take_batch(timeout)
         if self.slam.integrate_constraints():
             self._optimized()
-        with self._lock:
-            lost, self._lost = self._lost, []
-        for name in lost:
-            if self.explorer is not None:
-                self.explorer.release(name)
+        self._release_lost()
         now = time.monotonic()
         redraw = self._map_dirty or self.map.pending  # tiles left from a correction
         if redraw and now - self._last_map >= self.cfg.basestation.map_update_period_s:
             self.refresh_map()
             self._last_map = now
-        with self._lock:
-            requested = self._sync_requested
-        if requested > self._sync_answered:
-            self.sync(requested)
-        elif (
+        if (
             self.explorer is not None
-            and self._sync_answered < 0.0  # no lock-step simulator: pace by the wall clock
-            and now >= self._wall_pacing_from
+            and self.clock.wall_paced(now)
             and now - self._last_explore >= self.cfg.exploration.period_s
         ):
             self._last_explore = now
@@ -254,47 +252,54 @@ class BaseStationNode:
         self.heap.maybe_trim()
         return admitted
 
-    def sync(self, stamp: float) -> None:
-        """Answer the simulator's clock at sim time `stamp`: take every keyframe received,
-        integrate verified constraints, refresh the map, explore, then release the clock."""
-        if self.syncs == 0:
-            self._await_first_keyframes(self.cfg.sim.first_sync_wait_s)
-        while not self.inbox.empty():
-            self._take_batch(0.0)
+    def sync(self, stamp: float) -> int:
+        """Answer the simulator's clock at sim time `stamp` (basestation/lockstep.py): take
+        everything the robots sent up to it, verify, optimize, map and explore, then mark
+        each robot's downlink and release the clock; returns #keyframes admitted."""
+        with self._lock:
+            robots = set(self._alive) if self.roster is None else set(self.roster)
+        missing = self.clock.wait_inputs(stamp, robots, self._received, self.cfg.sim.sync_wait_s)
+        if missing:
+            log.warning("t=%.3f: not all in yet from %s; going on", stamp, ", ".join(missing))
+        self._take_fixes()
+        batch = self.inbox.take(len(self.inbox) + 1)
+        admitted = self.process(sorted(batch, key=lambda kf: (kf.robot_id, kf.seq)))
+        budget = self.cfg.basestation.constraints.max_candidates_per_s
+        self.slam.verify_pending(budget * self.cfg.base_sync_period_s())
         if self.slam.integrate_constraints():
             self._optimized()
-        if self._map_dirty or self.map.pending:
-            self.refresh_map()
-            self._last_map = time.monotonic()
+        if self._map_dirty:  # all of it: a wall-time budget would make it depend on the load
+            self.map.update(*self.slam.map_keyframes(), budget_s=None)
+            self._map_dirty = False
+        elif self.map.pending:
+            self.map.work(None)
         grid = self.map.gridmap()
         if grid is not None:
             self.map_history.add(stamp, grid)
-        self._sync_answered = stamp
+        self.clock.answered = stamp
         if self.explorer is not None:
             self.explore()
         self.syncs += 1
+        for rid in sorted(robots):  # what each robot gets by this answer
+            self.bus.publish(self.keys.robot(rid, "clock"), self.clock.mark(rid, stamp))
         self.bus.publish(self.keys.clock("basestation"), ClockSync("basestation", stamp))
+        return admitted
 
-    def _await_first_keyframes(self, timeout_s: float) -> None:
-        """Before the first answer to the simulator (t = 0): take keyframes until every robot
-        of the roster (without one: every agent up) has its first one in, or `timeout_s`
-        (wall) has passed: they race the clock over Zenoh (outbox resends, liveliness), and
-        a robot missing from the first exploration step would wait a period for its path."""
-        deadline = time.monotonic() + timeout_s
-        while True:
-            with self._lock:
-                expected = set(self._alive) if self.roster is None else set(self.roster)
-            missing = expected - set(self.slam.graph.robots())
-            if not missing:
-                return
-            if time.monotonic() > deadline:
-                log.warning(
-                    "first clock: no keyframe yet from %s after %.0f s; going on",
-                    ", ".join(sorted(missing)),
-                    timeout_s,
-                )
-                return
-            self._take_batch(0.05)
+    def _received(self, rid: str) -> tuple[int, float]:
+        """(keyframes of `rid` received, its latest state's stamp), for the clock."""
+        r = self.slam.store.robots.get(rid)
+        seq = max(self.inbox.highest_seq(rid), -1 if r is None else r.next_seq - 1)
+        with self._lock:
+            state = self.states.get(rid)
+        return seq + 1, -1.0 if state is None else state.stamp
+
+    def _release_lost(self) -> None:
+        """Goals of agents whose liveliness token went away go back to the queue."""
+        with self._lock:
+            lost, self._lost = self._lost, []
+        for name in lost:
+            if self.explorer is not None:
+                self.explorer.release(name)
 
     def explore(self) -> None:
         """One exploration step: new paths (map frame) for the robots that need one."""
@@ -325,7 +330,7 @@ class BaseStationNode:
             p = np.zeros((0, 2)) if path is None else densify(path, 0.25)
             log.info(
                 "t=%.1f s: path %d for %s from (%.1f, %.1f): %s",
-                self._sync_answered,
+                self.clock.answered,
                 self._path_id,
                 rid,
                 *poses[rid][:2],
@@ -340,6 +345,7 @@ class BaseStationNode:
         self._persist(batch)
         for rid, payload in out:
             self.bus.put_raw(self.keys.robot(rid, "path"), payload)
+            self.clock.sent_path(rid)
 
     def _take_fixes(self) -> None:
         """GNSS fixes -> ENU at the map's WGS84 origin (the first fix's, if none) -> graph."""
@@ -406,6 +412,7 @@ class BaseStationNode:
                 self.keys.robot(rid, "correction"),
                 PoseCorrection(rid, self.epoch, stamp, pose4_to_pose7([T[0], T[1], 0.0, T[2]])),
             )
+            self.clock.sent_correction(rid, self.epoch)
 
     def refresh_map(self) -> None:
         """New keyframes into the grid, and up to `map.rerender_budget_s` of redrawing

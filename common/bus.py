@@ -110,17 +110,27 @@ class Bus:
 
     # --- subscribing --------------------------------------------------------------------
     def subscribe(
-        self, key_expr: str, msg_type: type[M], handler: Callable[[M, str], None]
+        self,
+        key_expr: str,
+        msg_type: type[M] | tuple[type, ...],
+        handler: Callable[[M, str], None],
     ) -> None:
-        """Decode each sample as `msg_type` and call handler(msg, key).
+        """Decode each sample as `msg_type` (or any of a tuple of types) and call
+        handler(msg, key).
 
         Samples on a robot key must carry that robot's id; bad samples are dropped.
+        One subscriber keeps one sender's samples in order; two subscribers' callbacks do
+        not keep their order between them (a wildcard over several topics does).
         """
+        types = msg_type if isinstance(msg_type, tuple) else (msg_type,)
+        expected = types[0] if len(types) == 1 else None
 
         def on_sample(sample: zenoh.Sample) -> None:
             key = str(sample.key_expr)
             try:
-                msg = decode(sample.payload.to_bytes(), msg_type, self.max_message_bytes)
+                msg = decode(sample.payload.to_bytes(), expected, self.max_message_bytes)
+                if not isinstance(msg, types):
+                    raise ProtocolError(f"unexpected {type(msg).__name__} message")
                 robot = self.keys.robot_id_of(key)
                 if robot is not None and getattr(msg, "robot_id", robot) != robot:
                     raise ProtocolError(

@@ -116,10 +116,9 @@ class SimConfig:
     # the base station's step (Config.base_sync_period_s); waits > basestation_timeout_s end.
     sync_basestation: bool = True
     basestation_timeout_s: float = 60.0  # s wall
-    # The first handshake is at t = 0: the base station answers it once every agent that is
-    # up has its first keyframe and state in (they race the clock over Zenoh), or after
-    # this long (wall), so every robot gets its first path at t = 0.
-    first_sync_wait_s: float = 10.0  # s wall
+    # At a handshake (the first at t = 0) the base station waits for every robot's command
+    # of that stamp (its keyframes and state come before it), at most this long (wall).
+    sync_wait_s: float = 10.0  # s wall
     start_timeout_s: float = 60.0  # s wall: wait this long for every agent to come alive
     tour_length_m: float = 80.0  # m, scripted tour per robot
     start_spacing_m: float = 1.5  # m between start positions

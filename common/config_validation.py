@@ -90,7 +90,7 @@ def _validate_sim(cfg: Config) -> None:
             "rate",
             "lockstep_timeout_s",
             "basestation_timeout_s",
-            "first_sync_wait_s",
+            "sync_wait_s",
             "ground_truth_rate_hz",
         ),
     )

@@ -24,7 +24,7 @@ import numpy as np
 
 from common.errors import ProtocolError
 
-SCHEMA_VERSION = 1
+SCHEMA_VERSION = 2
 DEFAULT_MAX_BYTES = 8 * 1024 * 1024
 
 T = TypeVar("T")

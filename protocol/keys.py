@@ -7,6 +7,8 @@
     collabslam/<fleet>/robot/<id>/state                              agent -> anyone
     collabslam/<fleet>/robot/<id>/pose/control                       agent -> controller, anyone
     collabslam/<fleet>/robot/<id>/{ack,correction,goal,path,neighbours}  base station -> agent
+    collabslam/<fleet>/robot/<id>/sensor/clock                       simulator -> agent (lockstep)
+    collabslam/<fleet>/robot/<id>/clock                              base -> agent (lockstep)
     collabslam/<fleet>/alive/{basestation,agent,sim}/<id>           liveliness tokens
     collabslam/<fleet>/clock/{sim,basestation}                       lock-step handshake
 
@@ -23,9 +25,9 @@ from common.errors import ConfigError
 PREFIX = "collabslam"
 _NAME = re.compile(r"^[A-Za-z0-9_-]{1,32}$")
 
-SENSOR_TOPICS = ("scan", "odom", "imu", "altimeter", "gnss")
+SENSOR_TOPICS = ("scan", "odom", "imu", "altimeter", "gnss", "clock")
 UPLINK_TOPICS = ("keyframe", "state", "cmd", "pose/control")
-DOWNLINK_TOPICS = ("ack", "correction", "goal", "path", "neighbours")
+DOWNLINK_TOPICS = ("ack", "correction", "goal", "path", "neighbours", "clock")
 
 
 def _check(kind: str, name: str) -> str:

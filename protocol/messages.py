@@ -137,7 +137,10 @@ class VehicleCommand(Message):
     """Body-frame velocity set-point for the autopilot.
 
     `stamp` is the sensor stamp the command answers: in lock-step simulation it
-    is the handshake that lets the simulator advance.
+    is the handshake that lets the simulator advance. `keyframes_sent` (the next
+    keyframe's seq) and `state_stamp` (the latest RobotState's, -1: none) say what the
+    agent has sent the base station by then: a lock-step base station waits for those
+    before it answers the clock at `stamp` (basestation/lockstep.py).
     """
 
     robot_id: str
@@ -146,6 +149,15 @@ class VehicleCommand(Message):
     vy: float
     vz: float
     yaw_rate: float
+    keyframes_sent: int = 0
+    state_stamp: float = -1.0
+
+    def validate(self) -> None:
+        super().validate()
+        if self.keyframes_sent < 0:
+            raise ProtocolError(
+                f"VehicleCommand.keyframes_sent must be >= 0, got {self.keyframes_sent}"
+            )
 
 
 # --- agent <-> base station ---------------------------------------------------------------
@@ -317,6 +329,18 @@ class Neighbours(Message):
         super().validate()
         if not len(self.stamps) == len(self.xy) == len(self.velocity):
             raise ProtocolError("Neighbours: stamps, xy and velocity differ in length")
+
+
+@message
+class DownlinkMark(Message):
+    """Lock-step simulation: what the base station has sent a robot by its answer to the
+    clock at `stamp`: `paths` Path messages in all and the latest correction `epoch`
+    (-1: none). The robot's next tick waits for those (agent/downlink_gate.py)."""
+
+    robot_id: str
+    stamp: float
+    paths: int
+    epoch: int
 
 
 @message

@@ -5,8 +5,9 @@ last VehicleCommand, and the simulator publishes odometry, IMU, altimeter and
 then the laser scan of each drone over Zenoh, exactly as a real drone driver
 would. The sim clock runs either
 - lock-step: the next tick starts only when every agent has answered this
-  tick's scan with a VehicleCommand of the same stamp (results do not depend
-  on how loaded the machine is), or
+  tick's scan with a VehicleCommand of the same stamp, and with exploration every
+  `exploration.period_s` only when the base station has answered the clock
+  (basestation/lockstep.py): results do not depend on how loaded the machine is; or
 - real time x `rate`: ticks are paced against the wall clock.
 Ground truth is recorded per robot and written as TUM at the end.
 """
@@ -39,6 +40,7 @@ from protocol import (
     Odometry,
     RobotState,
     VehicleCommand,
+    encode,
 )
 from simulation.gnss import GnssModel, world_origin
 from simulation.quadrotor import Quadrotor
@@ -61,6 +63,7 @@ class SimRobot:
     answered: float = -1.0  # stamp of the last tick this robot's agent answered
     status: str = "starting"
     gt: RowSpool = field(default_factory=lambda: RowSpool(5))  # [t, x, y, z, yaw]
+    tick: list[tuple[str, bytes]] = field(default_factory=list)  # the last tick's messages
 
 
 class Simulator:
@@ -189,7 +192,8 @@ class Simulator:
                 self._wait_answers(stop)
                 if self.sync_period and self.t >= next_sync - 1e-9:
                     next_sync += self.sync_period
-                    self._wait_basestation(stop)
+                    if self._wait_basestation(stop):
+                        self._tell_agents(self.t)
             else:
                 delay = t_wall0 + self.t / self.cfg.sim.rate - time.monotonic()
                 if delay > 0:
@@ -233,11 +237,12 @@ class Simulator:
                         self.t,
                         ", ".join(r.robot_id for r in late),
                     )
-                    for r in late:
-                        self._publish_sensors(r, self.t)
+                    for r in late:  # the same messages: measuring again would draw noise
+                        for key, payload in r.tick:
+                            self.bus.put_raw(key, payload)
 
-    def _wait_basestation(self, stop: threading.Event) -> None:
-        """Hold the clock at `self.t` until the base station has answered it."""
+    def _wait_basestation(self, stop: threading.Event) -> bool:
+        """Hold the clock at `self.t` until the base station has answered it (True)."""
         self.base_syncs += 1
         deadline = time.monotonic() + self.cfg.sim.basestation_timeout_s
         request = ClockSync("sim", self.t)
@@ -246,9 +251,17 @@ class Simulator:
                 if time.monotonic() > deadline:
                     self.base_sync_timeouts += 1
                     log.warning("t=%.3f: no answer from the base station; going on", self.t)
-                    return
+                    return False
                 self.bus.publish(self.keys.clock("sim"), request)  # again if it was missed
                 self._cond.wait(self.cfg.sim.lockstep_timeout_s)
+        return not stop.is_set()
+
+    def _tell_agents(self, t: float) -> None:
+        """Before the next tick (on a sensor key: one subscriber keeps them in order): the
+        base station answered `t`, so each agent waits for what it sent by then."""
+        msg = ClockSync("sim", t)
+        for rid in self.robots:
+            self.bus.publish(self.keys.sensor(rid, "clock"), msg)
 
     def _step_physics(self) -> None:
         for r in self.robots.values():
@@ -267,35 +280,37 @@ class Simulator:
     def _publish_sensors(self, r: SimRobot, t: float) -> None:
         v, rid, keys = r.vehicle, r.robot_id, self.keys
         odo = r.odometry
-        self.bus.publish(
-            keys.sensor(rid, "odom"),
-            Odometry(rid, t, pose4_to_pose7(odo.pose), np.asarray(odo.twist)),
-        )
+        msgs: list[tuple[str, Any]] = [
+            (
+                keys.sensor(rid, "odom"),
+                Odometry(rid, t, pose4_to_pose7(odo.pose), np.asarray(odo.twist)),
+            )
+        ]
         w, a, q = r.imu.measure(
             v.angular_velocity_body, v.accel_body, v.roll, v.pitch, float(v.pose[3]), r.rng
         )
-        self.bus.publish(keys.sensor(rid, "imu"), Imu(rid, t, w, a, q))
-        self.bus.publish(
-            keys.sensor(rid, "altimeter"),
-            Altimeter(rid, t, float(r.altimeter.measure(float(v.pose[2]), r.rng))),
-        )
+        msgs.append((keys.sensor(rid, "imu"), Imu(rid, t, w, a, q)))
+        alt = float(r.altimeter.measure(float(v.pose[2]), r.rng))
+        msgs.append((keys.sensor(rid, "altimeter"), Altimeter(rid, t, alt)))
         fix = r.gnss.measure(t, v.pose[:3]) if r.gnss is not None else None
         if fix is not None:  # world frame = ENU at the world's origin; antenna at the body
-            self.bus.publish(keys.sensor(rid, "gnss"), GnssFix(rid, t, fix.lla, fix.sigmas_enu))
+            msgs.append((keys.sensor(rid, "gnss"), GnssFix(rid, t, fix.lla, fix.sigmas_enu)))
         pose = v.pose
         ranges = self.laser.measure(self.world, np.array([pose[0], pose[1], pose[3]]), r.rng)
-        self.bus.publish(
-            keys.sensor(rid, "scan"),
-            LaserScan(
-                rid,
-                t,
-                float(self.laser.angles[0]),
-                float(self.laser.angles[1] - self.laser.angles[0]),
-                self.laser.range_min,
-                self.laser.range_max,
-                ranges,
-            ),
+        angles = self.laser.angles
+        scan = LaserScan(
+            rid,
+            t,
+            float(angles[0]),
+            float(angles[1] - angles[0]),
+            self.laser.range_min,
+            self.laser.range_max,
+            ranges,
         )
+        msgs.append((keys.sensor(rid, "scan"), scan))
+        r.tick = [(key, encode(msg)) for key, msg in msgs]
+        for key, payload in r.tick:
+            self.bus.put_raw(key, payload)
 
     # --- outputs ------------------------------------------------------------------------
     def stats(self) -> dict[str, Any]:

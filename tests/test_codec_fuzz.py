@@ -38,7 +38,7 @@ from protocol import (
     decode,
     encode,
 )
-from protocol.codec import registered_types
+from protocol.codec import SCHEMA_VERSION, registered_types
 
 FUZZ = settings(
     max_examples=900,
@@ -204,7 +204,7 @@ def test_random_structures_raise_only_protocol_error(
     if type_name is None:
         _check(_pack(obj), expected)
     else:  # a well-formed envelope of a registered type around random data
-        _check(_pack({"v": 1, "t": type_name, "d": obj}), expected)
+        _check(_pack({"v": SCHEMA_VERSION, "t": type_name, "d": obj}), expected)
 
 
 def test_fuzz_inputs_do_reach_the_decoder_checks() -> None:

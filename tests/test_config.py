@@ -39,7 +39,7 @@ def test_round_trip(tmp_path: Path) -> None:
         ({"basestation.isam2_factorization": "LU"}, "basestation.isam2_factorization"),
         ({"basestation.adaptive_reorder_threshold": 0.5}, "basestation.adaptive_reorder"),
         ({"basestation.relinearize_skip": 0}, "basestation.relinearize_skip"),
-        ({"sim.first_sync_wait_s": 0.0}, "sim.first_sync_wait_s"),
+        ({"sim.sync_wait_s": 0.0}, "sim.sync_wait_s"),
         ({"basestation.malloc_arenas": -1}, "basestation.malloc_arenas"),
         ({"basestation.malloc_mmap_threshold_kb": -1}, "basestation.malloc_mmap_threshold_kb"),
         ({"agent.malloc_arenas": -2}, "agent.malloc_arenas"),

@@ -29,7 +29,7 @@ def _explore(tmp_path: Path, endpoint: str, sets: dict, clock_at_s: float | None
             "exploration.period_s": 0.2,
             "basestation.map_update_period_s": 0.1,
             "basestation.constraints.enabled": False,
-            "sim.first_sync_wait_s": 0.5,
+            "sim.sync_wait_s": 0.5,
             **sets,
         }
     )

@@ -1,0 +1,115 @@
+"""The base station's side of a lock-step simulation's clock (simulation/simulator.py).
+
+A lock-step simulator with exploration holds its clock every `exploration.period_s` of
+sim time at a stamp T and asks the base station (`clock/sim`); the base station
+answers T (`clock/basestation`) once it has taken everything the robots sent up to T,
+verified, optimized, mapped and explored. So that the answer depends on the sim time
+only, never on how loaded the machine is:
+
+- the base station does nothing between two requests: keyframes wait in the inbox and
+  candidates in the constraint builder's queues (no worker thread);
+- at a request for T it first waits for every robot's `VehicleCommand` of stamp T and
+  for what that command says the robot sent by then (its keyframes and its latest
+  state): they come on other keys, whose order Zenoh does not keep between subscribers;
+- it then takes all those keyframes in (robot, seq) order as one batch, verifies up to
+  `max_candidates_per_s` x the period of waiting candidates, redraws the whole map and
+  explores; then it tells each robot what it has sent it in all (`robot/<id>/clock`,
+  DownlinkMark: paths, the latest correction epoch), which the agent waits for before
+  its next tick once the simulator says that T was answered (agent/downlink_gate.py).
+
+Without requests for `basestation_timeout_s` (no such simulator) the base station
+paces itself by the wall clock instead.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from collections.abc import Callable, Iterable
+
+from protocol import ClockSync, DownlinkMark, VehicleCommand
+
+POLL_S = 0.002  # s: keyframes and states come on other subscribers than the commands
+
+
+class LockstepClock:
+    def __init__(self, active: bool, timeout_s: float) -> None:
+        self.active = active  # a lock-step simulator with exploration is expected
+        self.requested = self.answered = -1.0  # sim time
+        self._wall_pacing_from = time.monotonic() + timeout_s if active else 0.0
+        self._commands: dict[str, VehicleCommand] = {}  # robot -> its latest command
+        self._paths: dict[str, int] = {}  # robot -> Path messages sent to it
+        self._epochs: dict[str, int] = {}  # robot -> the latest correction epoch sent to it
+        self._cond = threading.Condition()
+
+    # --- Zenoh threads ------------------------------------------------------------------
+    def on_request(self, msg: ClockSync, key: str) -> None:
+        with self._cond:
+            self.requested = max(self.requested, msg.stamp)
+            self._cond.notify_all()
+
+    def on_command(self, msg: VehicleCommand, key: str) -> None:
+        with self._cond:
+            old = self._commands.get(msg.robot_id)
+            if old is None or msg.stamp >= old.stamp:
+                self._commands[msg.robot_id] = msg
+            self._cond.notify_all()
+
+    # --- the base station's thread ------------------------------------------------------
+    def paced_by_sim(self) -> bool:
+        """True while the simulator's requests alone pace the base station."""
+        if not self.active:
+            return False
+        with self._cond:
+            waiting = self.requested > self.answered
+        return waiting or self.answered >= 0.0 or time.monotonic() < self._wall_pacing_from
+
+    def wall_paced(self, now: float) -> bool:
+        """No lock-step simulator (or none has asked in time): explore by the wall clock."""
+        return self.answered < 0.0 and now >= self._wall_pacing_from
+
+    def wait_request(self, timeout_s: float) -> float | None:
+        """The stamp of a request not answered yet, waiting up to `timeout_s` for one."""
+        with self._cond:
+            if self.requested <= self.answered:
+                self._cond.wait(timeout_s)
+            return self.requested if self.requested > self.answered else None
+
+    def wait_inputs(
+        self,
+        stamp: float,
+        robots: Iterable[str],
+        received: Callable[[str], tuple[int, float]],
+        timeout_s: float,
+    ) -> list[str]:
+        """Wait until each of `robots` has commanded at `stamp` and everything its command
+        says it sent is in (`received(robot)`: keyframes received, the latest state's
+        stamp); returns the robots still missing after `timeout_s` (wall)."""
+        deadline = time.monotonic() + timeout_s
+        with self._cond:
+            while True:
+                missing = [r for r in sorted(robots) if not self._in(r, stamp, received)]
+                rest = deadline - time.monotonic()
+                if not missing or rest <= 0.0:
+                    return missing
+                self._cond.wait(min(rest, POLL_S))
+
+    def _in(self, robot: str, stamp: float, received: Callable[[str], tuple[int, float]]) -> bool:
+        cmd = self._commands.get(robot)
+        if cmd is None or cmd.stamp < stamp - 1e-9:
+            return False
+        keyframes, state_stamp = received(robot)
+        return keyframes >= cmd.keyframes_sent and state_stamp >= cmd.state_stamp - 1e-9
+
+    # --- what went down to each robot ---------------------------------------------------
+    def sent_path(self, robot: str) -> None:
+        self._paths[robot] = self._paths.get(robot, 0) + 1
+
+    def sent_correction(self, robot: str, epoch: int) -> None:
+        self._epochs[robot] = epoch
+
+    def mark(self, robot: str, stamp: float) -> DownlinkMark:
+        return DownlinkMark(robot, stamp, self._paths.get(robot, 0), self._epochs.get(robot, -1))
+
+
+__all__ = ["LockstepClock"]

@@ -17,8 +17,9 @@ only, never on how loaded the machine is:
   DownlinkMark: paths, the latest correction epoch), which the agent waits for before
   its next tick once the simulator says that T was answered (agent/downlink_gate.py).
 
-Without requests for `basestation_timeout_s` (no such simulator) the base station
-paces itself by the wall clock instead.
+All that while the simulator's liveliness token is up (or a request waits); before it
+comes the base station processes keyframes as they arrive, and without requests for
+`basestation_timeout_s` (no such simulator) it explores by the wall clock instead.
 """
 
 from __future__ import annotations
@@ -37,6 +38,7 @@ class LockstepClock:
         self.active = active  # a lock-step simulator with exploration is expected
         self.requested = self.answered = -1.0  # sim time
         self._wall_pacing_from = time.monotonic() + timeout_s if active else 0.0
+        self.sim_up = False  # the simulator's liveliness token
         self._commands: dict[str, VehicleCommand] = {}  # robot -> its latest command
         self._paths: dict[str, int] = {}  # robot -> Path messages sent to it
         self._epochs: dict[str, int] = {}  # robot -> the latest correction epoch sent to it
@@ -46,6 +48,11 @@ class LockstepClock:
     def on_request(self, msg: ClockSync, key: str) -> None:
         with self._cond:
             self.requested = max(self.requested, msg.stamp)
+            self._cond.notify_all()
+
+    def on_sim_alive(self, name: str, alive: bool) -> None:
+        with self._cond:
+            self.sim_up = alive
             self._cond.notify_all()
 
     def on_command(self, msg: VehicleCommand, key: str) -> None:
@@ -61,8 +68,12 @@ class LockstepClock:
         if not self.active:
             return False
         with self._cond:
-            waiting = self.requested > self.answered
-        return waiting or self.answered >= 0.0 or time.monotonic() < self._wall_pacing_from
+            return self.sim_up or self.requested > self.answered
+
+    def verify_on_worker(self, now: float) -> bool:
+        """Candidates are verified on the constraint builder's thread, except in lock-step
+        simulation (or while its simulator is awaited)."""
+        return not self.active or self.answered >= 0.0 or now >= self._wall_pacing_from
 
     def wall_paced(self, now: float) -> bool:
         """No lock-step simulator (or none has asked in time): explore by the wall clock."""

@@ -174,6 +174,7 @@ class BaseStationNode:
             self.bus.subscribe(self.keys.clock("sim"), ClockSync, self.clock.on_request)
             cmds = self.keys.all_robots("cmd")
             self.bus.subscribe(cmds, VehicleCommand, self.clock.on_command)
+            self.bus.watch_alive("sim", self.clock.on_sim_alive)
         self.bus.watch_alive("agent", self._on_agent_alive)
         if self.cfg.basestation.gps.enabled:
             self.bus.subscribe(
@@ -225,7 +226,8 @@ class BaseStationNode:
             self._release_lost()
             self.heap.maybe_trim()
             return admitted
-        self.slam.start_verifier()  # no lock-step simulator came: verify on the worker
+        if self.clock.verify_on_worker(time.monotonic()):
+            self.slam.start_verifier()
         limit = self.cfg.basestation.pause_intake_backlog
         if limit and self.slam.backlog() > limit:
             self.intake_pauses += 1

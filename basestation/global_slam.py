@@ -70,7 +70,7 @@ class GlobalSlam:
         known_starts: dict[str, np.ndarray] | None = None,
         start_headings: dict[str, float] | None = None,  # rad in ENU, GPS only
         scan_reader: ScanReader | None = None,  # old scans from the database; None: in RAM
-        threaded_verification: bool = True,  # False: verify_pending() does it (lock-step)
+        threaded: bool = True,  # verify candidates on a worker thread (else verify_pending)
     ) -> None:
         self.cfg = cfg
         b = cfg.basestation
@@ -87,9 +87,7 @@ class GlobalSlam:
         self._early_fixes: dict[str, list[tuple[float, np.ndarray, np.ndarray]]] = {}
         self._node_stamps: dict[str, float] = {}  # robot -> stamp of its latest node
         self.cc = b.constraints
-        self.builder = (
-            ConstraintBuilder(self.cc, threaded=threaded_verification) if self.cc.enabled else None
-        )
+        self.builder = ConstraintBuilder(self.cc, threaded=threaded) if self.cc.enabled else None
         self.loops = LoopClosureManager(self.graph, self.cc, self._chain_covariance)
         self.updates = 0  # iSAM2 updates; the latest TIMINGS_KEPT of their latencies:
         self.update_ms: deque[float] = deque(maxlen=TIMINGS_KEPT)
@@ -105,8 +103,7 @@ class GlobalSlam:
     # --- keyframes ----------------------------------------------------------------------
     def admit(self, kf: Keyframe) -> int:
         """Offer a keyframe; returns how many keyframes entered the graph (0 or more)."""
-        ready = self.store.admit(kf)
-        for k in ready:
+        for k in (ready := self.store.admit(kf)):
             self._add_node(k)
         self._unsaved.extend(ready)
         return len(ready)
@@ -132,8 +129,7 @@ class GlobalSlam:
         """What changed since the last call (admitted keyframes, new matches, matches
         entering or leaving the graph), for the database."""
         constraints, changes = self.loops.take_journal()
-        batch = Batch(self._unsaved, constraints, changes)
-        self._unsaved = []
+        batch, self._unsaved = Batch(self._unsaved, constraints, changes), []
         return batch
 
     def saved(self, batch: Batch) -> None:
@@ -423,13 +419,11 @@ class GlobalSlam:
             self.builder.submit(job)
 
     def verify_pending(self, budget: float) -> int:
-        """Verify waiting candidates on this thread (no worker thread; see `ConstraintBuilder.
-        run_pending`), up to `budget` candidates' worth; returns how many ran."""
+        """Verify up to `budget` waiting candidates here (`ConstraintBuilder.run_pending`)."""
         return 0 if self.builder is None else self.builder.run_pending(budget)
 
     def start_verifier(self) -> None:
-        """Verify candidates on the worker thread from now on."""
-        if self.builder is not None:
+        if self.builder is not None:  # verify on the worker thread from now on
             self.builder.start()
 
     def integrate_constraints(self) -> int:
@@ -479,8 +473,7 @@ class GlobalSlam:
     def map_keyframes(self) -> tuple[NodeKeys, Sequence[Scan2D], np.ndarray]:
         """Keyframes of robots on the map that have a scan, their scans (fetched when
         indexed: memory or database) and optimized poses."""
-        blocks = []
-        poses = []
+        blocks, poses = [], []
         for rid, r in self.store.robots.items():
             n = self.graph.num_nodes(rid) if rid in self.graph.robots() else 0
             if n == 0 or not self.graph.is_anchored(rid):
@@ -498,8 +491,7 @@ class GlobalSlam:
             if rid not in self.graph.robots() or self.graph.num_nodes(rid) == 0:
                 continue
             est = self.graph.poses(rid)
-            z = r.poses_odom.view()[: len(est), 2]
-            poses4 = np.column_stack([est[:, 0], est[:, 1], z, est[:, 2]])
+            poses4 = np.column_stack([est[:, :2], r.poses_odom.view()[: len(est), 2], est[:, 2]])
             out[rid] = Trajectory.from_pose4(r.stamps.view()[: len(est), 0].copy(), poses4)
         return out
 

@@ -17,9 +17,10 @@ only, never on how loaded the machine is:
   DownlinkMark: paths, the latest correction epoch), which the agent waits for before
   its next tick once the simulator says that T was answered (agent/downlink_gate.py).
 
-All that while the simulator's liveliness token is up (or a request waits); before it
-comes the base station processes keyframes as they arrive, and without requests for
-`basestation_timeout_s` (no such simulator) it explores by the wall clock instead.
+All that from the start (`collabslam run` starts the base station with `--lockstep`),
+until the simulator's liveliness token goes away; without a request for
+`basestation_timeout_s` (no simulator came) it processes keyframes as they arrive and
+explores by the wall clock instead.
 """
 
 from __future__ import annotations
@@ -38,7 +39,7 @@ class LockstepClock:
         self.active = active  # a lock-step simulator with exploration is expected
         self.requested = self.answered = -1.0  # sim time
         self._wall_pacing_from = time.monotonic() + timeout_s if active else 0.0
-        self.sim_up = False  # the simulator's liveliness token
+        self.sim_gone = False  # the simulator's liveliness token went away
         self._commands: dict[str, VehicleCommand] = {}  # robot -> its latest command
         self._paths: dict[str, int] = {}  # robot -> Path messages sent to it
         self._epochs: dict[str, int] = {}  # robot -> the latest correction epoch sent to it
@@ -52,7 +53,7 @@ class LockstepClock:
 
     def on_sim_alive(self, name: str, alive: bool) -> None:
         with self._cond:
-            self.sim_up = alive
+            self.sim_gone |= not alive
             self._cond.notify_all()
 
     def on_command(self, msg: VehicleCommand, key: str) -> None:
@@ -65,10 +66,11 @@ class LockstepClock:
     # --- the base station's thread ------------------------------------------------------
     def paced_by_sim(self) -> bool:
         """True while the simulator's requests alone pace the base station."""
-        if not self.active:
+        if not self.active or self.sim_gone:
             return False
         with self._cond:
-            return self.sim_up or self.requested > self.answered
+            asked = self.requested > self.answered or self.answered >= 0.0
+        return asked or time.monotonic() < self._wall_pacing_from
 
     def verify_on_worker(self, now: float) -> bool:
         """Candidates are verified on the constraint builder's thread, except in lock-step

@@ -9,6 +9,8 @@ grid up to date. At shutdown it writes the map, the trajectories and its statist
 
 Threads: Zenoh callbacks only enqueue (a robot's state is answered there, with where the
 others are); the constraint builder verifies matches on its worker; the rest is `run()`'s.
+In a lock-step simulation with exploration everything happens when its clock asks, on
+`run()`'s thread, verification included (basestation/lockstep.py): runs repeat exactly.
 """
 
 from __future__ import annotations
@@ -30,6 +32,7 @@ from basestation.inbox import KeyframeInbox
 from basestation.lockstep import LockstepClock
 from basestation.map_builder import MapBuilder
 from basestation.map_history import MapHistory
+from basestation.map_outputs import write_map_outputs
 from basestation.neighbour_relay import NeighbourRelay
 from basestation.path_planner import densify
 from basestation.persistence import EPOCH_BLOCK, Batch, open_database
@@ -38,12 +41,10 @@ from common.config import Config
 from common.errors import FileFormatError
 from common.geodesy import GeoOrigin, geodetic_to_enu
 from common.geometry import pose4_to_pose7, pose7_to_pose4
-from common.map_io import read_wgs84_origin, write_map
+from common.map_io import read_wgs84_origin
 from common.memory import HeapTrimmer
 from common.metrics import TIMINGS_KEPT, percentiles
-from common.picture import render_map_picture
 from common.scenario import Scenario
-from common.trajectory_io import write_tum
 from protocol import (
     ClockSync,
     GnssFix,
@@ -65,7 +66,10 @@ OUTPUT_REDRAW_CHUNK_S = 1.0
 
 
 class BaseStationNode:
-    def __init__(self, cfg: Config, bus: Bus, scenario: Scenario | None) -> None:
+    def __init__(
+        self, cfg: Config, bus: Bus, scenario: Scenario | None, lockstep: bool = False
+    ) -> None:
+        """lockstep: a lock-step simulator with exploration drives it (basestation/lockstep.py)."""
         self.cfg = cfg
         self.bus = bus
         self.keys = bus.keys
@@ -86,11 +90,9 @@ class BaseStationNode:
                 starts = dict(list(starts.items())[:1])
         self.db = open_database(cfg.basestation.db_path)
         # a lock-step simulator's clock paces everything (basestation/lockstep.py)
-        lockstep = scenario is not None and cfg.base_sync_period_s() > 0.0
+        lockstep = lockstep and cfg.base_sync_period_s() > 0.0
         self.clock = LockstepClock(lockstep, cfg.sim.basestation_timeout_s)
-        self.slam = GlobalSlam(
-            cfg, starts, headings, self.db.scan_reader(), threaded_verification=not lockstep
-        )
+        self.slam = GlobalSlam(cfg, starts, headings, self.db.scan_reader(), threaded=not lockstep)
         # With a scenario, map is the world frame: ENU at the world's WGS84 origin (if any).
         self.wgs84_origin = None
         if scenario is not None:
@@ -99,7 +101,7 @@ class BaseStationNode:
             except FileFormatError as exc:
                 log.warning("no WGS84 origin for the map: %s", exc)
         self.map = MapBuilder(cfg.map, self.slam.store.scans)
-        self.explorer = make_explorer(cfg) if cfg.exploration.enabled else None
+        self.explorer = make_explorer(cfg, lockstep) if cfg.exploration.enabled else None
         self._last_explore = 0.0
         self._path_id = 0
         self._explore_ms: deque[float] = deque(maxlen=TIMINGS_KEPT)  # wall time of the steps
@@ -488,21 +490,8 @@ class BaseStationNode:
             self.map.work(OUTPUT_REDRAW_CHUNK_S)
             self.heap.trim()  # the redraws' freed temporaries, back to the system
         self.heap.trim()  # and a last memory sample, however short the mission was
-        trajs = self.slam.trajectories()
-        for rid, traj in trajs.items():
-            write_tum(out / "trajectories" / f"{rid}.tum", traj, wgs84_origin=self.wgs84_origin)
-        grid = self.map.gridmap()
-        on_map = {rid: t for rid, t in trajs.items() if self.slam.graph.is_anchored(rid)}
-        if grid is not None:
-            grid.wgs84_origin = self.wgs84_origin
-            write_map(grid, out / "map.yaml", "map.pgm")
-            render_map_picture(
-                out / "map.png",
-                grid,
-                trajectories={rid: t.positions[:, :2] for rid, t in on_map.items()},
-                robots={rid: t.poses_se2()[-1] for rid, t in on_map.items() if len(t)},
-                title=f"collabslam map: {len(on_map)} of {len(trajs)} robots on the map",
-            )
+        trajs, grid = self.slam.trajectories(), self.map.gridmap()
+        write_map_outputs(out, trajs, grid, self.slam.graph.is_anchored, self.wgs84_origin)
         if len(self.map_history):
             self.map_history.write(out / "map_history.npz")
         (out / "basestation.json").write_text(json.dumps(self.stats(), indent=1))

@@ -105,7 +105,7 @@ def fly_kinematic(
     )
     laser = LaserModel(las.beams, math.radians(las.fov_deg), las.range_min_m, las.range_max_m, 0.0)
     rng = np.random.default_rng(seed)
-    explorer = make_explorer(c)
+    explorer = make_explorer(c, simulated=True)
     follower = {r: PathFollower.from_config(c.agent) for r in ids}
     a = c.agent
     guard = {

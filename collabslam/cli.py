@@ -136,7 +136,7 @@ def cmd_basestation(args: argparse.Namespace) -> int:
     stop = threading.Event()
     install_signal_handlers(stop)
     with _bus(cfg) as bus:
-        node = BaseStationNode(cfg, bus, scenario)
+        node = BaseStationNode(cfg, bus, scenario, lockstep=args.lockstep)
         node.start()
         log.info("base station running (fleet %s)", cfg.fleet)
         node.run(stop)
@@ -218,6 +218,12 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="PATH",
         help="SQLite database: persist everything before acknowledging it, and resume "
         "from it after a crash (sets basestation.db_path)",
+    )
+    sp.add_argument(
+        "--lockstep",
+        action="store_true",
+        help="a lock-step simulator with exploration drives it: everything happens when its "
+        "clock asks, so runs repeat exactly (`collabslam run` sets it)",
     )
     sp.set_defaults(func=cmd_basestation)
 

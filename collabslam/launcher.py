@@ -104,7 +104,10 @@ class Launcher:
         base_ep, sim_ep = endpoint(free_port()), endpoint(free_port())
         g = self.group
         try:
-            base = g.spawn("basestation", ["basestation", *common, "--listen", base_ep, "--db", db])
+            paced = ["--lockstep"] if self.cfg.base_sync_period_s() > 0.0 else []
+            base = g.spawn(
+                "basestation", ["basestation", *common, "--listen", base_ep, "--db", db, *paced]
+            )
             sim = g.spawn(
                 "sim",
                 [

@@ -19,8 +19,9 @@ from protocol import ClockSync
 
 
 def _explore(tmp_path: Path, endpoint: str, sets: dict, clock_at_s: float | None) -> tuple:
-    """(exploration steps, clock syncs answered) of a base station fed two keyframes and
-    stepped for 3 s of wall time; the simulator's clock request at `clock_at_s`, if any."""
+    """(exploration steps, clock syncs answered, keyframes in the graph) of a base station
+    fed two keyframes and stepped for 3 s of wall time; the simulator's clock request at
+    `clock_at_s`, if any."""
     write_map(GridMap(np.zeros((100, 100), np.int8), 0.1, (-5.0, -5.0, 0.0)), tmp_path / "w.yaml")
     scenario = Scenario(str(tmp_path / "w.yaml"), [RobotScenario("r0", np.zeros(3))])
     cfg = load_config(
@@ -34,7 +35,7 @@ def _explore(tmp_path: Path, endpoint: str, sets: dict, clock_at_s: float | None
         }
     )
     with Bus(ZenohConfig(listen=[endpoint]), "default") as base_bus:
-        node = BaseStationNode(cfg, base_bus, scenario)
+        node = BaseStationNode(cfg, base_bus, scenario, lockstep=True)
         node.start()
         with Bus(ZenohConfig(connect=[endpoint]), "default") as sim_bus:
             time.sleep(0.5)
@@ -48,8 +49,7 @@ def _explore(tmp_path: Path, endpoint: str, sets: dict, clock_at_s: float | None
                 if clock_at_s is not None and time.monotonic() - t0 >= clock_at_s:
                     sim_bus.publish(sim_bus.keys.clock("sim"), ClockSync("sim", 0.0))
                     clock_at_s = None
-        assert node.slam.graph.num_nodes("r0") == 2  # the map had its scans all along
-        return len(node._explore_ms), node.syncs
+        return len(node._explore_ms), node.syncs, node.slam.graph.num_nodes("r0")
 
 
 @pytest.mark.parametrize(
@@ -60,15 +60,16 @@ def _explore(tmp_path: Path, endpoint: str, sets: dict, clock_at_s: float | None
         ({"sim.clock": "realtime"}, None, 5),  # no lock-step: every period of wall time
         ({"sim.basestation_timeout_s": 1.5}, None, 3),  # no clock within the timeout
     ],
-)
+)  # lock-step: keyframes too are taken only when the clock asks (none: 0 in the graph)
 def test_exploration_waits_for_a_lockstep_clock(
     tmp_path: Path, endpoint: str, sets: dict, clock_at_s: float | None, steps: int
 ) -> None:
     """A step paced by the wall clock before the lock-step simulator's first handshake
     planned on whatever scans were in and sent paths that held drones for seconds
     (bshape, 3 drones, seed 1: 18 s to 95 % instead of 10)."""
-    explored, syncs = _explore(tmp_path, endpoint, sets, clock_at_s)
+    explored, syncs, nodes = _explore(tmp_path, endpoint, sets, clock_at_s)
     assert syncs == (clock_at_s is not None)
+    assert nodes == (0 if steps == 0 else 2)
     if steps <= 1:
         assert explored == steps
     else:

@@ -138,3 +138,29 @@ def test_global_searches_wait_per_target_map_take_turns_and_are_dropped_once_joi
     builder.cancel_global([["a", "u"], ["v"]])  # u has joined a's map
     assert builder.stats["cancelled_global"] == 2
     assert builder._next_job() is None and builder.idle()
+
+
+def test_without_the_worker_the_caller_verifies_within_its_budget() -> None:
+    """Lock-step simulation: queued jobs are verified on the caller's thread, in the
+    worker's order, up to a budget in candidates (a global search costs ten)."""
+    builder = ConstraintBuilder(ConstraintConfig(), threaded=False)
+    wall = _line(np.linspace(-3, 3, 200), y=2.0)[:, :2]
+    for k in range(5):
+        builder.submit(
+            Job("loop", ("a", k), ("a", 50 + k), np.zeros(3), [wall], wall, [np.zeros(3)])
+        )
+    time.sleep(0.2)
+    assert builder.backlog() == 5  # no thread took any
+    assert builder.run_pending(2.0) == 2 and builder.backlog() == 3
+    done = builder.results()
+    assert [r.job.a for r in done] == [("a", 4), ("a", 3)]  # the newest first, as the worker
+    assert builder.run_pending(100.0) == 3 and builder.idle()
+    assert [r.job.a for r in builder.results()] == [("a", 2), ("a", 1), ("a", 0)]
+    builder.start()  # from now on the worker verifies; the caller no longer does
+    builder.submit(Job("loop", ("a", 9), ("a", 59), np.zeros(3), [wall], wall, [np.zeros(3)]))
+    assert builder.run_pending(100.0) == 0
+    deadline = time.monotonic() + 30
+    while not builder.idle() and time.monotonic() < deadline:
+        time.sleep(0.02)
+    assert [r.job.a for r in builder.results()] == [("a", 9)]
+    builder.close()

@@ -51,3 +51,25 @@ def test_velocity_from_odometry_and_old_or_unplaced_robots_left_out() -> None:
     np.testing.assert_allclose(relay.on_state(_state("r0", 3.7, 0, 0)).xy, [[5.0, 0.0]])
     relay.forget("r1")  # its liveliness token went away
     assert len(relay.on_state(_state("r0", 3.8, 0, 0)).xy) == 0
+
+
+def test_lockstep_answers_do_not_depend_on_which_state_came_first() -> None:
+    """In lock-step every robot reports at the same stamps; the answer to a state of stamp
+    t holds the others' latest states before t, whichever of two states of stamp t came
+    first, and lists them by robot id."""
+    answers = []
+    for order in (("r0", "r1", "r2"), ("r2", "r1", "r0")):
+        relay = NeighbourRelay(strictly_earlier=True)
+        for rid, x in (("r1", 5.0), ("r2", 9.0), ("r0", 0.0)):
+            relay.on_state(_state(rid, 1.0, x, 0.0))
+        got = {}
+        for rid in order:  # the states of t = 1.2, in this order of arrival
+            x = {"r0": 0.1, "r1": 5.1, "r2": 9.1}[rid]
+            got[rid] = relay.on_state(_state(rid, 1.2, x, 0.0))
+        answers.append(got)
+    for rid in ("r0", "r1", "r2"):
+        a, b = answers[0][rid], answers[1][rid]
+        np.testing.assert_array_equal(a.xy, b.xy)
+        np.testing.assert_array_equal(a.stamps, [1.0, 1.0])
+    np.testing.assert_array_equal(answers[0]["r0"].xy, [[5.0, 0.0], [9.0, 0.0]])
+    np.testing.assert_array_equal(answers[1]["r2"].xy, [[0.0, 0.0], [5.0, 0.0]])

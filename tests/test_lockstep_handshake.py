@@ -1,0 +1,132 @@
+"""The pieces that make a lock-step simulation repeat exactly: the base station waits for
+what each robot's command says it sent, the agent waits for what the base station's
+mark says it sent, and a drone's sensor messages arrive in the order they were sent."""
+
+from __future__ import annotations
+
+import threading
+import time
+
+import numpy as np
+
+from agent.downlink_gate import DownlinkGate
+from agent.sensor_sources import ZenohSensors
+from basestation.lockstep import LockstepClock
+from common.bus import Bus
+from common.config import ZenohConfig
+from common.geometry import pose4_to_pose7
+from protocol import (
+    Altimeter,
+    ClockSync,
+    DownlinkMark,
+    Imu,
+    LaserScan,
+    Odometry,
+    VehicleCommand,
+)
+
+TOPICS = {
+    Odometry: "odom",
+    Imu: "imu",
+    Altimeter: "altimeter",
+    LaserScan: "scan",
+    ClockSync: "clock",
+}
+
+
+def _later(delay_s: float, fn, *args) -> threading.Thread:
+    t = threading.Thread(target=lambda: (time.sleep(delay_s), fn(*args)))
+    t.start()
+    return t
+
+
+def test_gate_holds_a_tick_until_the_marked_downlink_is_in() -> None:
+    gate = DownlinkGate(timeout_s=10.0)
+    gate.wait()  # no lock-step simulator yet: nothing to wait for
+    assert gate.waits == 0
+    gate.on_clock(1.0)  # the simulator: the base station answered t = 1
+    gate.on_mark(DownlinkMark("r0", 1.0, paths=2, epoch=5))  # the mark overtook them
+    arrived: list[str] = []
+    threads = [
+        _later(0.1, lambda: (arrived.append("path"), gate.on_path())),
+        _later(0.2, lambda: (arrived.append("path"), gate.on_path())),
+        _later(0.3, lambda: (arrived.append("correction"), gate.on_correction(5))),
+    ]
+    gate.wait()
+    assert sorted(arrived) == ["correction", "path", "path"] and gate.waits == 1
+    for t in threads:
+        t.join()
+    gate.state_sent(1.2)  # the next state: its neighbours' answer is awaited too
+    _later(0.1, gate.on_neighbours, 1.2).join(0.0)
+    gate.wait()
+    assert gate.timeouts == 0
+
+
+def test_gate_gives_up_after_its_timeout_and_goes_on() -> None:
+    gate = DownlinkGate(timeout_s=0.2)
+    gate.on_clock(2.0)  # no mark will come
+    t0 = time.monotonic()
+    gate.wait()
+    assert gate.timeouts == 1 and time.monotonic() - t0 >= 0.2
+    gate.wait()  # until the simulator's next word it does not wait again
+    assert gate.timeouts == 1
+    gate.on_clock(3.0)
+    gate.on_mark(DownlinkMark("r0", 3.0, paths=0, epoch=-1))
+    gate.state_sent(3.0)  # never answered: stops waiting for neighbours after one timeout
+    gate.wait()
+    gate.wait()
+    assert gate.timeouts == 2
+
+
+def test_clock_waits_for_everything_a_command_says_was_sent() -> None:
+    clock = LockstepClock(active=True, timeout_s=60.0)
+    have = {"r0": (2, 0.8)}  # keyframes received, latest state's stamp
+    clock.on_command(VehicleCommand("r0", 1.0, 0, 0, 0, 0, keyframes_sent=3, state_stamp=1.0), "")
+    _later(0.2, have.__setitem__, "r0", (3, 1.0))
+    t0 = time.monotonic()
+    assert clock.wait_inputs(1.0, ["r0"], lambda r: have[r], 10.0) == []
+    assert time.monotonic() - t0 >= 0.2
+    # a robot that has not commanded at the stamp is named after the timeout
+    assert clock.wait_inputs(1.0, ["r0", "r1"], lambda r: have.get(r, (0, -1.0)), 0.1) == ["r1"]
+    # what went down to each robot, for its mark
+    clock.sent_path("r0")
+    clock.sent_path("r0")
+    clock.sent_correction("r0", 7)
+    marks = [clock.mark(r, 1.0) for r in ("r0", "r1")]
+    assert [(m.robot_id, m.stamp, m.paths, m.epoch) for m in marks] == [
+        ("r0", 1.0, 2, 7),
+        ("r1", 1.0, 0, -1),
+    ]
+
+
+def test_a_drones_sensor_messages_arrive_in_the_order_they_were_sent(endpoint: str) -> None:
+    """One subscriber for all of a drone's sensor topics: with one per topic, a scan
+    overtook the altimeter reading published just before it (Zenoh keeps a sender's
+    order per subscriber only)."""
+    with (
+        Bus(ZenohConfig(listen=[endpoint]), "default") as sim,
+        Bus(ZenohConfig(connect=[endpoint]), "default") as agent,
+    ):
+        source = ZenohSensors(agent, "r0", max_scans_before_altitude=0)
+        time.sleep(0.5)
+        sent = []
+        pose = pose4_to_pose7([0.0, 0.0, 1.0, 0.0])
+        q = np.array([0.0, 0.0, 0.0, 1.0])
+        for k in range(300):
+            t = k * 0.025
+            for msg in (
+                Odometry("r0", t, pose, np.zeros(4)),
+                Imu("r0", t, np.zeros(3), np.zeros(3), q),
+                Altimeter("r0", t, 1.0),
+                LaserScan("r0", t, -1.0, 0.01, 0.1, 30.0, np.ones(200, np.float32)),
+                ClockSync("sim", t),
+            ):
+                sim.publish(sim.keys.sensor("r0", TOPICS[type(msg)]), msg)
+                sent.append((type(msg).__name__, t))
+        stop = threading.Event()
+        got = []
+        for msg in source.messages(stop):
+            if msg is None:
+                break
+            got.append((type(msg).__name__, msg.stamp))
+        assert got == sent

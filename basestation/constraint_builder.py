@@ -8,7 +8,8 @@ loop-closure candidate. A robot whose chain is not connected to the map yet
 gets a global search of its latest scan against the whole map every
 `global_search_every` keyframes (its start pose is unknown).
 
-Verification runs on one worker thread: the main thread packs each job with
+Verification runs on one worker thread (in a lock-step simulation on the caller's,
+`run_pending`, at the clock's requests): the main thread packs each job with
 everything it needs (the scans, where each was taken, the guess), so the worker
 never touches the graph. A job may carry each node's points in that node's own
 frame (`in_node_frames`: read-only arrays shared with the keyframe store and other

@@ -429,6 +429,7 @@ class BaseStationNode:
 
     def drain(self, timeout_s: float | None = None) -> None:
         """Process everything already received, and pending verifications."""
+        self.clock.sim_gone = True  # the mission is over: take what is left as it comes
         if timeout_s is None:
             timeout_s = self.cfg.basestation.drain_timeout_s
         deadline = time.monotonic() + timeout_s

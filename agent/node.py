@@ -181,15 +181,14 @@ class AgentNode:
         self.outbox.ack(msg.acked_seq)
 
     def _on_correction(self, msg: PoseCorrection, key: str) -> None:
-        self.downlink.on_correction(msg.epoch)
         with self._corr_lock:
-            if msg.epoch <= self.epoch:
-                return
-            self.epoch = msg.epoch
-            self.T_map_odom = pose7_to_pose4(msg.T_map_odom)
-            self._on_map = True
-            self._smoother_pending = np.array(msg.T_map_odom, dtype=np.float64)
-            self._new_correction = True
+            if msg.epoch > self.epoch:
+                self.epoch = msg.epoch
+                self.T_map_odom = pose7_to_pose4(msg.T_map_odom)
+                self._on_map = True
+                self._smoother_pending = np.array(msg.T_map_odom, dtype=np.float64)
+                self._new_correction = True
+        self.downlink.on_correction(msg.epoch)  # taken: a held tick may go on
 
     def _on_neighbours(self, msg: Neighbours, key: str) -> None:
         with self._corr_lock:

@@ -10,7 +10,8 @@ only, never on how loaded the machine is:
   candidates in the constraint builder's queues (no worker thread);
 - at a request for T it first waits for every robot's `VehicleCommand` of stamp T and
   for what that command says the robot sent by then (its keyframes and its latest
-  state): they come on other keys, whose order Zenoh does not keep between subscribers;
+  state), and for the GNSS fixes the request says the simulator sent: they come on
+  other keys, whose order Zenoh does not keep between subscribers;
 - it then takes all those keyframes in (robot, seq) order as one batch, verifies up to
   `max_candidates_per_s` x the period of waiting candidates, redraws the whole map and
   explores; then it tells each robot what it has sent it in all (`robot/<id>/clock`,
@@ -43,13 +44,20 @@ class LockstepClock:
         self._commands: dict[str, VehicleCommand] = {}  # robot -> its latest command
         self._paths: dict[str, int] = {}  # robot -> Path messages sent to it
         self._epochs: dict[str, int] = {}  # robot -> the latest correction epoch sent to it
+        self._fixes = self._fixes_due = 0  # GNSS fixes received / sent by the simulator
+        self.takes_fixes = False  # the base station takes them (basestation.gps.enabled)
         self._cond = threading.Condition()
 
     # --- Zenoh threads ------------------------------------------------------------------
     def on_request(self, msg: ClockSync, key: str) -> None:
         with self._cond:
             self.requested = max(self.requested, msg.stamp)
+            self._fixes_due = max(self._fixes_due, msg.gnss_fixes)
             self._cond.notify_all()
+
+    def on_fix(self) -> None:
+        with self._cond:
+            self._fixes += 1
 
     def on_sim_alive(self, name: str, alive: bool) -> None:
         with self._cond:
@@ -97,11 +105,14 @@ class LockstepClock:
     ) -> list[str]:
         """Wait until each of `robots` has commanded at `stamp` and everything its command
         says it sent is in (`received(robot)`: keyframes received, the latest state's
-        stamp); returns the robots still missing after `timeout_s` (wall)."""
+        stamp), and the GNSS fixes the simulator sent; returns what is still missing after
+        `timeout_s` (wall)."""
         deadline = time.monotonic() + timeout_s
         with self._cond:
             while True:
                 missing = [r for r in sorted(robots) if not self._in(r, stamp, received)]
+                if self.takes_fixes and self._fixes < self._fixes_due:
+                    missing.append(f"GNSS ({self._fixes} of {self._fixes_due} fixes)")
                 rest = deadline - time.monotonic()
                 if not missing or rest <= 0.0:
                     return missing

@@ -68,8 +68,7 @@ OUTPUT_REDRAW_CHUNK_S = 1.0
 class BaseStationNode:
     def __init__(
         self, cfg: Config, bus: Bus, scenario: Scenario | None, lockstep: bool = False
-    ) -> None:
-        """lockstep: a lock-step simulator with exploration drives it (basestation/lockstep.py)."""
+    ) -> None:  # lockstep: a lock-step simulator with exploration drives it (lockstep.py)
         self.cfg = cfg
         self.bus = bus
         self.keys = bus.keys
@@ -179,15 +178,18 @@ class BaseStationNode:
             self.bus.watch_alive("sim", self.clock.on_sim_alive)
         self.bus.watch_alive("agent", self._on_agent_alive)
         if self.cfg.basestation.gps.enabled:
-            self.bus.subscribe(
-                self.keys.all_robots("sensor/gnss"), GnssFix, lambda m, k: self.gnss_inbox.put(m)
-            )
+            self.bus.subscribe(self.keys.all_robots("sensor/gnss"), GnssFix, self._on_fix)
+            self.clock.takes_fixes = True
         self.bus.declare_alive("basestation", "base")
         if self.recovered:  # tell agents what is safe, and where their maps are now
             for rid in self.slam.store.robots:
                 acked = self.slam.store.acked_seq(rid)
                 self.bus.publish(self.keys.robot(rid, "ack"), KeyframeAck(rid, acked))
             self.publish_corrections()
+
+    def _on_fix(self, msg: GnssFix, key: str) -> None:
+        self.gnss_inbox.put(msg)
+        self.clock.on_fix()
 
     def _on_state(self, msg: RobotState, key: str) -> None:
         """(Zenoh thread) keep it; answer with where the others are (neighbour guard)."""
@@ -293,8 +295,7 @@ class BaseStationNode:
         """(keyframes of `rid` received, its latest state's stamp), for the clock."""
         r = self.slam.store.robots.get(rid)
         seq = max(self.inbox.highest_seq(rid), -1 if r is None else r.next_seq - 1)
-        with self._lock:
-            state = self.states.get(rid)
+        state = self.states.get(rid)  # one dict read: atomic
         return seq + 1, -1.0 if state is None else state.stamp
 
     def _release_lost(self) -> None:
@@ -429,7 +430,7 @@ class BaseStationNode:
 
     def drain(self, timeout_s: float | None = None) -> None:
         """Process everything already received, and pending verifications."""
-        self.clock.sim_gone = True  # the mission is over: take what is left as it comes
+        self.clock.sim_gone = True  # the mission is over: what is left is taken as it comes
         if timeout_s is None:
             timeout_s = self.cfg.basestation.drain_timeout_s
         deadline = time.monotonic() + timeout_s

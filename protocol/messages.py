@@ -354,6 +354,7 @@ class ClockSync:
 
     sender: str  # "sim" or "basestation"
     stamp: float
+    gnss_fixes: int = 0  # sim: GnssFix messages it published so far (the base station waits)
 
     def validate(self) -> None:
         if self.sender not in ("sim", "basestation"):

@@ -49,6 +49,8 @@ from simulation.world import World
 
 log = logging.getLogger(__name__)
 
+BASE = "the base station"  # in the set of processes alive (no valid robot id)
+
 
 @dataclass
 class SimRobot:
@@ -128,6 +130,7 @@ class Simulator:
         self.sync_period = cfg.base_sync_period_s()
         self._base_clock = -1.0
         self.base_syncs = 0
+        self.gnss_fixes = 0  # published (told to the base station with each clock request)
         self.base_sync_timeouts = 0
 
     # --- wiring -------------------------------------------------------------------------
@@ -137,6 +140,7 @@ class Simulator:
             self.bus.subscribe(self.keys.robot(rid, "state"), RobotState, self._on_state)
         if self.sync_period:
             self.bus.subscribe(self.keys.clock("basestation"), ClockSync, self._on_base_clock)
+            self.bus.watch_alive("basestation", self._on_base_alive)
         self.bus.watch_alive("agent", self._on_alive)
         self.bus.declare_alive("sim", "sim")
 
@@ -144,6 +148,9 @@ class Simulator:
         with self._cond:
             self._base_clock = max(self._base_clock, msg.stamp)
             self._cond.notify_all()
+
+    def _on_base_alive(self, name: str, alive: bool) -> None:
+        self._on_alive(BASE, alive)
 
     def _on_alive(self, name: str, alive: bool) -> None:
         with self._cond:
@@ -166,13 +173,16 @@ class Simulator:
 
     def wait_for_agents(self, stop: threading.Event) -> None:
         deadline = time.monotonic() + self.cfg.sim.start_timeout_s
+        # with exploration, the base station too: then it has our link and subscriptions,
+        # and no sensor message (a GNSS fix it would wait for) goes nowhere
+        expected = set(self.robots) | ({BASE} if self.sync_period else set())
         with self._cond:
-            while not set(self.robots) <= self._alive:
+            while not expected <= self._alive:
                 if stop.is_set():
                     return
                 if time.monotonic() > deadline:
-                    missing = sorted(set(self.robots) - self._alive)
-                    raise ProcessError(f"agents never came alive: {', '.join(missing)}")
+                    missing = sorted(expected - self._alive)
+                    raise ProcessError(f"never came alive: {', '.join(missing)}")
                 self._cond.wait(0.1)
         log.info("all %d agents alive: starting the %s clock", len(self.robots), self.cfg.sim.clock)
 
@@ -245,7 +255,7 @@ class Simulator:
         """Hold the clock at `self.t` until the base station has answered it (True)."""
         self.base_syncs += 1
         deadline = time.monotonic() + self.cfg.sim.basestation_timeout_s
-        request = ClockSync("sim", self.t)
+        request = ClockSync("sim", self.t, self.gnss_fixes)
         with self._cond:
             while not stop.is_set() and self._base_clock < self.t - 1e-9:
                 if time.monotonic() > deadline:
@@ -294,6 +304,7 @@ class Simulator:
         msgs.append((keys.sensor(rid, "altimeter"), Altimeter(rid, t, alt)))
         fix = r.gnss.measure(t, v.pose[:3]) if r.gnss is not None else None
         if fix is not None:  # world frame = ENU at the world's origin; antenna at the body
+            self.gnss_fixes += 1
             msgs.append((keys.sensor(rid, "gnss"), GnssFix(rid, t, fix.lla, fix.sigmas_enu)))
         pose = v.pose
         ranges = self.laser.measure(self.world, np.array([pose[0], pose[1], pose[3]]), r.rng)

@@ -64,6 +64,8 @@ class SimRobot:
     command: tuple[float, float, float, float] = (0.0, 0.0, 0.0, 0.0)
     answered: float = -1.0  # stamp of the last tick this robot's agent answered
     status: str = "starting"
+    state_stamp: float = -1.0  # of the RobotState `status` is from
+    state_due: float = -1.0  # of the latest RobotState its agent sent (its command says)
     gt: RowSpool = field(default_factory=lambda: RowSpool(5))  # [t, x, y, z, yaw]
     tick: list[tuple[str, bytes]] = field(default_factory=list)  # the last tick's messages
 
@@ -164,11 +166,14 @@ class Simulator:
                 return  # an old answer to a re-published tick
             r.command = (msg.vx, msg.vy, msg.vz, msg.yaw_rate)
             r.answered = msg.stamp
+            r.state_due = msg.state_stamp
             self._cond.notify_all()
 
     def _on_state(self, msg: RobotState, key: str) -> None:
         with self._cond:
-            self.robots[msg.robot_id].status = msg.status
+            r = self.robots[msg.robot_id]
+            if msg.stamp >= r.state_stamp:
+                r.status, r.state_stamp = msg.status, msg.stamp
             self._cond.notify_all()
 
     def wait_for_agents(self, stop: threading.Event) -> None:
@@ -237,19 +242,33 @@ class Simulator:
         timeout = self.cfg.sim.lockstep_timeout_s
         with self._cond:
             while not stop.is_set():
-                late = [r for r in self.robots.values() if r.answered < self.t]
+                # the state a command says came before it too (another key: no order)
+                late = [
+                    r
+                    for r in self.robots.values()
+                    if r.answered < self.t or r.state_stamp < r.state_due
+                ]
                 if not late:
                     return
                 if not self._cond.wait(timeout):
-                    self.republished += 1
-                    log.warning(
-                        "t=%.3f: no command yet from %s; re-publishing the tick",
-                        self.t,
-                        ", ".join(r.robot_id for r in late),
-                    )
-                    for r in late:  # the same messages: measuring again would draw noise
-                        for key, payload in r.tick:
-                            self.bus.put_raw(key, payload)
+                    self._late(late)
+
+    def _late(self, late: list[SimRobot]) -> None:
+        """Re-publish the tick to agents that have not answered it; a state that has not
+        come in time is taken as lost (an agent sends it once)."""
+        for r in late:
+            if r.answered >= self.t:
+                log.warning(
+                    "t=%.3f: %s's state of t=%.3f never came", self.t, r.robot_id, r.state_due
+                )
+                r.state_stamp = r.state_due
+                continue
+            self.republished += 1
+            log.warning(
+                "t=%.3f: no command yet from %s; re-publishing the tick", self.t, r.robot_id
+            )
+            for key, payload in r.tick:  # the same messages: measuring again would draw noise
+                self.bus.put_raw(key, payload)
 
     def _wait_basestation(self, stop: threading.Event) -> bool:
         """Hold the clock at `self.t` until the base station has answered it (True)."""

@@ -5,7 +5,7 @@ BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 OUT ?= runs/latest
 # pytest-xdist workers for `make test` (0: one process): on 2 cores two workers run the
-# suite in ~190 s (45th session; tests marked e2e start first: tests/conftest.py)
+# suite in ~240 s (46th session; tests marked e2e start first: tests/conftest.py)
 TEST_WORKERS ?= 2
 
 .PHONY: venv run test lint clean

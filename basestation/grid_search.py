@@ -36,6 +36,13 @@ def _before(key: NDArray[np.float64], a: int, b: int) -> bool:
     return key[a] < key[b] or (key[a] == key[b] and a < b)
 
 
+@njit(cache=True, inline="always")
+def _put(heap, pos, i, node):  # noqa: ANN001, ANN202 (numba kernel)
+    """Cell `node` at heap slot `i`."""
+    heap[i] = node
+    pos[node] = i
+
+
 @njit(cache=True)
 def _sift_up(heap, pos, key, i):  # noqa: ANN001, ANN202 (numba kernel)
     node = heap[i]
@@ -43,11 +50,9 @@ def _sift_up(heap, pos, key, i):  # noqa: ANN001, ANN202 (numba kernel)
         parent = (i - 1) >> 1
         if not _before(key, node, heap[parent]):
             break
-        heap[i] = heap[parent]
-        pos[heap[i]] = i
+        _put(heap, pos, i, heap[parent])
         i = parent
-    heap[i] = node
-    pos[node] = i
+    _put(heap, pos, i, node)
 
 
 @njit(cache=True)
@@ -68,11 +73,9 @@ def _pop(heap, pos, key, size):  # noqa: ANN001, ANN202 (numba kernel)
             child += 1
         if not _before(key, heap[child], node):
             break
-        heap[i] = heap[child]
-        pos[heap[i]] = i
+        _put(heap, pos, i, heap[child])
         i = child
-    heap[i] = node
-    pos[node] = i
+    _put(heap, pos, i, node)
     return top
 
 

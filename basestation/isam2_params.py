@@ -94,4 +94,5 @@ def pose_graph_options(b: BaseStationConfig, track_changes: bool | None = None) 
         reduce_after_nodes=b.reduce_after_nodes,
         tie_budget=b.reduce_tie_budget,
         rebuild_nodes=b.isam2_rebuild_nodes,
+        tie_degree=b.reduce_tie_degree,
     )

@@ -92,6 +92,7 @@ class PoseGraph(EstimateMixin, GaugeMixin, GpsMixin, ReductionMixin, RebuildMixi
         reduce_batch_nodes: int = REDUCE_BATCH_NODES,  # settled nodes waiting before a pass
         tie_budget: float = 0.0,  # final-constraint ties per variable, then folded (0: no cap)
         rebuild_nodes: int = 0,  # reduced graphs: a fresh iSAM2 each this many nodes (0: never)
+        tie_degree: int = 0,  # at a rebuild, ties per place kept beyond a spanning forest (0: all)
     ) -> None:
         params = make_isam2_params(
             factorization=factorization,
@@ -126,7 +127,7 @@ class PoseGraph(EstimateMixin, GaugeMixin, GpsMixin, ReductionMixin, RebuildMixi
         self._init_reduction(
             reduce_distance_m, reduce_lag, reduce_after_nodes, reduce_batch_nodes, tie_budget
         )
-        self._init_rebuild(rebuild_nodes)
+        self._init_rebuild(rebuild_nodes, tie_degree)
 
     @classmethod
     def from_config(cls, b: BaseStationConfig, track_changes: bool | None = None) -> PoseGraph:

@@ -23,8 +23,11 @@ import time
 from typing import TYPE_CHECKING
 
 import gtsam
+import numpy as np
 
-from basestation.pose_graph_state import PoseGraphState
+from basestation.pose_graph_reduction import CHAR_SHIFT, INDEX_MASK
+from basestation.pose_graph_sparsify import Tie, ties_to_drop
+from basestation.pose_graph_state import PoseGraphState, pair_key
 from common.errors import CollabSlamError
 
 logger = logging.getLogger(__name__)
@@ -36,12 +39,16 @@ class RebuildMixin(PoseGraphState):
     if TYPE_CHECKING:  # provided by PoseGraph
         _isam: gtsam.ISAM2
         _heads: gtsam.KeyGroupMap | None
+        _anchors: set[int]
+        _gps_robots: set[str]
         reduction_started: bool
 
-    def _init_rebuild(self, every_nodes: int) -> None:
+    def _init_rebuild(self, every_nodes: int, tie_degree: int = 0) -> None:
         self._rebuild_every = max(int(every_nodes), 0)  # 0: never
+        self._tie_degree = max(int(tie_degree), 0)  # 0: keep every tie
         self._nodes_since_rebuild = 0
         self.num_rebuilds = 0
+        self.num_dormant = 0  # ties the last rebuild left out of iSAM2 (pose_graph_sparsify)
 
     def _after_update(self, new_nodes: int) -> None:
         """Count the new nodes; rebuild once ``every_nodes`` came since the last one."""
@@ -59,7 +66,13 @@ class RebuildMixin(PoseGraphState):
             raise CollabSlamError("the pose graph is rebuilt between updates only")
         t0 = time.perf_counter()
         estimate = self._isam.calculateEstimate()
-        records = [r for r in self._factors.values() if r.isam_index is not None]
+        records = [r for r in self._factors.values() if r.isam_index is not None or r.dormant]
+        if self._tie_degree and self.reduction_started:
+            self._sparsify(estimate)
+        records = [r for r in records if not r.dormant]
+        for record in self._factors.values():
+            if record.dormant:
+                record.isam_index = None
         graph = gtsam.NonlinearFactorGraph()
         for record in records:
             graph.add(record.factor)
@@ -71,3 +84,37 @@ class RebuildMixin(PoseGraphState):
         self.num_rebuilds += 1
         ms = (time.perf_counter() - t0) * 1e3
         logger.debug("pose graph: a fresh iSAM2, %d factors, in %.0f ms", len(records), ms)
+
+    def _sparsify(self, estimate: gtsam.Values) -> None:
+        """Mark ``dormant`` the ties between settled places past ``tie_degree`` per
+        variable (``pose_graph_sparsify``), chosen anew from every tie, dormant or not:
+        the fresh iSAM2 leaves them out. They stay in the records, so the reduction sees
+        the places joined as before (its aliases and ties do not change), and one that
+        takes in a new measurement (fused) is back in iSAM2 at the next update."""
+        keys = np.fromiter(estimate.keys(), dtype=np.int64, count=estimate.size())
+        xy = np.asarray(gtsam.utilities.extractPose2(estimate), dtype=np.float64)
+        xy = xy.reshape(-1, 3)[:, :2]
+        chains = {ord(c.char): (rid, c) for rid, c in self._chains.items()}
+
+        def settled(k: int) -> bool:
+            rid, chain = chains.get(k >> CHAR_SHIFT, ("", None))
+            if chain is None or rid in self._gps_robots:
+                return False
+            return k in self._anchors or (k & INDEX_MASK) < chain.reduce_next
+
+        records = [
+            (fid, r) for fid, r in self._factors.items()
+            if r.factor is not None and len(r.keys) == 2 and (r.isam_index is not None or r.dormant)
+        ]  # fmt: skip
+        if not records:
+            return
+        ends = np.searchsorted(keys, np.array([r.keys for _, r in records], np.int64))
+        lengths = np.hypot(*(xy[ends[:, 0]] - xy[ends[:, 1]]).T).tolist()
+        ties = [
+            Tie(fid, *r.keys, length, pair_key(r) is not None and all(map(settled, r.keys)))
+            for (fid, r), length in zip(records, lengths, strict=True)
+        ]
+        drop = set(ties_to_drop(ties, self._tie_degree))
+        for fid, record in records:
+            record.dormant = fid in drop
+        self.num_dormant = len(drop)

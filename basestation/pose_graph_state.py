@@ -97,6 +97,7 @@ class FactorRecord:
     final: bool = False  # a constraint that will never be removed (fused with its peers)
     kernel: tuple[str, float] | None = None  # a constraint's robust kernel and width k
     count: int = 1  # measurements fused into it (a final constraint's kernel: k sqrt(count))
+    dormant: bool = False  # a tie a rebuild left out of iSAM2 (pose_graph_sparsify)
 
 
 PairKey = tuple[bool, int, int]  # (final constraint, else odometry; smaller key, larger key)
@@ -211,7 +212,7 @@ class PoseGraphState:
         self._unlink(factor_id, record)
         if record.isam_index is not None:
             self._pending_removals.append(record.isam_index)
-        elif record.factor is not None:  # still pending: in the update's graph
+        elif record.factor is not None and not record.dormant:  # pending: in the update's graph
             self._pending_stale = True
 
     def _replace_factor(self, factor_id: int, factor: gtsam.NonlinearFactor | None) -> None:
@@ -221,6 +222,10 @@ class PoseGraphState:
         if record.isam_index is not None:
             self._pending_removals.append(record.isam_index)
             record.isam_index = None
+            self._pending_ids.append(factor_id)
+            self._add_pending(factor_id, factor)
+        elif record.dormant:  # out of iSAM2 since a rebuild: it holds new information now
+            record.dormant = False
             self._pending_ids.append(factor_id)
             self._add_pending(factor_id, factor)
         else:  # still pending (or inert: then one with a factor would have to be added)

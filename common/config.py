@@ -311,6 +311,7 @@ class BaseStationConfig:
     reduce_after_nodes: int = 2000
     reduce_tie_budget: float = 0.5  # final-constraint ties per variable, then folded (0: no cap)
     isam2_rebuild_nodes: int = 1000  # reducing: a fresh iSAM2 per this many nodes (0: never)
+    reduce_tie_degree: int = 3  # at a rebuild, ties kept per place (+ a spanning forest; 0: all)
     prior_sigma_xy_m: float = 0.01  # m, known start pose
     prior_sigma_yaw_rad: float = 0.001  # rad
     map_update_period_s: float = 2.0  # s wall between global map refreshes

@@ -202,6 +202,8 @@ def _validate_backend(b: BaseStationConfig) -> None:
         raise ConfigError("basestation.reduce_tie_budget: expected a value >= 0 (0: no cap)")
     if b.isam2_rebuild_nodes < 0:
         raise ConfigError("basestation.isam2_rebuild_nodes: expected a value >= 0 (0: never)")
+    if b.reduce_tie_degree < 0:
+        raise ConfigError("basestation.reduce_tie_degree: expected a value >= 0 (0: keep all)")
     if b.map_history_max_snapshots < 0:
         raise ConfigError("basestation.map_history_max_snapshots: expected >= 0 (0: all)")
     if b.malloc_arenas < 0:

@@ -10,6 +10,8 @@ from scipy.sparse.csgraph import connected_components
 
 from basestation.pose_graph import PoseGraph
 from basestation.pose_graph_sparsify import Tie, ties_to_drop
+from common.config import load_config
+from common.errors import ConfigError
 
 
 def _components(n: int, ties: list[Tie]) -> np.ndarray:
@@ -93,3 +95,11 @@ def test_a_rebuild_leaves_ties_past_the_degree_out_of_isam2_and_keeps_the_estima
     sparse._replace_factor(fid, record.factor)
     sparse.update()
     assert not record.dormant and record.isam_index is not None
+
+
+def test_the_degree_comes_from_the_config_and_a_negative_one_is_refused():
+    cfg = load_config(None, {"basestation.reduce_tie_degree": 4})
+    assert PoseGraph.from_config(cfg.basestation)._tie_degree == 4
+    assert load_config(None, {}).basestation.reduce_tie_degree == 3
+    with pytest.raises(ConfigError, match="reduce_tie_degree"):
+        load_config(None, {"basestation.reduce_tie_degree": -1})

@@ -30,7 +30,11 @@ def slam_stats(slam: GlobalSlam) -> dict[str, Any]:
         "isam2_update_ms_p50": float(np.percentile(upd, 50)),
         "isam2_update_ms_p95": float(np.percentile(upd, 95)),
         "isam2_update_ms_series": slam.update_series.to_json(),
-        "pose_graph": {**slam.graph.reduction_stats(), "rebuilds": slam.graph.num_rebuilds},
+        "pose_graph": {
+            **slam.graph.reduction_stats(),
+            "rebuilds": slam.graph.num_rebuilds,
+            "dormant_ties": slam.graph.num_dormant,  # left out of iSAM2 by the last rebuild
+        },
         **slam.loops.counts(),
         "pcm": slam.loops.pcm_stats(),
         "scans": slam.store.scan_archive.stats(),

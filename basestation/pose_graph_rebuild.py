@@ -12,6 +12,9 @@ factors) with a fresh iSAM2 every 1,000 new nodes: trajectory error 0.0486 m aga
 Only once the reduction has started: the graph is then bounded, and so is a rebuild.
 Live, in the 30-minute soak, the base station's heap per keyframe was the same as without
 (``basestation.isam2_rebuild_nodes``, 1000 by default; 0: never).
+With ``basestation.reduce_tie_degree`` each rebuild also leaves out of iSAM2 the ties
+between places past that degree (``pose_graph_sparsify``): the 30-minute soak's heap
+in use then stays flat.
 
 Package-internal: a mixin of ``basestation.pose_graph.PoseGraph``.
 """
@@ -59,9 +62,10 @@ class RebuildMixin(PoseGraphState):
             self.rebuild()
 
     def rebuild(self) -> None:
-        """Replace iSAM2 by a fresh one holding the same factors, linearized and ordered
-        anew at the current estimate (module doc). Only between updates (nothing
-        pending); factor ids stay, their iSAM2 slots are renumbered."""
+        """Replace iSAM2 by a fresh one holding the same factors (less the ties a tie
+        degree leaves dormant), linearized and ordered anew at the current estimate
+        (module doc). Only between updates (nothing pending); factor ids stay, their
+        iSAM2 slots are renumbered."""
         if self._pending_ids or self._pending_removals:
             raise CollabSlamError("the pose graph is rebuilt between updates only")
         t0 = time.perf_counter()

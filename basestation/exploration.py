@@ -66,10 +66,10 @@ class ExplorationManager:
     # cruise speed needs to stop (v^2 / 2a) when a hold or a new path reaches it (1.3: two
     # drones 0.73 m apart when one held at a junction another was crossing, random:1)
     conflict_margin: float = 1.5
-    # s, the others are also checked this far behind their schedule: a leader that stops
-    # (a new goal, a hold) is noticed at the next step, up to a period (1 s) later, and the
-    # follower needs ~0.5 m to stop (within the conflict margin)
-    lag_s: float = 1.2
+    # s, the others are also checked this far behind (and ahead of) their schedule: one
+    # speeding up from a hover is 0.5 s late; one that stops is caught by the follower's
+    # own neighbour guard (news ~0.3 s old), not by the next step (1.2 s before the guard)
+    lag_s: float = 0.6
     # a robot facing away from its way turns on the spot first (the agents' follower flies
     # while it turns only up to 60-105 degrees off the nose): held in the schedules until
     # its way is this far off the nose, turning at this yaw rate (rad/s; 0: not modelled)

@@ -390,6 +390,7 @@ class ExplorationConfig:
     gain_radius_m: float = 4.0  # m
     inflation_m: float = 0.35  # m, no-collision zone around obstacles
     robot_clearance_m: float = 1.0  # m, disc around other robots and their paths
+    lag_s: float = 0.6  # s the others are judged behind/ahead of their schedules (docs)
     # RRT* work per path: validity checks (~0.2 s here), so plans do not depend on the
     # machine's load; planning_time_s caps the wall time of one path (not in simulation).
     planning_checks: int = 40000

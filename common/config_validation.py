@@ -70,7 +70,7 @@ def validate(cfg: Config) -> None:
         cfg.exploration,
         (
             "seen_cost_m", "seen_fov_deg", "w_own", "own_cap_m", "w_gain", "gain_full_m2",
-            "handover_m",
+            "handover_m", "lag_s",
         ),
     )  # fmt: skip
     if cfg.exploration.strategy not in ("coordinated", "greedy"):

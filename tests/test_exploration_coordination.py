@@ -8,12 +8,15 @@ import pytest
 from grid_helpers import grid_with_wall
 
 from basestation.exploration import ExplorationManager, _Task
+from basestation.exploration_setup import make_explorer
 from basestation.frontier_give_up import FrontierGiveUp
 from basestation.frontiers import Frontier, FrontierDetector
 from basestation.goal_assigner import GoalAssigner
 from basestation.path_planner import PathPlanner
 from basestation.path_schedule import points_along
 from basestation.travel_distance import travel_distances
+from common.config import Config, load_config
+from common.errors import ConfigError
 from common.map_io import GridMap
 
 
@@ -142,10 +145,10 @@ def test_a_robot_held_in_this_step_is_judged_where_it_will_stop() -> None:
 
 def test_a_follower_keeps_its_distance_from_a_leader_running_late() -> None:
     m = _mgr()
-    P = {"a": np.array([0.0, 0.0, 0.0]), "b": np.array([1.8, 0.0, 0.0])}
-    m.tasks["b"] = _Task(np.array([20.0, 0.0]), np.array([[1.8, 0.0], [20.0, 0.0]]))
-    # 1.8 m behind: on schedule it would keep 1.8 m (> the 1.0 m clearance), but b
-    # `lag_s` (1.2 s) late would be caught up to 0.6 m
+    P = {"a": np.array([0.0, 0.0, 0.0]), "b": np.array([1.5, 0.0, 0.0])}
+    m.tasks["b"] = _Task(np.array([20.0, 0.0]), np.array([[1.5, 0.0], [20.0, 0.0]]))
+    # 1.5 m behind: on schedule it would keep 1.5 m (> the 1.0 m clearance), but b
+    # `lag_s` (0.6 s) late would be caught up to 0.9 m
     assert m._conflict("a", np.array([[0.0, 0.0], [15.0, 0.0]]), P)
     P["b"] = np.array([2.5, 0.0, 0.0])
     m.tasks["b"] = _Task(np.array([20.0, 0.0]), np.array([[2.5, 0.0], [20.0, 0.0]]))
@@ -346,15 +349,24 @@ def test_what_the_published_map_still_lacks_is_looked_at_once_before_done() -> N
 
 def test_a_robot_running_late_does_not_pass_close_to_where_another_stops() -> None:
     """o flies 5 m east and hovers at (5, 0); r's way north passes 0.6 m from there,
-    on schedule before o arrives (2.2 m apart at the closest). Flown 1.2 s late (a
-    turn, speeding up), r would meet o already hovering: a conflict."""
+    on schedule before o arrives (1.84 m apart at the closest). Flown `lag_s` (0.6 s)
+    late (speeding up from a hover), r would come within 1.41 m of o, less than the
+    1.5 m paths keep: a conflict."""
     m = ExplorationManager()
-    P = {"o": np.array([0.0, 0.0, 0.0]), "r": np.array([5.6, -2.5, np.pi / 2])}
+    assert m.lag_s == 0.6
+    P = {"o": np.array([0.0, 0.0, 0.0]), "r": np.array([5.6, -3.0, np.pi / 2])}
     m.tasks["o"] = _Task(np.array([5.0, 0.0]), np.array([[0.0, 0.0], [5.0, 0.0]]))
-    path = np.array([[5.6, -2.5], [5.6, 8.0]])
+    path = np.array([[5.6, -3.0], [5.6, 8.0]])
     assert m._conflict("r", path, P)
-    m.lag_s = 0.0  # on schedule only: they keep 2.2 m apart
+    m.lag_s = 0.0  # on schedule only: they keep 1.84 m apart
     assert not m._conflict("r", path, P)
+
+
+def test_the_schedule_lag_comes_from_the_config() -> None:
+    assert make_explorer(Config()).lag_s == ExplorationManager().lag_s == 0.6  # one default
+    assert make_explorer(load_config(None, {"exploration.lag_s": 1.2})).lag_s == 1.2
+    with pytest.raises(ConfigError, match="lag_s"):
+        load_config(None, {"exploration.lag_s": -0.1})
 
 
 def test_a_frontier_another_robot_will_see_on_its_way_is_left_to_it() -> None:

@@ -110,7 +110,8 @@ class AgentNode:
             else 0.0,
             velocity_lag_s=a.velocity_lag_s,
         )
-        self._neighbours: Neighbours | None = None  # the base station's latest relay
+        # the base station's relays, the latest and the one before (see `_command`)
+        self._neighbours: list[Neighbours] = []
         self.downlink = DownlinkGate(cfg.sim.sync_wait_s)  # lock-step: ticks wait for it
         self._twist: tuple[float, np.ndarray] | None = None  # odometry's (stamp, vx vy)
         self._on_map = T_map_odom is not None  # its map pose is known (start or correction)
@@ -192,8 +193,8 @@ class AgentNode:
 
     def _on_neighbours(self, msg: Neighbours, key: str) -> None:
         with self._corr_lock:
-            if self._neighbours is None or msg.stamp >= self._neighbours.stamp:
-                self._neighbours = msg
+            if not self._neighbours or msg.stamp >= self._neighbours[-1].stamp:
+                self._neighbours = [*self._neighbours[-1:], msg]
         self.downlink.on_neighbours(msg.stamp)
 
     def _on_mark(self, msg: DownlinkMark, key: str) -> None:
@@ -329,7 +330,11 @@ class AgentNode:
     def _command(self, stamp: float) -> None:
         self._take_path()
         with self._corr_lock:
-            nb, T_map_odom = self._neighbours if self._on_map else None, self.T_map_odom.copy()
+            # only answers to states before this tick: the answer to the state just sent
+            # may be in by now or not (a race that made lock-step runs differ)
+            earlier = [n for n in self._neighbours if n.stamp < stamp]
+            nb = earlier[-1] if earlier and self._on_map else None
+            T_map_odom = self.T_map_odom.copy()
         if nb is not None:
             a = self.cfg.agent
             self._news_ages.append(stamp - nb.stamp)

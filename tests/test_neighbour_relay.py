@@ -4,9 +4,13 @@ from __future__ import annotations
 
 import numpy as np
 
+from agent.node import AgentNode
+from agent.vehicle import NullVehicle
 from basestation.neighbour_relay import NeighbourRelay
+from common.bus import Bus
+from common.config import Config, ZenohConfig
 from common.geometry import pose4_to_pose7
-from protocol import RobotState, decode, encode
+from protocol import Neighbours, RobotState, decode, encode
 
 
 def _state(
@@ -73,3 +77,24 @@ def test_lockstep_answers_do_not_depend_on_which_state_came_first() -> None:
         np.testing.assert_array_equal(a.stamps, [1.0, 1.0])
     np.testing.assert_array_equal(answers[0]["r0"].xy, [[5.0, 0.0], [9.0, 0.0]])
     np.testing.assert_array_equal(answers[1]["r2"].xy, [[0.0, 0.0], [5.0, 0.0]])
+
+
+def test_a_tick_uses_only_answers_to_states_sent_before_it(cfg: Config, endpoint: str) -> None:
+    """The answer to the state a tick has just sent may be in by its command or not (a
+    race: lock-step runs of one seed differed): a tick uses answers to earlier states."""
+    with Bus(ZenohConfig(listen=[endpoint]), cfg.fleet) as bus:
+        node = AgentNode(cfg, "r0", bus, np.zeros((0, 2)), np.zeros(4), NullVehicle())
+
+        def answer(stamp: float, x: float) -> None:
+            node._on_neighbours(
+                Neighbours("r0", stamp, np.array([stamp - 0.2]), np.array([[x, 0.0]]),
+                           np.zeros((1, 2))),
+                "",
+            )  # fmt: skip
+
+        answer(0.8, 2.0)
+        answer(1.0, 3.0)  # the answer to the state of t = 1.0, in before its command
+        node._command(1.0)
+        np.testing.assert_allclose(node.guard.neighbours, [[2.0, 0.0]], atol=1e-9)
+        node._command(1.05)  # the next tick
+        np.testing.assert_allclose(node.guard.neighbours, [[3.0, 0.0]], atol=1e-9)

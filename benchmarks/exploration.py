@@ -190,18 +190,22 @@ def run(
     strategies: list[str] | None = None,
     bound: bool = False,
     kinematic: bool = False,
+    first_seed: int = 0,
 ) -> dict[str, Any]:
-    """Every world x seed x team size x strategy; `kinematic`: decisions only
-    (`benchmarks/exploration_kinematic.py`), not the whole system."""
+    """Every world x seed (`sim.seed` `first_seed` .. + `seeds` - 1) x team size x
+    strategy; `kinematic`: decisions only (`benchmarks/exploration_kinematic.py`), not
+    the whole system."""
     if kinematic and bound:
         raise ConfigError("--bound needs the missions' runs; it does not go with --kinematic")
+    if first_seed < 0 or seeds < 1:
+        raise ConfigError(f"--first-seed must be >= 0 and --seeds >= 1, got {first_seed}, {seeds}")
     names = strategies or list(STRATEGIES)
     report: dict[str, Any] = {"worlds": {}}
     bounds: dict[tuple[str, str], float | None] = {}  # (world, starts) -> time_to_95_bound_s
     for world in worlds:
         path = resolve_bench_world(world, out_dir)
         result: dict[str, list[dict[str, Any]]] = {name: [] for name in names}
-        for seed in range(seeds):
+        for seed in range(first_seed, first_seed + seeds):
             for n in robots:
                 for name in names:
                     tag = f"{world.replace(':', '_')}-{name}-n{n}-s{seed}"

@@ -82,6 +82,7 @@ def add_bench_parsers(sub: argparse._SubParsersAction[argparse.ArgumentParser]) 
             "worlds": a.world.split(","),
             "robots": [int(n) for n in a.robots.split(",")],
             "seeds": a.seeds,
+            "first_seed": a.first_seed,
             "max_sim_time": a.max_sim_time,
             "strategies": a.strategies.split(","),
             "bound": a.bound,
@@ -95,7 +96,13 @@ def add_bench_parsers(sub: argparse._SubParsersAction[argparse.ArgumentParser]) 
         help="comma list: shipped names, map_server YAML paths, or random:SEED (generated)",
     )
     b.add_argument("--robots", default="1,2,3", help="comma list of team sizes")
-    b.add_argument("--seeds", type=int, default=1, help="runs per team size (sim.seed 0..N-1)")
+    b.add_argument("--seeds", type=int, default=1, help="N runs per team size: sim.seed K..K+N-1")
+    b.add_argument(
+        "--first-seed",
+        type=int,
+        default=0,
+        help="K, the first sim.seed (0): one setting's batch split over cores or machines",
+    )
     b.add_argument("--max-sim-time", type=float, default=400.0, help="s of sim time per run")
     b.add_argument("--strategies", default="ours,baseline", help="comma list of ours, baseline")
     b.add_argument(

@@ -2,9 +2,13 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import pytest
 
+from benchmarks.exploration import run
 from benchmarks.exploration_kinematic import fly_kinematic, run_kinematic
+from collabslam.cli import build_parser
 from common.config import Config
 from common.errors import ConfigError
 
@@ -27,3 +31,22 @@ def test_a_kinematic_team_explores_bshape_apart_and_repeatably() -> None:
 def test_an_unknown_strategy_is_refused_not_flown_as_greedy() -> None:
     with pytest.raises(ConfigError, match="coordinated or greedy"):
         fly_kinematic(Config(), "bshape", 3, 0, "ours", 6.0)  # the bench's name, not the config's
+
+
+def test_a_bench_batch_may_start_at_any_seed(tmp_path: Path) -> None:
+    """`bench exploration --first-seed K --seeds N`: seeds K..K+N-1, so that batches of one
+    setting split over cores or machines add up to the seeds of one run."""
+    report = run(
+        Config(), tmp_path, tmp_path, ["bshape"], [3], 2, 3.0, ["ours"], kinematic=True,
+        first_seed=5,
+    )  # fmt: skip
+    assert [r["seed"] for r in report["ours"]] == [5, 6]
+    one = run_kinematic(Config(), "bshape", 3, 6, "coordinated", 3.0)
+    assert one["coverage_curve"] == report["ours"][1]["coverage_curve"]  # seed 6 is seed 6
+    args = build_parser().parse_args(
+        ["bench", "exploration", "--json", "o.json", "--seeds", "24", "--first-seed", "24"]
+    )
+    kwargs = args.bench_kwargs(args)
+    assert kwargs["first_seed"] == 24 and kwargs["seeds"] == 24
+    with pytest.raises(ConfigError, match="first-seed"):
+        run(Config(), tmp_path, tmp_path, ["bshape"], [3], 1, 3.0, ["ours"], first_seed=-1)

@@ -82,10 +82,11 @@ def test_clock_waits_for_everything_a_command_says_was_sent() -> None:
     clock = LockstepClock(active=True, timeout_s=60.0)
     have = {"r0": (2, 0.8)}  # keyframes received, latest state's stamp
     clock.on_command(VehicleCommand("r0", 1.0, 0, 0, 0, 0, keyframes_sent=3, state_stamp=1.0), "")
+    seen = []  # what the clock read each time it looked
     _later(0.2, have.__setitem__, "r0", (3, 1.0))
-    t0 = time.monotonic()
-    assert clock.wait_inputs(1.0, ["r0"], lambda r: have[r], 10.0) == []
-    assert time.monotonic() - t0 >= 0.2
+    assert clock.wait_inputs(1.0, ["r0"], lambda r: seen.append(have[r]) or have[r], 10.0) == []
+    # it went on only once the third keyframe and the state of t = 1 were in
+    assert seen[0] == (2, 0.8) and seen[-1] == (3, 1.0) and (3, 1.0) not in seen[:-1]
     # a robot that has not commanded at the stamp is named after the timeout
     assert clock.wait_inputs(1.0, ["r0", "r1"], lambda r: have.get(r, (0, -1.0)), 0.1) == ["r1"]
     # what went down to each robot, for its mark

@@ -111,11 +111,33 @@ class SafetyGuard:
     ) -> tuple[float, float]:
         """The body-frame horizontal command (vx, vy), m/s, made safe for the last scan
         and the neighbours; `velocity`: the drone's body-frame (vx, vy) now, if known."""
-        v = np.array([vx, vy], dtype=np.float64)
+        command = np.array([vx, vy], dtype=np.float64)
         wanted = float(np.hypot(vx, vy))
-        before = v.copy()
-        v = self._apart_from_neighbours(v, give_way=True)  # may move a hovering drone
-        self.neighbour_ticks += int(not np.array_equal(v, before))
+        aside = self._apart_from_neighbours(command, give_way=True)  # may move a hovering
+        self.neighbour_ticks += int(not np.array_equal(aside, command))  # drone
+        v = self._safe(aside, velocity)
+        if wanted > 0.05 and float(np.hypot(*v)) < 0.05:
+            # the way aside ran into a wall (random:1: a drone in a doorway, a neighbour
+            # 2.3 m ahead, the jamb on the side it gave way to: held for good), so go
+            # on without it: the neighbour limits still hold
+            straight = self._safe(self._apart_from_neighbours(command), velocity)
+            if float(np.hypot(*straight)) > float(np.hypot(*v)):
+                v = straight
+        limited = float(np.hypot(*v)) < wanted - 1e-6
+        self.limited_ticks += int(limited)
+        held = wanted > 0.05 and float(np.hypot(*v)) < 0.05
+        if not held:
+            self._held_since = None
+        elif self._held_since is None:
+            self._held_since = stamp
+        self.blocked = held and stamp - self._held_since >= self.blocked_after_s
+        return float(v[0]), float(v[1])
+
+    def _safe(
+        self, v: NDArray[np.float64], velocity: NDArray[np.float64] | None
+    ) -> NDArray[np.float64]:
+        """`limit`'s command `v`, already kept apart from the neighbours, made clear of
+        the scan, braked along the current motion, and its predicted stop clear too."""
         for _ in range(3):  # a way aside must be clear of the scan, and not toward
             if float(np.hypot(*v)) <= 1e-6:  # another drone: taking motion toward
                 break  # one away may add some toward the other (a drone by a wall)
@@ -129,15 +151,7 @@ class SafetyGuard:
             v = self._brake_along_motion(v, moving)
             if np.all(np.isfinite(moving)):
                 v = self._stoppable(v, moving)
-        limited = float(np.hypot(*v)) < wanted - 1e-6
-        self.limited_ticks += int(limited)
-        held = wanted > 0.05 and float(np.hypot(*v)) < 0.05
-        if not held:
-            self._held_since = None
-        elif self._held_since is None:
-            self._held_since = stamp
-        self.blocked = held and stamp - self._held_since >= self.blocked_after_s
-        return float(v[0]), float(v[1])
+        return v
 
     def _stopping_speed(self, room: float) -> float:
         """The highest speed from which the drone stops within `room` (m), one reaction

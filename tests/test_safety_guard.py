@@ -186,6 +186,30 @@ def test_a_drone_slides_round_a_neighbour_in_its_way_and_may_always_move_apart()
     assert g.limit(0.0, 1.0, 0.0) == (1.0, 0.0)
 
 
+def test_a_way_aside_into_a_jamb_does_not_hold_the_drone_for_good() -> None:
+    """random:1 (kinematic, exact tours): a drone in a doorway, the jamb 0.31 m to its
+    right, a neighbour hovering 2.3 m ahead. Giving way to the right ran into the jamb,
+    the predicted stop scaled the whole command to nothing, and both drones hovered for
+    the rest of the mission. Without the way aside it flies on, slower toward the
+    neighbour."""
+
+    def line(a: tuple[float, float], b: tuple[float, float], n: int) -> np.ndarray:
+        return np.linspace(a, b, n)
+
+    jambs = np.vstack([
+        line((-0.03, -0.34), (0.06, -0.31), 20), line((0.06, -0.31), (0.38, -1.31), 20),
+        line((-0.39, 0.81), (-0.29, 0.84), 10), line((-0.29, 0.84), (-0.43, 1.28), 10),
+    ])  # fmt: skip
+    g = SafetyGuard(0.25, 0.05, 1.0, 0.3, 2.0, neighbour_keep_m=1.3, velocity_lag_s=0.2)
+    g.update(np.arctan2(jambs[:, 1], jambs[:, 0]), np.hypot(jambs[:, 0], jambs[:, 1]))
+    g.set_neighbours(np.array([[2.27, 0.46]]))
+    for t in np.arange(0.0, 3.0, 0.05):
+        vx, vy = g.limit(t, 1.0, 0.0, velocity=np.zeros(2))
+    assert not g.blocked and 0.5 < vx < 1.0 and abs(vy) < 0.1
+    n = np.array([2.27, 0.46]) / np.hypot(2.27, 0.46)
+    assert np.dot([vx, vy], n) <= g._stopping_speed(0.5 * (np.hypot(2.27, 0.46) - 1.3)) + 1e-9
+
+
 def test_no_neighbour_guard_with_keep_zero() -> None:
     g = SafetyGuard(0.25, 0.05, 1.0, 0.1, 2.0, neighbour_keep_m=0.0)
     assert _guard().neighbour_keep == 1.3

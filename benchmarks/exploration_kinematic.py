@@ -150,6 +150,7 @@ def fly_kinematic(
                 flying[r] = p is not None and len(p) > 0
                 if flying[r]:
                     follower[r].set_path(densify(p, 0.25))
+                    guard[r].clear()  # as the agent does with every new path
             if explorer.done:
                 end_reason = "explored"
                 break

@@ -34,7 +34,6 @@ import json
 import logging
 import os
 import signal
-import socket
 import sqlite3
 import time
 from pathlib import Path
@@ -43,7 +42,7 @@ from typing import Any
 from benchmarks.fault_injection import Replayer, bad_payloads
 from collabslam.launcher import Launcher, agent_command, make_scenario
 from collabslam.summary import build_summary
-from collabslam.supervisor import Child, ProcessGroup
+from collabslam.supervisor import Child, ProcessGroup, free_ports
 from common.bus import Bus, endpoint
 from common.config import Config, ZenohConfig, dump_config
 from common.errors import ProcessError
@@ -63,7 +62,7 @@ class _Mission:
         self.db = out / "base.db"
         self.common = ["--config", str(out / "config.toml"), "--scenario"]
         self.common += [str(out / "scenario.json"), "--out", str(out)]
-        ports = _free_ports(3 + n_robots)  # all at once: no two alike
+        ports = free_ports(3 + n_robots)
         self.base_port, self.sim_ep, self.tap_port = ports[0], endpoint(ports[1]), ports[2]
         self.group = ProcessGroup(out)
         self.relays = {
@@ -109,18 +108,6 @@ def _stored(db: Path) -> dict[str, list[int]]:
     for r, s in rows:
         out.setdefault(r, []).append(int(s))
     return out
-
-
-def _free_ports(n: int) -> list[int]:
-    """n distinct free loopback ports (held together while the kernel picks them)."""
-    socks = [socket.socket() for _ in range(n)]
-    try:
-        for s in socks:
-            s.bind(("127.0.0.1", 0))
-        return [int(s.getsockname()[1]) for s in socks]
-    finally:
-        for s in socks:
-            s.close()
 
 
 def _log_has(path: Path, text: str) -> bool:

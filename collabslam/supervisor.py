@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import logging
 import os
+import random
 import socket
 import subprocess
 import sys
@@ -23,10 +24,50 @@ from common.errors import ProcessError
 log = logging.getLogger(__name__)
 
 
+# Listening ports come from outside the kernel's ephemeral range: a port the kernel hands
+# out for bind(0) goes back to that range once the probe closes, and an outgoing
+# connection of any process (another mission's agents beside this one) may be given it
+# before our listener binds it ("Address already in use": two bench batches at once).
+_EPHEMERAL_RANGE = Path("/proc/sys/net/ipv4/ip_local_port_range")
+_LOWEST_PORT = 10000
+
+
+def _listen_port_ranges() -> list[range]:
+    """Ports for listeners: above _LOWEST_PORT, outside the ephemeral range."""
+    try:
+        lo, hi = (int(v) for v in _EPHEMERAL_RANGE.read_text().split())
+    except (OSError, ValueError):
+        lo, hi = 32768, 60999  # Linux's default
+    spans = [range(_LOWEST_PORT, lo), range(hi + 1, 65536)]
+    return [r for r in spans if len(r) > 0] or [range(_LOWEST_PORT, 65536)]
+
+
+def free_ports(n: int) -> list[int]:
+    """n distinct loopback TCP ports nothing listens on now, chosen at random outside the
+    kernel's ephemeral range (see above), so two missions started at once on one
+    machine do not take each other's (or their connections') ports."""
+    ranges = _listen_port_ranges()
+    weights = [len(r) for r in ranges]
+    rng = random.SystemRandom()
+    out: list[int] = []
+    for _ in range(200 * n):
+        if len(out) == n:
+            return out
+        port = rng.choice(rng.choices(ranges, weights)[0])
+        if port in out:
+            continue
+        with socket.socket() as s:
+            try:
+                s.bind(("127.0.0.1", port))
+            except OSError:
+                continue
+        out.append(port)
+    raise ProcessError(f"no {n} free loopback ports found outside the ephemeral range")
+
+
 def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
+    """One port of `free_ports`."""
+    return free_ports(1)[0]
 
 
 @dataclass

@@ -7,10 +7,10 @@ import time
 
 import numpy as np
 import pytest
-from conftest import free_port
 from process_helpers import poll_until
 
 from basestation.node import BaseStationNode
+from collabslam.supervisor import free_port
 from common.bus import Bus
 from common.config import Config, ZenohConfig
 

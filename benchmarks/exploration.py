@@ -38,7 +38,7 @@ from benchmarks.exploration_bound import time_to_fraction_bound_s
 from benchmarks.exploration_kinematic import run_kinematic
 from collabslam.launcher import Launcher
 from common.config import Config
-from common.errors import ConfigError
+from common.errors import ConfigError, ProcessError
 from common.map_io import read_map, write_map
 from common.scenario import read_scenario
 from simulation.world_generator import generate_world
@@ -93,9 +93,19 @@ def run_mission(
     }
 
 
+def failed_row(n_robots: int, seed: int, error: ProcessError, out: Path) -> dict[str, Any]:
+    """The row of a mission that did not run to its end (a process died: the log it
+    names says why): no measurement, left out of the summary, counted in
+    `failed_runs`."""
+    return {"robots": n_robots, "seed": seed, "time_to_95_s": None, "error": str(error),
+            "coverage_curve": [], "out": str(out)}  # fmt: skip
+
+
 def _times(rows: list[dict[str, Any]], n: int, max_sim_time: float) -> list[float]:
-    """Times to 95 % of the n-robot runs (a run that never got there counts as max time)."""
-    return [r["time_to_95_s"] or max_sim_time for r in rows if r["robots"] == n]
+    """Times to 95 % of the n-robot runs (a run that never got there counts as max time;
+    one that failed is no measurement)."""
+    ok = [r for r in rows if r["robots"] == n and "error" not in r]
+    return [r["time_to_95_s"] or max_sim_time for r in ok]
 
 
 def speedups(
@@ -122,6 +132,7 @@ def speedups(
             )
             if a and b:
                 out[f"ours_faster_than_baseline_{sep}pct_{n}"] = round(100.0 * (b - a) / b, 1)
+    out["failed_runs"] = sum("error" in r for rows in result.values() for r in rows)
     return out
 
 
@@ -209,11 +220,18 @@ def run(
             for n in robots:
                 for name in names:
                     tag = f"{world.replace(':', '_')}-{name}-n{n}-s{seed}"
-                    if kinematic:
-                        row = run_kinematic(cfg, path, n, seed, STRATEGIES[name], max_sim_time)
-                    else:
-                        out = out_dir / "runs" / tag
-                        row = run_mission(cfg, path, n, seed, STRATEGIES[name], out, max_sim_time)
+                    out = out_dir / "runs" / tag
+                    try:
+                        if kinematic:
+                            row = run_kinematic(cfg, path, n, seed, STRATEGIES[name], max_sim_time)
+                        else:
+                            row = run_mission(
+                                cfg, path, n, seed, STRATEGIES[name], out, max_sim_time
+                            )
+                    except ProcessError as exc:  # one mission lost, not the whole batch
+                        log.error("%s: the mission failed, going on with the next: %s", tag, exc)
+                        result[name].append(failed_row(n, seed, exc, out))
+                        continue
                     log.warning(
                         "%s: time_to_95 %s s, collisions %d, min separation %s m",
                         tag,
@@ -231,6 +249,7 @@ def run(
             "summary": speedups(result, robots, max_sim_time),
             "plot": str(png),
         }
+    report["failed_runs"] = sum(w["summary"]["failed_runs"] for w in report["worlds"].values())
     if len(worlds) == 1:  # the issue's shape: {"ours": [...], "baseline": [...]} at the top
         only = report["worlds"][worlds[0]]
         report.update({k: v for k, v in only.items()})

@@ -10,11 +10,14 @@ from __future__ import annotations
 
 import argparse
 import json
+import logging
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
 from collabslam.cli_options import add_common_args, load_cfg
+
+log = logging.getLogger("collabslam.bench")
 
 BenchKwargs = Callable[[argparse.Namespace], dict[str, Any]]
 
@@ -227,4 +230,8 @@ def cmd_bench(args: argparse.Namespace) -> int:
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps(result, indent=1))
     print(json.dumps(result, indent=1))
+    if result.get("failed_runs"):  # the rest is measured, but not all that was asked for
+        log.error("%d run(s) failed (their rows say why); the report holds the rest",
+                  result["failed_runs"])  # fmt: skip
+        return 1
     return 0

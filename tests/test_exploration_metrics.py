@@ -85,3 +85,27 @@ def test_bench_speedups_from_rows() -> None:
     assert s["ours_mean_time_to_95_s_3"] == 50.0 and s["ours_median_time_to_95_s_3"] == 30.0
     assert s["ours_median_speedup_3"] == 2.0 and s["baseline_median_time_to_95_s_3"] == 50.0
     assert s["ours_faster_than_baseline_median_pct_3"] == 40.0
+
+
+def test_a_failed_mission_is_reported_and_the_batch_goes_on(tmp_path, monkeypatch) -> None:
+    """One mission whose process died (a port taken by another program, say) is a row
+    with its error, left out of the means, and the other missions still run."""
+    import benchmarks.exploration as bench
+    from common.config import load_config
+    from common.errors import ProcessError
+
+    def mission(cfg, world, n, seed, strategy, out, max_sim_time):
+        if seed == 1:
+            raise ProcessError(f"basestation (pid 1) exited with code 1; see {out}/logs")
+        t = 10.0 * n if strategy == "greedy" else 5.0 * n
+        return {"robots": n, "seed": seed, "time_to_95_s": t, "collisions": 0,
+                "min_robot_separation_m": None, "coverage_curve": [[0, 0], [t, 1]]}  # fmt: skip
+
+    monkeypatch.setattr(bench, "run_mission", mission)
+    report = bench.run(load_config(), tmp_path / "b", tmp_path, ["bshape"], [1], 3, 100.0)
+    assert [r["seed"] for r in report["ours"]] == [0, 1, 2]
+    failed = report["ours"][1]
+    assert failed["time_to_95_s"] is None and "exited with code 1" in failed["error"]
+    assert report["failed_runs"] == 2  # ours and the baseline's seed 1
+    assert report["summary"]["ours_mean_time_to_95_s_1"] == 5.0  # not 100 s for the failed
+    assert report["summary"]["ours_faster_than_baseline_pct_1"] == 50.0

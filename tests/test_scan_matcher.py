@@ -288,3 +288,15 @@ def test_adaptive_voxel_filter() -> None:
     keys = np.floor(kept / 0.2)
     assert len(np.unique(keys, axis=0)) == len(kept)
     assert len(np.unique(np.floor(finite / 0.2), axis=0)) == len(kept)
+
+
+def test_voxel_filter_keeps_an_unbiased_point_of_each_voxel() -> None:
+    # A scan's points come in beam order: keeping the first of each voxel would keep
+    # its one end (here x at the voxel's lower edge) and turn the local SLAM's heading.
+    line = np.column_stack([np.linspace(0.0, 10.0, 100_001)[:-1], np.full(100_000, 0.01)])
+    for points in (line, line[::-1]):
+        kept = voxel_filter(points, 0.1)
+        assert len(kept) == 100
+        where = kept[:, 0] / 0.1 - np.floor(kept[:, 0] / 0.1)  # 0..1 across its voxel
+        assert abs(where.mean() - 0.5) < 0.1  # the first in order: ~0 (or ~1 reversed)
+        np.testing.assert_array_equal(kept, voxel_filter(points, 0.1))  # reproducible

@@ -191,9 +191,9 @@ class AgentConfig:
     keyframe_distance_m: float = 0.2  # m, seed 002: new base-station keyframe every 0.2 m
     keyframe_angle_rad: float = 0.1  # rad, ... or every 0.1 rad
     local_keyframe_period_s: float = 0.25  # s, seed 002: local-map keyframes
-    odom_sigma_per_m: float = 0.02  # m of translation std per metre travelled
-    odom_sigma_yaw_per_rad: float = 0.02  # rad of yaw std per rad turned
-    odom_sigma_yaw_per_m: float = 0.005  # rad of yaw std per metre travelled
+    odom_sigma_per_m: float = 0.01  # m (keyframe deltas: the graph's odometry; docs)
+    odom_sigma_yaw_per_rad: float = 0.004  # rad
+    odom_sigma_yaw_per_m: float = 0.001  # rad
     odom_sigma_min: float = 1e-3  # floor on every std (m or rad)
     outbox_max: int = 20000  # keyframes kept until acknowledged
     outbox_warn_fraction: float = 0.8  # warn when the outbox is this full

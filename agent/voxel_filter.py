@@ -90,7 +90,12 @@ def voxel_filter(points: ArrayLike, voxel_size: float) -> FloatArray:
     """Keep one point (`_one_per_voxel`: at random, the same for the same input) of
     every occupied square voxel (m), in input order; non-finite points are dropped."""
     p = finite_points(points)
-    return p[_one_per_voxel(p, 1.0 / voxel_size)] if len(p) else p
+    return p[voxel_mask(p, voxel_size)] if len(p) else p
+
+
+def voxel_mask(points: FloatArray, voxel_size: float) -> NDArray[np.bool_]:
+    """The mask `voxel_filter` keeps of (N, 2) finite points (m)."""
+    return _one_per_voxel(points, 1.0 / voxel_size)
 
 
 def adaptive_voxel_filter(
@@ -108,9 +113,16 @@ def adaptive_voxel_filter(
     """
     p = finite_points(points)
     p = p[np.einsum("ij,ij->i", p, p) <= max_range * max_range]
-    if len(p) <= min_num_points:
-        return p
-    return p[_adaptive_voxel_mask(p, max_length, min_num_points)]
+    return p[adaptive_voxel_mask(p, max_length, min_num_points)]
+
+
+def adaptive_voxel_mask(
+    points: FloatArray, max_length: float, min_num_points: int
+) -> NDArray[np.bool_]:
+    """The mask `adaptive_voxel_filter` keeps of (N, 2) finite points (m)."""
+    if len(points) <= min_num_points:
+        return np.ones(len(points), np.bool_)
+    return _adaptive_voxel_mask(points, max_length, min_num_points)
 
 
 @njit(cache=True)

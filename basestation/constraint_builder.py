@@ -101,6 +101,17 @@ class Job:
         ]
         return np.vstack(parts) if parts else np.zeros((0, 2))
 
+    def placed_query_sensors(self) -> np.ndarray | None:
+        """Where each point of `placed_query` was seen from (frame b); None: b's origin."""
+        if not self.in_node_frames:
+            return None
+        assert self.query_origins is not None
+        parts = [
+            np.broadcast_to(np.asarray(T, dtype=np.float64)[:2], (len(p), 2))
+            for T, p in zip(self.query_origins, self.query_points, strict=True)
+        ]
+        return np.vstack(parts) if parts else np.zeros((0, 2))
+
 
 @dataclass(frozen=True)
 class Verified:
@@ -334,6 +345,7 @@ class ConstraintBuilder:
                 self.cfg.global_min_score,
                 query[: job.n_sensor],
                 self.cfg.global_candidates,
+                job.placed_query_sensors(),
             )
             log.debug(
                 "whole-map search of %s:%d against %s: %s", *job.b, job.target_key,
@@ -347,6 +359,7 @@ class ConstraintBuilder:
             query,
             job.T_a_b_guess,
             sensor_points=query[: job.n_sensor],
+            query_sensors_b=job.placed_query_sensors(),
         )
 
 

@@ -16,6 +16,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import ArrayLike
 
+from agent.voxel_filter import voxel_mask
 from basestation.scan_archive import NodeKey, ScanArchive
 from common.geometry import pose7_to_pose4
 from common.growable import Rows
@@ -64,7 +65,8 @@ class RobotKeyframes:
 
 
 def scan_points(scan: Scan2D | None, voxel_m: float = 0.05) -> np.ndarray:
-    """A scan's returns as (N, 2) float32 points in its body frame (m), one per voxel."""
+    """A scan's returns as (N, 2) float32 points in its body frame (m), one per voxel
+    (`agent.voxel_filter`: at random, not the first in beam order)."""
     if scan is None:
         return np.zeros((0, 2), dtype=np.float32)
     r = scan.ranges()
@@ -73,9 +75,7 @@ def scan_points(scan: Scan2D | None, voxel_m: float = 0.05) -> np.ndarray:
     pts = np.column_stack([r[ok] * np.cos(a[ok]), r[ok] * np.sin(a[ok])]).astype(np.float64)
     if len(pts) == 0:
         return pts
-    keys = np.floor(pts / voxel_m).astype(np.int64)
-    _, first = np.unique(keys[:, 0] * 1_000_003 + keys[:, 1], return_index=True)
-    return pts[np.sort(first)].astype(np.float32)
+    return pts[voxel_mask(pts, voxel_m)].astype(np.float32)
 
 
 class KeyframeStore:

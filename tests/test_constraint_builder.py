@@ -164,3 +164,17 @@ def test_without_the_worker_the_caller_verifies_within_its_budget() -> None:
         time.sleep(0.02)
     assert [r.job.a for r in builder.results()] == [("a", 9)]
     builder.close()
+
+
+def test_each_query_point_knows_the_keyframe_it_was_seen_from() -> None:
+    """The verifier's facing test needs where each query point was seen from (frame b)."""
+    own, neighbour = np.array([[1.0, 0.0], [2.0, 0.0]]), np.array([[0.5, 0.5]])
+    origins = [np.zeros(3), np.array([0.4, -0.2, np.pi / 2])]
+    job = Job("loop", ("a", 0), ("a", 9), np.zeros(3), [own], [own, neighbour], [np.zeros(3)],
+              in_node_frames=True, query_origins=origins)  # fmt: skip
+    points, sensors = job.placed_query(), job.placed_query_sensors()
+    assert sensors is not None and sensors.shape == points.shape == (3, 2)
+    np.testing.assert_allclose(sensors, [[0, 0], [0, 0], [0.4, -0.2]])
+    np.testing.assert_allclose(points[2], [0.4 - 0.5, -0.2 + 0.5])  # rotated by 90 deg
+    flat = Job("loop", ("a", 0), ("a", 9), np.zeros(3), [own], own, [np.zeros(3)])
+    assert flat.placed_query_sensors() is None  # all seen from b's origin

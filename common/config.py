@@ -246,7 +246,7 @@ class MapConfig:
     p_min: float = 0.12
     p_max: float = 0.97
     occupied_thresh: float = 0.65  # map_server convention
-    free_thresh: float = 0.196  # map_server convention
+    free_thresh: float = 0.35  # free after two looks (0.4 -> 0.31), not four (0.196): docs
     max_free_range_m: float = 10.0  # m, no-return beams clear free space up to here
     pose_moved_m: float = 0.02  # m: a keyframe that moved more than this forces a re-render
     pose_moved_rad: float = 0.005  # rad: likewise for heading

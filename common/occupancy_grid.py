@@ -8,7 +8,8 @@ Update rule per scan (as cartographer's `CastRays` and octomap do): every cell i
 updated at most once per scan, and hits win over misses, so a wall cell hit by one
 beam is not cleared by a neighbouring grazing beam of the same scan. With the default
 probabilities a cell therefore needs one hit to read as occupied (0.70 > 0.65) but four
-scans that see through it to read as free (0.4 -> 0.31 -> 0.23 -> 0.17 < 0.196).
+scans that see through it to read as free at map_server's 0.196 (0.4 -> 0.31 -> 0.23 ->
+0.17), two at the base station's published map's `map.free_thresh` 0.35.
 
 Free space is traced with an 8-connected (Bresenham-like) walk: one cell per column
 (or row), the one the beam crosses at that column's centre line.

@@ -244,3 +244,25 @@ def test_map_from_scans_read_back_from_the_database_is_the_same(
     assert (tmp_path / "out" / "map.pgm").read_bytes() == (
         tmp_path / "plain" / "map.pgm"
     ).read_bytes()
+
+
+def _after_looks(cfg: MapConfig, k: int) -> tuple[int, int]:
+    """(published, exploration) value of a cell 1.5 m ahead of k keyframes that all saw
+    3 m past it."""
+    n = 181
+    scan = Scan2D.from_ranges(-np.pi / 2, np.pi / (n - 1), 8.0, np.full(n, 3.0))
+    mb = MapBuilder(cfg)
+    keys = [("a", i) for i in range(k)]
+    mb.update(keys, [scan] * k, np.tile([0.01, 0.01, 0.0], (k, 1)), budget_s=None)
+    probe = np.array([[1.5, 0.0]])
+    return int(mb.gridmap().sample(probe)[0]), int(mb.gridmap(free_thresh=0.49).sample(probe)[0])
+
+
+def test_published_map_calls_a_cell_free_after_two_looks_exploration_after_one() -> None:
+    """`map.free_thresh` 0.35: two keyframes that saw through a cell make it free in the
+    published map; exploration reads it free after one (docs/architecture.md, "Two views
+    of one map"). map_server's 0.196 would take four."""
+    assert _after_looks(MapConfig(), 1) == (-1, 0)  # free to exploration, unknown published
+    assert _after_looks(MapConfig(), 2) == (0, 0)
+    assert _after_looks(MapConfig(free_thresh=0.196), 3) == (-1, 0)
+    assert _after_looks(MapConfig(free_thresh=0.196), 4) == (0, 0)

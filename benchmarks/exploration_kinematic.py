@@ -59,9 +59,9 @@ TICK_S = 0.05  # s of sim time per motion step
 # where the agent would cut a base-station keyframe (`KeyframeSelector`: 0.2 m or 0.1
 # rad since the last), as the base station's map does: none while a drone hovers. With a
 # scan every 0.2 s into the map (before the 56th session), a hovering drone's looks piled
-# up and random:1's teams of 3 came out 1.5 s faster than with keyframes (missions: 52.2
-# s), its lone drone 0.4 s (111.3 s): 49.6 / 51.2 and 109.3 / 109.7 s over 24 / 12 seeds
-# (map.free_thresh 0.196)
+# up: random:1's teams of 3 took 49.6 s (24 seeds), with keyframes 51.6 s, as missions'
+# 52.2 s (x2.11 against the lone drone's 108.7 s here, x2.13 in missions; map.free_thresh
+# 0.196)
 SCAN_PERIOD_S = 0.2
 PLANNING_TIME_S = 120.0  # s: a cap the check budget always reaches first
 

@@ -84,10 +84,10 @@ class ExplorationManager:
     gain_radius_m: float = 4.0  # m: how far a look from a frontier counts (unknown_in_view)
     w_own: float = 0.5  # cost per m a frontier is closer to a robot than to all others
     own_cap_m: float = 10.0  # m, up to this much
-    # goals only from the robot's own share of the min-max tours (`frontier_tours`)
-    tours: bool = True
+    tours: bool = True  # goals only from the robot's share of the min-max tours (frontier_tours)
     support_min_m: float = 1.0  # m, shortest move worth sending an idle robot
     handover_m: float = 2.0  # m: a robot this much nearer another's goal competes for it
+    handover_unknown: float = 3.0  # ... by travel charging unknown space this many times
     busy_radius_factor: float = 2.0  # frontiers within this x clearance of a busy goal: taken
     goal_shift_m: float = 1.0  # m a frontier goal may move to get out of the inflation
     # A path around other robots (their discs, or their routes) longer than this factor

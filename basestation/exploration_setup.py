@@ -39,5 +39,5 @@ def make_explorer(cfg: Config, simulated: bool = False) -> ExplorationManager:
 COST_FIELDS = (
     "w_spread", "spread_radius_m", "seen_range_m", "seen_fov_deg", "seen_cost_m", "w_own",
     "own_cap_m", "tours", "w_gain", "gain_full_m2", "gain_near_m", "gain_radius_m", "handover_m",
-    "lag_s",
+    "lag_s", "handover_unknown",
 )  # fmt: skip

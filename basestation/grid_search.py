@@ -80,7 +80,7 @@ def _pop(heap, pos, key, size):  # noqa: ANN001, ANN202 (numba kernel)
 
 
 @njit(cache=True)
-def _search(flat, h, w, cell_m, src, wanted, left, goal, limit_m, g, f, pred, done, heap, pos):  # noqa: ANN001, ANN202, E501 (numba kernel)
+def _search(flat, wt, h, w, cell_m, src, wanted, left, goal, limit_m, g, f, pred, done, heap, pos):  # noqa: ANN001, ANN202, E501 (numba kernel)
     """Settle cells from `src` (g: cost so far, `pred`: the cell before) until the
     `left` cells marked `wanted` are settled or no cell is left within `limit_m`;
     returns how many wanted cells were not reached. `goal` >= 0: A*, the heap keyed
@@ -110,7 +110,7 @@ def _search(flat, h, w, cell_m, src, wanted, left, goal, limit_m, g, f, pred, do
             v = vy * w + vx
             if done[v] or not flat[v]:
                 continue
-            ng = g[u] + (cell_m * SQRT2 if _DIAGONAL[d] else cell_m)
+            ng = g[u] + (cell_m * SQRT2 if _DIAGONAL[d] else cell_m) * 0.5 * (wt[u] + wt[v])
             if ng < g[v] and ng <= limit_m:
                 g[v] = ng
                 pred[v] = u
@@ -137,13 +137,16 @@ def grid_distances(
     cell_m: float,
     sources: NDArray[np.int64],
     targets: NDArray[np.int64],
+    weight: NDArray[np.float64],
 ) -> NDArray[np.float64]:
     """(len(sources), len(targets)) shortest distances (m) between cells (`inf`:
-    not connected); a source or target on a cell that is not passable reaches only
-    itself."""
+    not connected), a step between two cells costing its length times the mean of
+    their `weight`s (>= 1, the shape of `passable`); a source or target on a cell that
+    is not passable reaches only itself."""
     h, w = passable.shape
     n = h * w
     flat = passable.ravel()
+    wt = weight.ravel()
     out = np.full((len(sources), len(targets)), np.inf)
     g, f = np.empty(n), np.empty(n)
     pred = np.empty(n, dtype=np.int64)
@@ -161,7 +164,22 @@ def grid_distances(
         f[:] = np.inf
         done[:] = False
         _search(
-            flat, h, w, cell_m, sources[k], wanted, left, -1, np.inf, g, f, pred, done, heap, pos
+            flat,
+            wt,
+            h,
+            w,
+            cell_m,
+            sources[k],
+            wanted,
+            left,
+            -1,
+            np.inf,
+            g,
+            f,
+            pred,
+            done,
+            heap,
+            pos,
         )
         for j in range(len(targets)):
             out[k, j] = g[targets[j]]
@@ -187,7 +205,8 @@ def grid_astar(
     pos = np.full(n, -1, dtype=np.int64)
     wanted = np.zeros(n, dtype=np.bool_)
     wanted[dst] = True
-    if _search(flat, h, w, cell_m, src, wanted, 1, dst, limit_m, g, f, pred, done, heap, pos):
+    wt = np.ones(n)
+    if _search(flat, wt, h, w, cell_m, src, wanted, 1, dst, limit_m, g, f, pred, done, heap, pos):
         return np.empty(0, dtype=np.int64)
     count = 1
     v = dst

@@ -4,8 +4,9 @@ A straight-line distance sends a robot to the frontier just behind a wall; what
 matters is how far it must fly. `travel_distances` runs Dijkstra (8-connected,
 `basestation.grid_search`) on a coarse copy of the grid in which a cell is passable when
 its centre is more than `clearance_m` from every occupied cell (unknown counts as
-passable, as for the planner). Robots and frontiers off the passable cells are
-snapped to the nearest passable cell. Unreachable pairs get `inf`.
+passable, as for the planner, but may cost more per m: `unknown_factor`). Robots and
+frontiers off the passable cells are snapped to the nearest passable cell.
+Unreachable pairs get `inf`.
 
 `grid_path` is a shortest cell path (A*) on a given passable mask: the planner's
 reference for RRT* and its fallback when RRT* finds nothing within its budget.
@@ -44,9 +45,11 @@ def travel_distances(
     sources: ArrayLike,
     targets: ArrayLike,
     clearance_m: float = 0.25,
+    unknown_factor: float = 1.0,
     cell_m: float = 0.2,
 ) -> NDArray[np.float64]:
-    """(len(sources), len(targets)) travel distances (m) between [x, y] points (map frame)."""
+    """(len(sources), len(targets)) travel distances (m) between [x, y] points (map frame);
+    each m through unknown cells counts `unknown_factor` times (>= 1)."""
     src = np.asarray(sources, dtype=np.float64).reshape(-1, 2)
     dst = np.asarray(targets, dtype=np.float64).reshape(-1, 2)
     out = np.full((len(src), len(dst)), np.inf)
@@ -69,7 +72,9 @@ def travel_distances(
         ix, iy = np.clip(ij[:, 0], 0, w - 1), np.clip(ij[:, 1], 0, h - 1)
         return (ny[iy, ix] * w + nx[iy, ix]).astype(np.int64)
 
-    return grid_distances(np.ascontiguousarray(passable), cell, node(src), node(dst))
+    unknown = (grid.data < 0)[step // 2 :: step, step // 2 :: step]
+    weight = np.where(unknown, unknown_factor, 1.0)
+    return grid_distances(np.ascontiguousarray(passable), cell, node(src), node(dst), weight)
 
 
 def grid_path(

@@ -384,6 +384,7 @@ class ExplorationConfig:
     own_cap_m: float = 10.0  # m
     tours: bool = True  # goals from the robot's own min-max tour only (frontier_tours.py)
     handover_m: float = 2.0  # m: a free robot this much nearer another's goal competes for it
+    handover_unknown: float = 3.0  # x per m through unknown space in that travel distance
     w_gain: float = 0.25  # information (0: off): m per m^2 in view short of gain_full_m2
     gain_full_m2: float = 25.0  # m^2
     gain_near_m: float = 5.0  # m of travel: the cost x min(1, travel / gain_near_m)
@@ -391,10 +392,9 @@ class ExplorationConfig:
     inflation_m: float = 0.35  # m, no-collision zone around obstacles
     robot_clearance_m: float = 1.0  # m, disc around other robots and their paths
     lag_s: float = 0.6  # s the others are judged behind/ahead of their schedules (docs)
-    # RRT* work per path: validity checks (~0.2 s here), so plans do not depend on the
-    # machine's load; planning_time_s caps the wall time of one path (not in simulation).
+    # RRT* work per path in validity checks (~0.2 s here): plans do not depend on load
     planning_checks: int = 40000
-    planning_time_s: float = 1.0  # s
+    planning_time_s: float = 1.0  # s, caps the wall time of one path (not in simulation)
 
 
 @dataclass

@@ -78,6 +78,11 @@ def validate(cfg: Config) -> None:
             "exploration.strategy: expected coordinated or greedy, "
             f"got {cfg.exploration.strategy!r}"
         )
+    if not cfg.exploration.handover_unknown >= 1.0:
+        raise ConfigError(
+            "exploration.handover_unknown: expected a factor >= 1, "
+            f"got {cfg.exploration.handover_unknown}"
+        )
     _validate_gps(cfg)
 
 

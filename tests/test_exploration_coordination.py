@@ -32,6 +32,21 @@ def test_travel_distance_goes_around_walls() -> None:
     assert np.isinf(d2[0, 0])
 
 
+def test_travel_distance_charges_unknown_space_by_its_factor() -> None:
+    data = np.zeros((200, 200), np.int8)
+    data[80:120, :] = -1  # a 2 m band of unknown across the whole floor
+    g = GridMap(data, 0.05, (0, 0, 0))
+    assert travel_distances(g, [[1.0, 1.0]], [[1.0, 9.0]])[0, 0] == pytest.approx(8.0, abs=0.3)
+    d = travel_distances(g, [[1.0, 1.0]], [[1.0, 9.0]], 0.25, unknown_factor=3.0)[0, 0]
+    assert d == pytest.approx(6.0 + 3.0 * 2.0, abs=0.5)
+    data[80:120, 160:] = 0  # known free at x >= 8 m: the way round is ~18.5 m
+    g = GridMap(data, 0.05, (0, 0, 0))
+    d = travel_distances(g, [[1.0, 1.0]], [[1.0, 9.0]], 0.25, unknown_factor=3.0)[0, 0]
+    assert d == pytest.approx(12.0, abs=0.5)  # still through, at 3x
+    d = travel_distances(g, [[1.0, 1.0]], [[1.0, 9.0]], 0.25, unknown_factor=8.0)[0, 0]
+    assert 17.5 < d < 20.0  # round by the known way (22 m through)
+
+
 def _strip_along_wall() -> GridMap:
     """10 x 10 m known free, a wall at y = 5 m, and between x = 2 and 6 m a 0.3 m strip
     of unknown along the wall's foot (what a laser grazing the wall leaves), inside outer walls."""
@@ -362,11 +377,17 @@ def test_a_robot_running_late_does_not_pass_close_to_where_another_stops() -> No
     assert not m._conflict("r", path, P)
 
 
-def test_the_schedule_lag_comes_from_the_config() -> None:
+def test_the_schedule_lag_and_the_handover_unknown_factor_come_from_the_config() -> None:
     assert make_explorer(Config()).lag_s == ExplorationManager().lag_s == 0.6  # one default
     assert make_explorer(load_config(None, {"exploration.lag_s": 1.2})).lag_s == 1.2
     with pytest.raises(ConfigError, match="lag_s"):
         load_config(None, {"exploration.lag_s": -0.1})
+    assert make_explorer(Config()).handover_unknown == ExplorationManager().handover_unknown
+    assert make_explorer(Config()).handover_unknown == 3.0  # one default
+    cfg = load_config(None, {"exploration.handover_unknown": 1})
+    assert make_explorer(cfg).handover_unknown == 1.0
+    with pytest.raises(ConfigError, match="handover_unknown"):
+        load_config(None, {"exploration.handover_unknown": 0.5})
 
 
 def test_a_frontier_another_robot_will_see_on_its_way_is_left_to_it() -> None:

@@ -7,6 +7,7 @@ import pytest
 
 from basestation.exploration import ExplorationManager, _Task
 from basestation.frontiers import FrontierDetector
+from basestation.goal_handover import handovers
 from basestation.path_planner import PathPlanner
 from common.map_io import GridMap
 
@@ -44,3 +45,22 @@ def test_a_free_robot_near_a_far_goal_takes_it_over(handover_m: float) -> None:
         np.testing.assert_allclose(goal_b, east)
         assert out.get("a") is not None and m.tasks["a"].goal[0] < 5.0
         assert np.hypot(*(out["b"][-1] - east)) < 1e-9
+
+
+@pytest.mark.parametrize("unknown_factor", [1.0, 3.0])
+def test_a_way_through_unknown_space_is_charged_before_a_goal_is_handed_over(
+    unknown_factor: float,
+) -> None:
+    """a flies the last ~9 m east to its goal; b, free, is 4.5 m from it in a straight
+    line, 2 m of that through a band of unknown (a building's unseen outside): charged
+    3x, b is no longer nearer by the 2 m a handover needs."""
+    g = _corridor()
+    g.data[:, 360:400] = -1  # x = 18-20 m unknown across the hall
+    m = ExplorationManager(
+        planner=PathPlanner(inflation_m=0.35, robot_clearance_m=1.0, time_budget_s=0.2),
+        handover_unknown=unknown_factor,
+    )
+    goal = np.array([21.5, 4.0])
+    P = {"a": np.array([12.5, 4.0, 0.0]), "b": np.array([17.0, 4.0, 0.0])}
+    m.tasks["a"] = _Task(goal, np.array([[12.5, 4.0], goal]))
+    assert handovers(m, ["b"], g, P) == (["a"] if unknown_factor == 1.0 else [])

@@ -12,9 +12,11 @@ from scipy.sparse.csgraph import dijkstra
 from basestation.grid_search import grid_astar, grid_distances, polyline_free, shortcut
 
 
-def _csgraph(passable: np.ndarray, cell_m: float) -> coo_matrix:
-    """The same grid as a sparse graph (each pair of passable 8-neighbours once)."""
+def _csgraph(passable: np.ndarray, cell_m: float, weight: np.ndarray | None = None) -> coo_matrix:
+    """The same grid as a sparse graph (each pair of passable 8-neighbours once; a step
+    costs its length times the mean `weight` of its two cells)."""
     h, w = passable.shape
+    wt = np.ones(passable.shape) if weight is None else weight
     idx = np.arange(h * w).reshape(h, w)
     rows, cols, vals = [], [], []
     for dy, dx, length in (
@@ -27,7 +29,8 @@ def _csgraph(passable: np.ndarray, cell_m: float) -> coo_matrix:
         both = passable[: h - dy, x0:x1] & passable[dy:, x0 + dx : x1 + dx]
         rows.append(idx[: h - dy, x0:x1][both])
         cols.append(idx[dy:, x0 + dx : x1 + dx][both])
-        vals.append(np.full(int(both.sum()), length * cell_m))
+        mean = 0.5 * (wt[: h - dy, x0:x1] + wt[dy:, x0 + dx : x1 + dx])[both]
+        vals.append(length * cell_m * mean)
     r, c, v = np.concatenate(rows), np.concatenate(cols), np.concatenate(vals)
     return coo_matrix((v, (r, c)), shape=(h * w, h * w))
 
@@ -44,8 +47,10 @@ def test_distances_match_csgraph_dijkstra() -> None:
         n = passable.size
         src = rng.integers(0, n, int(rng.integers(1, 4)))
         dst = rng.integers(0, n, int(rng.integers(1, 6)))
-        ref = dijkstra(_csgraph(passable, 0.2).tocsr(), directed=False, indices=src)[:, dst]
-        got = grid_distances(passable, 0.2, src.astype(np.int64), dst.astype(np.int64))
+        weight = np.where(rng.random(passable.shape) < 0.3, 3.0, 1.0)  # unknown cells x3
+        graph = _csgraph(passable, 0.2, weight).tocsr()
+        ref = dijkstra(graph, directed=False, indices=src)[:, dst]
+        got = grid_distances(passable, 0.2, src.astype(np.int64), dst.astype(np.int64), weight)
         assert got.shape == ref.shape
         assert np.array_equal(np.isinf(got), np.isinf(ref))
         assert np.allclose(got[np.isfinite(got)], ref[np.isfinite(ref)], rtol=0, atol=1e-9)

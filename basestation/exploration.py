@@ -29,8 +29,9 @@ from basestation.frontiers import Box, Frontier, FrontierDetector
 from basestation.goal_assigner import AssignmentWeights, GoalAssigner, spaced
 from basestation.goal_costs import frontier_costs
 from basestation.goal_handover import handovers
-from basestation.path_planner import PathPlanner, PlanningMap, path_length
+from basestation.path_planner import PathPlanner, PlanningMap, path_length, unknown_length
 from basestation.path_schedule import points_along, schedule_conflict, turn_delay_s
+from basestation.support_moves import support_move
 from basestation.travel_distance import travel_distances
 from common.map_io import GridMap
 
@@ -95,6 +96,7 @@ class ExplorationManager:
     detour_factor: float = 1.5
     detour_slack_m: float = 3.0  # m
     detours_refused: int = 0
+    guess_m: float = 1.0  # m more through unknown space than the way without the others
     near_frontier_m: float = 1.5  # m of travel: a frontier this close to a robot ...
     near_frontier_cost_m: float = 5.0  # ... costs this much more (m of travel) for it
     seen_range_m: float = 6.0  # m: another robot's path sees frontiers this far ...
@@ -182,7 +184,9 @@ class ExplorationManager:
                 out[r] = self._plan(r, self._goals({r: P[r]}, grid, P).get(r), grid, P)
         if self.coordinated:  # robots left without a frontier move up behind the others
             for r in [r for r in need if out[r] is None]:
-                out[r] = self._support(r, grid, P)
+                out[r] = support_move(self, r, grid, P)
+                if out[r] is not None:
+                    self.tasks[r] = _Task(out[r][-1], out[r], support=True)
             self._recheck(out, grid, P)
         moving = bool(self.tasks) or any(p is not None for p in out.values())
         self.give_up.note_progress(moving, [f.goal for f in self.frontiers])
@@ -259,35 +263,6 @@ class ExplorationManager:
             if np.isfinite(g).all()
         ]
 
-    def _support(
-        self, r: str, grid: GridMap, P: dict[str, NDArray[np.float64]]
-    ) -> NDArray[np.float64] | None:
-        """A path toward the nearest frontier (taken by another robot, or one it could
-        not plan to) that stops where it keeps the clearance to every other robot and
-        path: an idle robot waits near where the map is growing instead of where it
-        happened to stop. None if no such path is at least `support_min_m` long."""
-        goals = np.array([f.goal for f in self.frontiers])
-        dist = travel_distances(grid, P[r][None, :2], goals, self.planner.robot_radius_m)[0]
-        discs = self._discs(r, P)
-        others = [t.goal for o, t in self.tasks.items() if o != r]
-        keep = 2.0 * self.planner.robot_clearance_m
-        for j in np.argsort(dist)[:3]:
-            if not np.isfinite(dist[j]):
-                break
-            path = self.planner.plan(grid, P[r][:2], goals[j], discs)
-            if path is None or (len(P) > 1 and self._too_long(path, dist[j])):
-                continue  # none, or only the long way round another robot
-            length = path_length(path)
-            for cut in np.arange(length - keep, self.support_min_m - 1e-9, -0.5):
-                prefix = points_along(path, np.linspace(0.0, cut, max(2, int(cut / 0.25) + 1)))
-                end = prefix[-1]
-                if any(np.hypot(*(end - g)) < keep for g in others):
-                    continue
-                if not self._conflict(r, prefix, P):
-                    self.tasks[r] = _Task(end, prefix, support=True)
-                    return prefix
-        return None
-
     def _plan(
         self,
         r: str,
@@ -340,14 +315,16 @@ class ExplorationManager:
         if self._conflict(r, path, P):
             routes = [self._remaining(o, P[o]) for o in self.tasks if o != r and o in P]
             around = self.planner.plan(grid, start, goal, discs + routes) if routes else None
-            if around is not None and self._too_long(around, path_length(path)):
+            if around is not None and self._detour(grid, around, path):
                 self.detours_refused += 1
                 return None
             return None if around is None or self._conflict(r, around, P) else around
-        if not self._too_long(path, float(np.hypot(*(goal - start)))):
-            return path  # no detour at all: no need to know the way without the others
+        if not self._too_long(path, float(np.hypot(*(goal - start)))) and not self._detour(
+            grid, path, None
+        ):  # no detour at all: no need to know the way without the others
+            return path
         alone = self.planner.plan(grid, start, goal)
-        if alone is None or not self._too_long(path, path_length(alone)):
+        if alone is None or not self._detour(grid, path, alone):
             return path  # the map itself makes the way that long
         in_way = [o for o in P if o != r and not self.planner.clear_of(grid, alone, [P[o][:2]])]
         if (not in_way or not discs) and not self._conflict(r, alone, P):
@@ -377,6 +354,15 @@ class ExplorationManager:
             P[o][None, :2] for o in P
             if o != r and not (self.coordinated and o in self.tasks)
         ]  # fmt: skip
+
+    def _detour(
+        self, grid: GridMap, path: NDArray[np.float64], way: NDArray[np.float64] | None
+    ) -> bool:
+        """Whether `path` is a detour from `way` (None: from nowhere): `_too_long`, or through
+        more than `guess_m` more of unknown space (a way round the others, seen through
+        a door, that may not be there)."""
+        more = unknown_length(grid, path) - (0.0 if way is None else unknown_length(grid, way))
+        return (way is not None and self._too_long(path, path_length(way))) or more > self.guess_m
 
     def _too_long(self, path: NDArray[np.float64], reference_m: float) -> bool:
         """Longer than `detour_factor` x `reference_m` + `detour_slack_m`."""

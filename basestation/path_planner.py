@@ -451,6 +451,18 @@ def path_length(path: NDArray[np.float64]) -> float:
     return float(np.hypot(*np.diff(path, axis=0).T).sum())
 
 
+def unknown_length(grid: GridMap, path: NDArray[np.float64]) -> float:
+    """m of an (N, 2) polyline over unknown cells of `grid` (sampled at a quarter cell)."""
+    step = 0.25 * grid.resolution
+    p = densify(np.asarray(path, dtype=np.float64).reshape(-1, 2), step)
+    ij = np.floor((p - np.asarray(grid.origin[:2])) / grid.resolution).astype(np.int64)
+    h, w = grid.data.shape
+    inside = (ij[:, 0] >= 0) & (ij[:, 0] < w) & (ij[:, 1] >= 0) & (ij[:, 1] < h)
+    unknown = np.ones(len(p), dtype=bool)
+    unknown[inside] = grid.data[ij[inside, 1], ij[inside, 0]] < 0
+    return float(np.hypot(*np.diff(p, axis=0).T)[unknown[:-1]].sum())
+
+
 def densify(path: NDArray[np.float64], spacing_m: float) -> NDArray[np.float64]:
     """Waypoints at most `spacing_m` apart along the polyline: a follower that turns
     toward the next waypoint early then cuts corners by little."""

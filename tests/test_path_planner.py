@@ -12,7 +12,7 @@ import numpy as np
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from basestation.path_planner import PathPlanner, PlanningMap
+from basestation.path_planner import PathPlanner, PlanningMap, unknown_length
 from common.map_io import GridMap
 
 RES = 0.1
@@ -270,3 +270,18 @@ def test_a_robot_outside_every_wall_zone_is_given_no_way_into_one() -> None:
         assert path is not None
         iy, ix = pm.cells(_quarter_cell_samples(path))
         assert pm.wall_distance[iy, ix].min() > 0.35
+
+
+def _known_l_shape() -> np.ndarray:
+    """10 x 10 m: known free along the bottom (y < 2 m) and the right (x > 8 m), the
+    rest unknown."""
+    d = np.full((100, 100), -1, dtype=np.int8)
+    d[:20, :] = 0
+    d[:, 80:] = 0
+    return d
+
+
+def test_unknown_length_of_a_path() -> None:
+    grid = _grid(_known_l_shape())
+    assert unknown_length(grid, np.array([[0.5, 1.0], [9.5, 1.0]])) == 0.0
+    assert abs(unknown_length(grid, np.array([[1.0, 0.5], [1.0, 6.5]])) - 4.5) < 0.05

@@ -303,7 +303,8 @@ class ExplorationManager:
     ) -> NDArray[np.float64] | None:
         """Robot r's path to `goal` around the other robots (`_plan`), or None. A path
         the others make more than `detour_factor` x (+ `detour_slack_m`) as long as the
-        way without them is refused (`detours_refused`): one standing in a door, or
+        way without them, or send through more unknown space (`_detour`), is refused
+        (`detours_refused`): one standing in a door, or
         another's route through it, would send r the long way round, when it could
         wait a moment or take another frontier. Not when a robot in the way has no
         goal of its own (it would not move on)."""

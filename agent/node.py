@@ -66,6 +66,8 @@ log = logging.getLogger(__name__)
 
 # The odometry's twist steers the guard's braking while it is at most this old (s).
 TWIST_MAX_AGE_S = 0.25
+# s: stamps this close count as equal when a state is due (see `on_scan`)
+STAMP_SLACK_S = 1e-6
 
 
 class AgentNode:
@@ -263,7 +265,10 @@ class AgentNode:
         # the state before the command: in lock-step the command releases the clock, and
         # the base station's exploration step at this stamp must see where the drone is
         # now, not half a second ago (0.5 m at cruise speed)
-        if scan.stamp - self.last_state_stamp >= self.cfg.agent.state_period_s:
+        # (less a rounding slack: lock-step stamps are ticks x dt, and 0.4 - 0.2 < 0.2 in
+        # floating point would slip the states off the base station's sync stamps, to
+        # 0.825 s at the step of 1.0 s)
+        if scan.stamp - self.last_state_stamp >= self.cfg.agent.state_period_s - STAMP_SLACK_S:
             self.last_state_stamp = scan.stamp
             self._take_path()  # the state's status reflects a path that just came
             self.publish_state(scan.stamp)

@@ -462,10 +462,13 @@ class ExplorationManager:
             return True
         pose = P[r]
         if np.hypot(*(pose[:2] - t.goal)) < self.goal_reached_m:
-            if self.cleanup and any(
-                np.hypot(*(f.goal - t.goal)) < self.frontier_gone_m for f in self.frontiers
-            ):  # looked at from where it is and still there: it stays as it is
-                self.give_up.failed(t.goal, self.give_up.max_failures)
+            if any(np.hypot(*(f.goal - t.goal)) < self.frontier_gone_m for f in self.frontiers):
+                # looked at from where it is and still there: in the cleanup it stays as
+                # it is; otherwise given up once robots stood at it `max_failures` steps,
+                # as explore_lite blacklists a goal it makes no progress on (random:2
+                # seed 2, greedy: one drone hovered 0.2 m from the frontier all three
+                # chose, the other two held behind it, and nothing moved for 400 s)
+                self.give_up.failed(t.goal, self.give_up.max_failures if self.cleanup else 1)
             return True
         if not any(np.hypot(*(f.goal - t.goal)) < self.frontier_gone_m for f in self.frontiers):
             return True  # explored meanwhile, or no longer a frontier

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from agent.stamps import due
 from common.geometry import wrap_angle
 
 
@@ -29,12 +30,11 @@ class MotionFilter:
         ok = self._last is None
         if not ok:
             t0, p0 = self._last
-            dt = stamp - t0
             moved = (
                 np.hypot(pose[0] - p0[0], pose[1] - p0[1]) >= self.min_distance_m
                 or abs(float(wrap_angle(pose[2] - p0[2]))) >= self.min_angle_rad
             )
-            ok = dt >= self.period_s and (moved or dt >= self.max_time_s)
+            ok = due(stamp, t0, self.period_s) and (moved or due(stamp, t0, self.max_time_s))
         if ok:
             self._last = (stamp, np.asarray(pose, dtype=np.float64).copy())
             self.accepted += 1

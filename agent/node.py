@@ -36,6 +36,7 @@ from agent.path_follower import PathFollower
 from agent.pose_smoother import IDENTITY7, PoseSmoother, pose7_compose
 from agent.safety_guard import SafetyGuard, neighbours_in_body
 from agent.sensor_sources import SensorSource
+from agent.stamps import due
 from agent.vehicle import NullVehicle, ZenohVehicle
 from common.bus import Bus
 from common.config import Config
@@ -66,8 +67,6 @@ log = logging.getLogger(__name__)
 
 # The odometry's twist steers the guard's braking while it is at most this old (s).
 TWIST_MAX_AGE_S = 0.25
-# s: stamps this close count as equal when a state is due (see `on_scan`)
-STAMP_SLACK_S = 1e-6
 
 
 class AgentNode:
@@ -268,7 +267,7 @@ class AgentNode:
         # (less a rounding slack: lock-step stamps are ticks x dt, and 0.4 - 0.2 < 0.2 in
         # floating point would slip the states off the base station's sync stamps, to
         # 0.825 s at the step of 1.0 s)
-        if scan.stamp - self.last_state_stamp >= self.cfg.agent.state_period_s - STAMP_SLACK_S:
+        if due(scan.stamp, self.last_state_stamp, self.cfg.agent.state_period_s):
             self.last_state_stamp = scan.stamp
             self._take_path()  # the state's status reflects a path that just came
             self.publish_state(scan.stamp)

@@ -47,6 +47,7 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import NDArray
 
+from agent.stamps import due
 from common.geometry import pose4_compose, pose4_inverse
 
 GIVE_WAY_MPS = 0.3  # m/s aside when a neighbour is in the way
@@ -130,7 +131,7 @@ class SafetyGuard:
             self._held_since = None
         elif self._held_since is None:
             self._held_since = stamp
-        self.blocked = held and stamp - self._held_since >= self.blocked_after_s
+        self.blocked = held and due(stamp, self._held_since, self.blocked_after_s)
         return float(v[0]), float(v[1])
 
     def _safe(

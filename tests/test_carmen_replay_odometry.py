@@ -18,8 +18,6 @@ from common.errors import ConfigError
 from common.geometry import pose7_to_pose4
 from protocol import LaserScan, Odometry
 
-CARMEN = Path(__file__).resolve().parents[2] / "shared" / "data" / "carmen"
-
 
 def odom_line(x: float, y: float, th: float, stamp: float) -> str:
     return f"ODOM {x} {y} {th} 0.0 0.0 0.0 {stamp:.6f} nohost 0.0\n"
@@ -113,8 +111,8 @@ def test_no_odom_records_means_the_logged_poses(tmp_path: Path) -> None:
 
 
 @pytest.mark.parametrize(("log", "regular"), [("aces", True), ("intel", False)])
-def test_the_shipped_logs_are_told_apart(log: str, regular: bool) -> None:
-    path = CARMEN / f"{log}.clf.bz2"  # the shared real logs (../shared/data), always there
+def test_the_shipped_logs_are_told_apart(log: str, regular: bool, shared_data: Path) -> None:
+    path = shared_data / "carmen" / f"{log}.clf.bz2"  # the shared real logs
     assert path.is_file(), f"shared CARMEN log {path} is missing"
     assert odometry_stamps_regular(path) is regular
 

@@ -47,6 +47,9 @@ HEADING_ARROW_M = 0.8
 # one in float64 (its alpha channel np.ones): a 1536 x 1483 map (60-minute soak) took
 # ~180 MB for a picture ~1000 pixels across; RGBA uint8 stays in float32.
 MAX_RASTER_PX = 800
+# m drawn round the known cells and the overlays (the rest of a grid, often mostly
+# unknown space the map was sized for, is left out)
+VIEW_MARGIN_M = 1.0
 
 
 def map_rgb(grid: GridMap) -> NDArray[np.uint8]:
@@ -73,6 +76,33 @@ def _raster(grid: GridMap) -> tuple[NDArray[np.uint8], tuple[float, float, float
     rgba = np.dstack([grey, grey, grey, np.full_like(grey, 255)])
     res = grid.resolution * k
     return rgba, (x0, x0 + w * res, y0, y0 + h * res)
+
+
+def cropped(grid: GridMap, points: list[NDArray[np.float64]]) -> GridMap:
+    """The part of `grid` worth drawing: the box round its known cells and `points`
+    ((N, 2) arrays, the overlays) with `VIEW_MARGIN_M` round it, within the grid; the
+    whole grid when nothing is known or given."""
+    r = grid.resolution
+    x0, y0 = float(grid.origin[0]), float(grid.origin[1])
+    known = grid.data >= 0
+    rows, cols = np.flatnonzero(known.any(axis=1)), np.flatnonzero(known.any(axis=0))
+    xs = [x0 + cols[0] * r, x0 + (cols[-1] + 1) * r] if len(cols) else []
+    ys = [y0 + rows[0] * r, y0 + (rows[-1] + 1) * r] if len(rows) else []
+    for p in points:
+        if len(p):
+            xs += [float(p[:, 0].min()), float(p[:, 0].max())]
+            ys += [float(p[:, 1].min()), float(p[:, 1].max())]
+    if not xs:
+        return grid
+    h, w = grid.data.shape
+    c0 = max(0, math.floor((min(xs) - VIEW_MARGIN_M - x0) / r))
+    c1 = min(w, math.ceil((max(xs) + VIEW_MARGIN_M - x0) / r))
+    r0 = max(0, math.floor((min(ys) - VIEW_MARGIN_M - y0) / r))
+    r1 = min(h, math.ceil((max(ys) + VIEW_MARGIN_M - y0) / r))
+    if c1 <= c0 or r1 <= r0:  # the overlays lie off the grid
+        return grid
+    origin = (x0 + c0 * r, y0 + r0 * r, *tuple(grid.origin)[2:])
+    return GridMap(data=grid.data[r0:r1, c0:c1], resolution=r, origin=origin)
 
 
 def _xy(points: ArrayLike, what: str) -> NDArray[np.float64]:
@@ -112,6 +142,13 @@ def render_map_picture(
     ground_truth = ground_truth or {}
     ids = sorted(set(trajectories) | set(robots) | set(paths) | set(ground_truth))
     colour = {rid: ROBOT_COLOURS[i % len(ROBOT_COLOURS)] for i, rid in enumerate(ids)}
+    overlays = [_xy(p, f"trajectories[{r}]") for r, p in trajectories.items()]
+    overlays += [_xy(p, f"paths[{r}]") for r, p in paths.items()]
+    overlays += [_xy(p, f"ground_truth[{r}]") for r, p in ground_truth.items()]
+    overlays += [_xy(np.reshape(p, (1, -1)), f"robots[{r}]") for r, p in robots.items()]
+    if frontiers is not None and len(frontiers):
+        overlays.append(_xy(frontiers, "frontiers"))
+    grid = cropped(grid, overlays)
 
     x0, x1, y0, y1 = grid.extent
     aspect = (y1 - y0) / max(x1 - x0, 1e-9)

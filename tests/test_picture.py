@@ -10,7 +10,7 @@ from PIL import Image
 
 from common.errors import CollabSlamError
 from common.map_io import GridMap
-from common.picture import map_rgb, render_map_picture
+from common.picture import VIEW_MARGIN_M, cropped, map_rgb, render_map_picture
 
 
 def _grid() -> GridMap:
@@ -88,3 +88,21 @@ def test_a_large_map_is_drawn_in_blocks_and_its_thin_walls_stay(tmp_path: Path) 
         grey = np.asarray(img.convert("L"), dtype=np.int16)
     rows = grey[grey.shape[0] // 4 : 3 * grey.shape[0] // 4]  # inside the axes
     assert (rows.min(axis=1) < 60).all()  # the wall in every row of the picture
+
+
+def test_the_picture_shows_the_known_area_and_the_overlays_not_the_whole_grid() -> None:
+    grid = _grid()  # known from (0, 0) to (25, 20) m in a 30 x 25 m grid from (-2.5, -2.5)
+    c = cropped(grid, [])
+    x0, x1, y0, y1 = c.extent
+    assert x0 == pytest.approx(-VIEW_MARGIN_M, abs=0.06) and y0 == pytest.approx(-1.0, abs=0.06)
+    assert x1 == pytest.approx(25.0 + VIEW_MARGIN_M, abs=0.06)
+    assert y1 == pytest.approx(20.0 + VIEW_MARGIN_M, abs=0.06)
+    np.testing.assert_array_equal(c.data, grid.data[30:470, 30:570])  # the same cells
+    wide = cropped(grid, [np.array([[26.5, 10.0]])])  # a robot out in the unknown
+    assert wide.extent[1] == pytest.approx(27.5, abs=0.06)  # the grid's own edge
+    assert cropped(GridMap(np.full((10, 10), -1, np.int8), 0.1, (0.0, 0.0, 0.0)), []).extent == (
+        0.0,
+        1.0,
+        0.0,
+        1.0,
+    )  # nothing known, nothing given: all of it

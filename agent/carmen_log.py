@@ -143,6 +143,16 @@ def _open_text(path: Path) -> IO[str]:
         raise FileFormatError(f"{path}: cannot open CARMEN log: {exc}") from exc
 
 
+def _lines(path: Path) -> Iterator[tuple[int, str]]:
+    """(line number from 1, line) of a log; one that breaks off or is not the bzip2
+    its name or first bytes say raises FileFormatError."""
+    with _open_text(path) as stream:
+        try:
+            yield from enumerate(stream, start=1)
+        except (OSError, EOFError) as exc:
+            raise FileFormatError(f"{path}: cannot read CARMEN log: {exc}") from exc
+
+
 def _numbers(path: Path, lineno: int, what: str, tokens: list[str]) -> NDArray[np.float64]:
     """Parse tokens as finite floats or raise a FileFormatError naming the first bad one."""
     try:
@@ -267,39 +277,37 @@ def read_carmen(
     skipped: set[str] = set()
     lo = -math.inf if start is None else start
     hi = math.inf if end is None else end
-    with _open_text(path) as stream:
-        for lineno, line in enumerate(stream, start=1):
-            f = line.split()
-            if not f or f[0].startswith("#"):
-                continue
-            kind = f[0]
-            record: CarmenLaser | CarmenOdometry
-            if kind == "FLASER":
-                record = _parse_flaser(path, lineno, f, params)
-            elif kind == "ODOM":
-                record = _parse_odom(path, lineno, f)
-            elif kind == "ROBOTLASER1":
-                record = _parse_robotlaser(path, lineno, f)
-            elif kind == "PARAM":
-                _apply_param(path, lineno, f, params)
-                continue
-            else:
-                if kind not in skipped:
-                    skipped.add(kind)
-                    logger.debug("%s:%d: skipping %s messages", path, lineno, kind)
-                continue
-            if lo <= record.stamp <= hi:
-                yield record
+    for lineno, line in _lines(path):
+        f = line.split()
+        if not f or f[0].startswith("#"):
+            continue
+        kind = f[0]
+        record: CarmenLaser | CarmenOdometry
+        if kind == "FLASER":
+            record = _parse_flaser(path, lineno, f, params)
+        elif kind == "ODOM":
+            record = _parse_odom(path, lineno, f)
+        elif kind == "ROBOTLASER1":
+            record = _parse_robotlaser(path, lineno, f)
+        elif kind == "PARAM":
+            _apply_param(path, lineno, f, params)
+            continue
+        else:
+            if kind not in skipped:
+                skipped.add(kind)
+                logger.debug("%s:%d: skipping %s messages", path, lineno, kind)
+            continue
+        if lo <= record.stamp <= hi:
+            yield record
 
 
 def read_carmen_params(path: str | Path) -> CarmenParams:
     """All PARAM lines of a log (a later line overrides an earlier one)."""
     path = Path(path)
     params = CarmenParams()
-    with _open_text(path) as stream:
-        for lineno, line in enumerate(stream, start=1):
-            if line.startswith("PARAM"):
-                _apply_param(path, lineno, line.split(), params)
+    for lineno, line in _lines(path):
+        if line.startswith("PARAM"):
+            _apply_param(path, lineno, line.split(), params)
     return params
 
 
@@ -311,20 +319,19 @@ def carmen_time_span(path: str | Path) -> tuple[float, float]:
     """
     path = Path(path)
     lo, hi = math.inf, -math.inf
-    with _open_text(path) as stream:
-        for lineno, line in enumerate(stream, start=1):
-            if not (line.startswith("FLASER") or line.startswith("ROBOTLASER1")):
-                continue
-            f = line.split()
-            if len(f) < 4:
-                raise FileFormatError(f"{path}:{lineno}: {f[0]}: line too short")
-            try:
-                stamp = float(f[-3])
-            except ValueError:
-                raise FileFormatError(
-                    f"{path}:{lineno}: {f[0]}: expected a number for ipc_timestamp, got {f[-3]!r}"
-                ) from None
-            lo, hi = min(lo, stamp), max(hi, stamp)
+    for lineno, line in _lines(path):
+        if not (line.startswith("FLASER") or line.startswith("ROBOTLASER1")):
+            continue
+        f = line.split()
+        if len(f) < 4:
+            raise FileFormatError(f"{path}:{lineno}: {f[0]}: line too short")
+        try:
+            stamp = float(f[-3])
+        except ValueError:
+            raise FileFormatError(
+                f"{path}:{lineno}: {f[0]}: expected a number for ipc_timestamp, got {f[-3]!r}"
+            ) from None
+        lo, hi = min(lo, stamp), max(hi, stamp)
     if lo > hi:
         raise FileFormatError(f"{path}: no FLASER or ROBOTLASER1 record")
     return lo, hi
@@ -347,13 +354,12 @@ def odometry_stamps_regular(
     """
     path = Path(path)
     stamps: list[float] = []
-    with _open_text(path) as stream:
-        for lineno, line in enumerate(stream, start=1):
-            if not line.startswith("ODOM"):
-                continue
-            stamps.append(_parse_odom(path, lineno, line.split()).stamp)
-            if len(stamps) > records:
-                break
+    for lineno, line in _lines(path):
+        if not line.startswith("ODOM"):
+            continue
+        stamps.append(_parse_odom(path, lineno, line.split()).stamp)
+        if len(stamps) > records:
+            break
     if len(stamps) < 2:
         return False
     gaps = np.diff(stamps)

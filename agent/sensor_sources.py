@@ -22,7 +22,13 @@ from typing import Any, Protocol
 
 import numpy as np
 
-from agent.carmen_log import CarmenLaser, CarmenOdometry, odometry_stamps_regular, read_carmen
+from agent.carmen_log import (
+    CarmenLaser,
+    CarmenOdometry,
+    carmen_time_span,
+    odometry_stamps_regular,
+    read_carmen,
+)
 from common.bus import Bus
 from common.errors import ConfigError
 from common.geometry import pose4_to_pose7, wrap_angle
@@ -151,6 +157,15 @@ class CarmenReplay:
         self.segment = segment
         self.reorder_window_s = reorder_window_s
         self.scans = 0
+        # no scan in the log or the segment: say so now, not "0 scans" at the end
+        lo, hi = carmen_time_span(self.path)
+        if (segment[0] is not None and segment[0] > hi) or (
+            segment[1] is not None and segment[1] < lo
+        ):
+            raise ConfigError(
+                f"segment {segment[0]}:{segment[1]} holds no scan of {self.path.name} "
+                f"(its scans span {lo:.3f} to {hi:.3f} s of log time)"
+            )
         # the odometry at each scan: interpolated from the ODOM records at the scan's stamp
         # where their stamps are regular, else the pose logged with the scan (OdometryTrack)
         self.odometry_at_stamps = odometry_stamps_regular(self.path)

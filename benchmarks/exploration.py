@@ -210,7 +210,14 @@ def run(
         raise ConfigError("--bound needs the missions' runs; it does not go with --kinematic")
     if first_seed < 0 or seeds < 1:
         raise ConfigError(f"--first-seed must be >= 0 and --seeds >= 1, got {first_seed}, {seeds}")
+    if not robots or min(robots) < 1:
+        raise ConfigError(f"--robots: team sizes must be >= 1, got {robots}")
     names = strategies or list(STRATEGIES)
+    if unknown := [n for n in names if n not in STRATEGIES]:
+        raise ConfigError(f"--strategies: expected {' and/or '.join(STRATEGIES)}, got {unknown}")
+    for world in worlds:  # a bad random:SEED before any mission flies
+        if world.startswith("random:") and not world.split(":", 1)[1].isdigit():
+            raise ConfigError(f"--world {world}: random:SEED needs a seed >= 0, e.g. random:1")
     report: dict[str, Any] = {"worlds": {}}
     bounds: dict[tuple[str, str], float | None] = {}  # (world, starts) -> time_to_95_bound_s
     for world in worlds:

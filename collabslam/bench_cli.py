@@ -27,6 +27,16 @@ def _default_data_dir() -> Path:
     return Path(__file__).resolve().parents[2] / "shared" / "data"
 
 
+def _int_list(text: str) -> tuple[int, ...]:
+    """A comma list of integers ("1,2,3"), for argparse."""
+    try:
+        return tuple(int(n) for n in text.split(","))
+    except ValueError:
+        raise argparse.ArgumentTypeError(
+            f"expected a comma list of integers, got {text!r}"
+        ) from None
+
+
 def _add_data_dir(b: argparse.ArgumentParser) -> None:
     b.add_argument("--data-dir", default=str(_default_data_dir()))
 
@@ -72,7 +82,7 @@ def add_bench_parsers(sub: argparse._SubParsersAction[argparse.ArgumentParser]) 
     )
     b.add_argument(
         "--sizes",
-        type=lambda text: tuple(int(n) for n in text.split(",")),
+        type=_int_list,
         default="500,2000,10000",
         help="comma list of graph sizes in nodes (<= 3500: M3500 prefix, else city10000)",
     )
@@ -83,7 +93,7 @@ def add_bench_parsers(sub: argparse._SubParsersAction[argparse.ArgumentParser]) 
         "time to 95 %% explored for 1..N drones: coordinated (ours) vs greedy baseline",
         lambda a: {
             "worlds": a.world.split(","),
-            "robots": [int(n) for n in a.robots.split(",")],
+            "robots": list(a.robots),
             "seeds": a.seeds,
             "first_seed": a.first_seed,
             "max_sim_time": a.max_sim_time,
@@ -98,7 +108,7 @@ def add_bench_parsers(sub: argparse._SubParsersAction[argparse.ArgumentParser]) 
         default="bshape",
         help="comma list: shipped names, map_server YAML paths, or random:SEED (generated)",
     )
-    b.add_argument("--robots", default="1,2,3", help="comma list of team sizes")
+    b.add_argument("--robots", type=_int_list, default="1,2,3", help="comma list of team sizes")
     b.add_argument("--seeds", type=int, default=1, help="N runs per team size: sim.seed K..K+N-1")
     b.add_argument(
         "--first-seed",

@@ -188,7 +188,12 @@ def cmd_eval_carmen(args: argparse.Namespace) -> int:
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="collabslam", description=__doc__)
     p.add_argument("--version", action="store_true", help="print versions and check imports")
-    p.add_argument("--log-level", default="INFO")
+    p.add_argument(
+        "--log-level",
+        default="INFO",
+        type=str.upper,
+        choices=["DEBUG", "INFO", "WARNING", "ERROR", "CRITICAL"],
+    )
     sub = p.add_subparsers(dest="command")
 
     sp = sub.add_parser("sim", help="run the simulator process")

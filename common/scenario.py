@@ -71,6 +71,8 @@ def write_scenario(path: str | Path, sc: Scenario) -> None:
 def read_scenario(path: str | Path) -> Scenario:
     try:
         doc = json.loads(Path(path).read_text())
+        if not isinstance(doc, dict) or not isinstance(doc.get("robots"), list):
+            raise ValueError('expected an object with "world" and a list of "robots"')
         robots = []
         origin: GeoOrigin | None = None
         for r in doc["robots"]:
@@ -91,7 +93,11 @@ def read_scenario(path: str | Path) -> Scenario:
         return Scenario(str(doc["world"]), robots, int(doc.get("seed", 0)))
     except FileNotFoundError:
         raise FileFormatError(f"scenario file not found: {path}") from None
-    except (KeyError, TypeError, ValueError, json.JSONDecodeError, CollabSlamError) as exc:
+    except (OSError, UnicodeDecodeError) as exc:  # a folder, no permission, not text
+        raise FileFormatError(f"{path}: cannot read the scenario: {exc}") from None
+    except KeyError as exc:
+        raise FileFormatError(f"{path}: invalid scenario: no {exc} given") from None
+    except (TypeError, ValueError, json.JSONDecodeError, CollabSlamError) as exc:
         raise FileFormatError(f"{path}: invalid scenario: {exc}") from None
 
 

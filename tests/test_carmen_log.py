@@ -116,6 +116,19 @@ def test_bz2_reads_identically(tmp_path: Path) -> None:
     assert as_tuples(disguised) == expected
 
 
+def test_a_broken_bz2_log_is_a_clear_error(tmp_path: Path) -> None:
+    packed = bz2.compress(SMALL_LOG.encode("ascii"))
+    cut = tmp_path / "cut.clf.bz2"  # a download that broke off
+    cut.write_bytes(packed[: len(packed) // 2])
+    junk = tmp_path / "junk.clf.bz2"  # not bzip2 at all
+    junk.write_bytes(b"this is not a bzip2 stream\n" * 10)
+    for path in (cut, junk):
+        with pytest.raises(FileFormatError, match="cannot read CARMEN log"):
+            list(read_carmen(path))
+        with pytest.raises(FileFormatError, match="cannot read CARMEN log"):
+            carmen_time_span(path)
+
+
 def test_start_end_filter(tmp_path: Path) -> None:
     path = write_log(tmp_path, SMALL_LOG)
     stamps = [r.stamp for r in read_carmen(path, start=100.05, end=100.2)]

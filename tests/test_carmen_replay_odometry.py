@@ -14,7 +14,7 @@ import pytest
 
 from agent.carmen_log import odometry_stamps_regular
 from agent.sensor_sources import CarmenReplay, OdometryTrack
-from common.errors import ConfigError
+from common.errors import ConfigError, FileFormatError
 from common.geometry import pose7_to_pose4
 from protocol import LaserScan, Odometry
 
@@ -132,3 +132,17 @@ def test_a_paced_replay_keeps_the_log_pace_from_a_shared_start(tmp_path: Path) -
     assert stamps[-1] - start >= 0.275 - 1e-3
     with pytest.raises(ConfigError):
         CarmenReplay(path, "r0", rate=-1.0)
+
+
+def test_a_log_or_segment_without_scans_is_refused_up_front(tmp_path: Path) -> None:
+    """Not a replay that runs and reports "0 scans" at the end."""
+    empty = tmp_path / "empty.clf"
+    empty.write_text("# nothing but a comment\n")
+    with pytest.raises(FileFormatError, match="no FLASER or ROBOTLASER1 record"):
+        CarmenReplay(empty, "r0")
+    path = regular_log(tmp_path)  # scans at 100.1-102.85 s
+    with pytest.raises(ConfigError, match="holds no scan"):
+        CarmenReplay(path, "r0", (200.0, None))
+    with pytest.raises(ConfigError, match="holds no scan"):
+        CarmenReplay(path, "r0", (None, 50.0))
+    assert CarmenReplay(path, "r0", (101.0, 102.0)).scans == 0  # a segment inside is fine

@@ -50,3 +50,21 @@ def test_a_bench_batch_may_start_at_any_seed(tmp_path: Path) -> None:
     assert kwargs["first_seed"] == 24 and kwargs["seeds"] == 24
     with pytest.raises(ConfigError, match="first-seed"):
         run(Config(), tmp_path, tmp_path, ["bshape"], [3], 1, 3.0, ["ours"], first_seed=-1)
+
+
+@pytest.mark.parametrize(
+    ("robots", "strategies", "world", "match"),
+    [
+        ([3, 0], ["ours"], "bshape", "team sizes must be >= 1"),
+        ([3], ["ours", "foo"], "bshape", "--strategies"),
+        ([3], ["ours"], "random:abc", "random:SEED"),
+    ],
+)
+def test_bad_bench_arguments_are_refused_before_any_run(
+    tmp_path: Path, robots: list[int], strategies: list[str], world: str, match: str
+) -> None:
+    with pytest.raises(ConfigError, match=match):
+        run(Config(), tmp_path, tmp_path, [world], robots, 1, 3.0, strategies, kinematic=True)
+    assert not (tmp_path / "runs").exists()  # nothing flown
+    with pytest.raises(SystemExit):  # argparse: a usage line and exit 2
+        build_parser().parse_args(["bench", "exploration", "--json", "o.json", "--robots", "3,x"])

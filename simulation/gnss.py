@@ -27,7 +27,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from common.config import GnssConfig
+from common.config_sim import GnssConfig
 from common.errors import CollabSlamError
 from common.geodesy import GeoOrigin, enu_to_geodetic, geodetic_to_enu
 

@@ -38,13 +38,14 @@ from basestation.path_planner import densify
 from basestation.persistence import EPOCH_BLOCK, Batch, open_database
 from common.bus import Bus
 from common.config import Config
-from common.errors import FileFormatError
+from common.errors import CollabSlamError
 from common.geodesy import GeoOrigin, geodetic_to_enu
 from common.geometry import pose4_to_pose7, pose7_to_pose4
 from common.map_io import read_wgs84_origin
 from common.memory import HeapTrimmer
 from common.metrics import TIMINGS_KEPT, percentiles
 from common.scenario import Scenario
+from common.world_files import resolve_world
 from protocol import (
     ClockSync,
     GnssFix,
@@ -96,8 +97,8 @@ class BaseStationNode:
         self.wgs84_origin = None
         if scenario is not None:
             try:
-                self.wgs84_origin = read_wgs84_origin(scenario.world)
-            except FileFormatError as exc:
+                self.wgs84_origin = read_wgs84_origin(resolve_world(scenario.world))
+            except CollabSlamError as exc:
                 log.warning("no WGS84 origin for the map: %s", exc)
         self.map = MapBuilder(cfg.map, self.slam.store.scans)
         self.explorer = make_explorer(cfg, lockstep) if cfg.exploration.enabled else None

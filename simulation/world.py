@@ -19,43 +19,14 @@ from numba import njit
 from numpy.typing import ArrayLike, NDArray
 from scipy import ndimage
 
-from common.errors import ConfigError, FileFormatError
+from common.errors import ConfigError
 from common.map_io import GridMap, read_map
+from common.world_files import SHIPPED_WORLDS, SHIPPED_WORLDS_DIR, resolve_world
 from simulation.raycast import BlockGrid, block_grid
 
 logger = logging.getLogger(__name__)
 
 __all__ = ["SHIPPED_WORLDS", "SHIPPED_WORLDS_DIR", "World", "resolve_world"]
-
-SHIPPED_WORLDS_DIR = Path(__file__).resolve().parent / "worlds"
-SHIPPED_WORLDS = ("bshape", "rooms15", "floor30x25")
-
-
-def resolve_world(name_or_path: str | Path) -> Path:
-    """Path of a world's map_server YAML: a shipped name (see `SHIPPED_WORLDS`) or a
-    path to an existing .yaml / .yml file.
-
-    Raises ConfigError for an unknown name or a missing file, FileFormatError for
-    an existing file that is not a YAML.
-    """
-    text = str(name_or_path)
-    shipped = ", ".join(SHIPPED_WORLDS)
-    if text in SHIPPED_WORLDS:
-        path = SHIPPED_WORLDS_DIR / f"{text}.yaml"
-        if not path.is_file():
-            raise ConfigError(
-                f"shipped world {text!r} is missing its file {path}; regenerate it with "
-                "`python -m simulation.world_generator --out simulation/worlds`"
-            )
-        return path
-    path = Path(text).expanduser()
-    if path.is_file():
-        if path.suffix.lower() not in (".yaml", ".yml"):
-            raise FileFormatError(
-                f"world {text!r}: expected a map_server .yaml file or a shipped world ({shipped})"
-            )
-        return path
-    raise ConfigError(f"unknown world {text!r}: not a shipped world ({shipped}) and no such file")
 
 
 @njit(cache=True)

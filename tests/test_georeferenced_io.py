@@ -94,6 +94,31 @@ def test_scenario_tour_in_wgs84(tmp_path: Path) -> None:
     )
 
 
+def test_scenario_tour_in_wgs84_on_a_shipped_world(tmp_path: Path) -> None:
+    from common.geodesy import enu_to_geodetic
+
+    origin = World.load("bshape").geo_origin
+    enu = np.array([[2.0, 1.0, 1.0], [6.0, 3.0, 1.0]])
+    doc = {
+        "world": "bshape",  # a shipped world's name, as `collabslam run --world` takes
+        "robots": [
+            {
+                "id": "r0",
+                "start_pose": [0, 0, 0],
+                "tour_wgs84": enu_to_geodetic(enu, origin).tolist(),
+            }
+        ],
+    }
+    (tmp_path / "s.json").write_text(json.dumps(doc))
+    np.testing.assert_allclose(
+        read_scenario(tmp_path / "s.json").robots[0].tour, enu[:, :2], atol=1e-6
+    )
+    doc["world"] = "no_such_world"
+    (tmp_path / "s.json").write_text(json.dumps(doc))
+    with pytest.raises(FileFormatError, match="unknown world 'no_such_world'"):
+        read_scenario(tmp_path / "s.json")
+
+
 def test_goal_in_wgs84() -> None:
     lla = [45.8120, 16.0110, 170.0]
     goal = Goal("r0", 1, 0.0, "wgs84", 0, np.array([*lla, 0.0, 0.0, 0.0, 1.0]))

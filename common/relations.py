@@ -95,6 +95,10 @@ def read_relations(path: str | Path) -> Relations:
         if not all(np.isfinite(values)):
             raise FileFormatError(f"{path}:{lineno}: non-finite value in {raw!r}")
         rows.append(values)
+    if not rows:
+        raise FileFormatError(
+            f"{path}: holds no relations ('[REL] t1 t2 dx dy dz droll dpitch dyaw')"
+        )
     data = np.array(rows, dtype=np.float64).reshape(-1, 8)
     if np.any(data[:, 4:7] != 0.0):
         logger.warning("%s: non-zero dz / droll / dpitch ignored (2-D metric)", path)
@@ -181,6 +185,8 @@ def main_eval_relations(traj_path: str | Path, rel_path: str | Path) -> dict[str
     Raises CollabSlamError if no relation falls inside the trajectory.
     """
     traj = read_tum(traj_path)
+    if len(traj) == 0:
+        raise CollabSlamError(f"{traj_path}: holds no poses ('t x y z qx qy qz qw' lines)")
     rel = read_relations(rel_path)
     errors = score_relations(traj, rel)
     if errors.n_relations == 0:

@@ -124,6 +124,12 @@ def test_main_eval_relations(tmp_path: Path, square: Trajectory) -> None:
     rel_path.write_text("9 10 0 0 0 0 0 0\n")
     with pytest.raises(CollabSlamError, match="none of the 1 relations"):
         main_eval_relations(tmp_path / "est.tum", rel_path)
+    rel_path.write_text("# only a comment\n\n")
+    with pytest.raises(FileFormatError, match=r"r\.relations: holds no relations"):
+        main_eval_relations(tmp_path / "est.tum", rel_path)
+    (tmp_path / "empty.tum").write_text("")
+    with pytest.raises(CollabSlamError, match=r"empty\.tum: holds no poses"):
+        main_eval_relations(tmp_path / "empty.tum", rel_path)
 
 
 @pytest.fixture(scope="module")

@@ -263,42 +263,62 @@ def _apply_param(path: Path, lineno: int, f: list[str], params: CarmenParams) ->
         ) from None
 
 
+MALFORMED_LOGGED = 10  # malformed lines logged one by one (drop_malformed); then a count
+
+
 def read_carmen(
-    path: str | Path, start: float | None = None, end: float | None = None
+    path: str | Path,
+    start: float | None = None,
+    end: float | None = None,
+    drop_malformed: bool = False,
 ) -> Iterator[CarmenLaser | CarmenOdometry]:
     """Yield the laser and odometry records of a CARMEN log in file order.
 
     `start` / `end` (s, inclusive) keep only records whose ipc_timestamp is in range.
     PARAM lines update the beam geometry of the FLASER records that follow them.
-    Raises FileFormatError("path:LINE: ...") on the first malformed known message.
+    Raises FileFormatError("path:LINE: ...") on the first malformed known message, or
+    with `drop_malformed` logs it as an error and goes on with the next line (a replay
+    an hour long is not stopped by one bad line; the first `MALFORMED_LOGGED` are
+    logged, then how many in all at the end).
     """
     path = Path(path)
     params = CarmenParams()
     skipped: set[str] = set()
     lo = -math.inf if start is None else start
     hi = math.inf if end is None else end
+    dropped = 0
     for lineno, line in _lines(path):
         f = line.split()
         if not f or f[0].startswith("#"):
             continue
         kind = f[0]
         record: CarmenLaser | CarmenOdometry
-        if kind == "FLASER":
-            record = _parse_flaser(path, lineno, f, params)
-        elif kind == "ODOM":
-            record = _parse_odom(path, lineno, f)
-        elif kind == "ROBOTLASER1":
-            record = _parse_robotlaser(path, lineno, f)
-        elif kind == "PARAM":
-            _apply_param(path, lineno, f, params)
-            continue
-        else:
-            if kind not in skipped:
-                skipped.add(kind)
-                logger.debug("%s:%d: skipping %s messages", path, lineno, kind)
+        try:
+            if kind == "FLASER":
+                record = _parse_flaser(path, lineno, f, params)
+            elif kind == "ODOM":
+                record = _parse_odom(path, lineno, f)
+            elif kind == "ROBOTLASER1":
+                record = _parse_robotlaser(path, lineno, f)
+            elif kind == "PARAM":
+                _apply_param(path, lineno, f, params)
+                continue
+            else:
+                if kind not in skipped:
+                    skipped.add(kind)
+                    logger.debug("%s:%d: skipping %s messages", path, lineno, kind)
+                continue
+        except FileFormatError as exc:
+            if not drop_malformed:
+                raise
+            dropped += 1
+            if dropped <= MALFORMED_LOGGED:
+                logger.error("%s (line dropped)", exc)
             continue
         if lo <= record.stamp <= hi:
             yield record
+    if dropped > MALFORMED_LOGGED:
+        logger.error("%s: %d malformed lines dropped in all", path, dropped)
 
 
 def read_carmen_params(path: str | Path) -> CarmenParams:
@@ -312,28 +332,28 @@ def read_carmen_params(path: str | Path) -> CarmenParams:
 
 
 def carmen_time_span(path: str | Path) -> tuple[float, float]:
-    """(earliest, latest) FLASER / ROBOTLASER1 ipc_timestamp (s) of a log.
+    """(earliest, latest) FLASER / ROBOTLASER1 ipc_timestamp (s) of a log's well-formed
+    scans (a malformed one is left out, as a replay drops it: its stamp may be a range).
 
     Min / max rather than first / last line, because stamps can go backwards in file order.
-    Only the stamps are parsed, so this is cheaper than `read_carmen`.
     """
     path = Path(path)
     lo, hi = math.inf, -math.inf
+    params = CarmenParams()  # beam geometry does not change which lines are well formed
     for lineno, line in _lines(path):
-        if not (line.startswith("FLASER") or line.startswith("ROBOTLASER1")):
-            continue
         f = line.split()
-        if len(f) < 4:
-            raise FileFormatError(f"{path}:{lineno}: {f[0]}: line too short")
         try:
-            stamp = float(f[-3])
-        except ValueError:
-            raise FileFormatError(
-                f"{path}:{lineno}: {f[0]}: expected a number for ipc_timestamp, got {f[-3]!r}"
-            ) from None
+            if line.startswith("FLASER"):
+                stamp = _parse_flaser(path, lineno, f, params).stamp
+            elif line.startswith("ROBOTLASER1"):
+                stamp = _parse_robotlaser(path, lineno, f).stamp
+            else:
+                continue
+        except FileFormatError:
+            continue
         lo, hi = min(lo, stamp), max(hi, stamp)
     if lo > hi:
-        raise FileFormatError(f"{path}: no FLASER or ROBOTLASER1 record")
+        raise FileFormatError(f"{path}: no well-formed FLASER or ROBOTLASER1 record")
     return lo, hi
 
 

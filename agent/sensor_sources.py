@@ -182,7 +182,7 @@ class CarmenReplay:
         heap: list[tuple[float, int, CarmenLaser]] = []
         odometry = OdometryTrack() if self.odometry_at_stamps else None
         n = 0
-        for rec in read_carmen(self.path, *self.segment):
+        for rec in read_carmen(self.path, *self.segment, drop_malformed=True):
             if isinstance(rec, CarmenOdometry):
                 if odometry is not None:
                     odometry.add(rec.stamp, rec.pose)

@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from agent.carmen_log import odometry_stamps_regular
+from agent.carmen_log import carmen_time_span, odometry_stamps_regular, read_carmen
 from agent.sensor_sources import CarmenReplay, OdometryTrack
 from common.errors import ConfigError, FileFormatError
 from common.geometry import pose7_to_pose4
@@ -138,7 +138,7 @@ def test_a_log_or_segment_without_scans_is_refused_up_front(tmp_path: Path) -> N
     """Not a replay that runs and reports "0 scans" at the end."""
     empty = tmp_path / "empty.clf"
     empty.write_text("# nothing but a comment\n")
-    with pytest.raises(FileFormatError, match="no FLASER or ROBOTLASER1 record"):
+    with pytest.raises(FileFormatError, match="no well-formed FLASER or ROBOTLASER1 record"):
         CarmenReplay(empty, "r0")
     path = regular_log(tmp_path)  # scans at 100.1-102.85 s
     with pytest.raises(ConfigError, match="holds no scan"):
@@ -146,3 +146,24 @@ def test_a_log_or_segment_without_scans_is_refused_up_front(tmp_path: Path) -> N
     with pytest.raises(ConfigError, match="holds no scan"):
         CarmenReplay(path, "r0", (None, 50.0))
     assert CarmenReplay(path, "r0", (101.0, 102.0)).scans == 0  # a segment inside is fine
+
+
+def test_a_malformed_line_deep_in_a_log_is_dropped_and_the_replay_goes_on(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    """A truncated FLASER and one with a word for a range, between good records: both are
+    logged with their line numbers and dropped; every good scan is still replayed."""
+    lines = regular_log(tmp_path).read_text().splitlines(keepends=True)
+    lines.insert(9, "FLASER 3 1.0 2.0\n")  # truncated
+    lines.insert(15, flaser_line((9.0, 0.0, 0.0), 101.6).replace(" 2.0 ", " nan? ", 1))
+    path = tmp_path / "damaged.clf"
+    path.write_text("".join(lines))
+    with pytest.raises(FileFormatError, match=r"damaged\.clf:10: FLASER"):
+        list(read_carmen(path))  # the strict reader (eval tools, tests) still refuses
+    assert carmen_time_span(path) == (100.1, 102.85)  # not the truncated line's "1.0"
+    with caplog.at_level("ERROR"):
+        odometry = replayed_odometry(path)
+    assert len(odometry) == 12  # all good scans, none of the bad
+    dropped = [r.getMessage() for r in caplog.records if "line dropped" in r.getMessage()]
+    assert len(dropped) == 2
+    assert "damaged.clf:10:" in dropped[0] and "damaged.clf:16:" in dropped[1]

@@ -41,11 +41,10 @@ from common.config import Config
 from common.errors import CollabSlamError
 from common.geodesy import GeoOrigin, geodetic_to_enu
 from common.geometry import pose4_to_pose7, pose7_to_pose4
-from common.map_io import read_wgs84_origin
 from common.memory import HeapTrimmer
 from common.metrics import TIMINGS_KEPT, percentiles
 from common.scenario import Scenario
-from common.world_files import resolve_world
+from common.world_files import world_wgs84_origin
 from protocol import (
     ClockSync,
     GnssFix,
@@ -97,7 +96,7 @@ class BaseStationNode:
         self.wgs84_origin = None
         if scenario is not None:
             try:
-                self.wgs84_origin = read_wgs84_origin(resolve_world(scenario.world))
+                self.wgs84_origin = world_wgs84_origin(scenario.world)
             except CollabSlamError as exc:
                 log.warning("no WGS84 origin for the map: %s", exc)
         self.map = MapBuilder(cfg.map, self.slam.store.scans)

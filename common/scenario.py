@@ -21,7 +21,7 @@ import numpy as np
 
 from common.errors import CollabSlamError, FileFormatError
 from common.geodesy import GeoOrigin, georeferenced_waypoints
-from common.world_files import resolve_world
+from common.world_files import world_wgs84_origin
 from protocol.messages import ROBOT_ID_RE
 
 
@@ -106,9 +106,7 @@ def _origin(doc: dict) -> GeoOrigin:
     """The ENU origin for georeferenced waypoints: the scenario's, else its world's."""
     if "wgs84_origin" in doc:
         return GeoOrigin.from_sequence(doc["wgs84_origin"])
-    from common.map_io import read_wgs84_origin  # local: map_io is heavier
-
-    origin = read_wgs84_origin(resolve_world(doc["world"]))
+    origin = world_wgs84_origin(doc["world"])
     if origin is None:
         raise ValueError("tour_wgs84 needs a wgs84_origin (in the scenario or its world YAML)")
     return origin

@@ -10,8 +10,9 @@ from __future__ import annotations
 from pathlib import Path
 
 from common.errors import ConfigError, FileFormatError
+from common.geodesy import GeoOrigin
 
-__all__ = ["SHIPPED_WORLDS", "SHIPPED_WORLDS_DIR", "resolve_world"]
+__all__ = ["SHIPPED_WORLDS", "SHIPPED_WORLDS_DIR", "resolve_world", "world_wgs84_origin"]
 
 SHIPPED_WORLDS_DIR = Path(__file__).resolve().parents[1] / "simulation" / "worlds"
 SHIPPED_WORLDS = ("bshape", "rooms15", "floor30x25")
@@ -42,3 +43,11 @@ def resolve_world(name_or_path: str | Path) -> Path:
             )
         return path
     raise ConfigError(f"unknown world {text!r}: not a shipped world ({shipped}) and no such file")
+
+
+def world_wgs84_origin(name_or_path: str | Path) -> GeoOrigin | None:
+    """The ``wgs84_origin`` of a world's map YAML (None: it has none); errors as
+    `resolve_world`, or FileFormatError for a YAML that cannot be read."""
+    from common.map_io import read_wgs84_origin  # local: map_io is heavier
+
+    return read_wgs84_origin(resolve_world(name_or_path))

@@ -27,17 +27,29 @@ from common.geometry import pose4_to_pose7
 from protocol import Keyframe, KeyframeAck, PoseCorrection, Scan2D
 
 REPO = Path(__file__).resolve().parents[1]
-MAKE_CERTS = REPO / "deploy" / "make_certs.sh"
+
+
+def make_certs_script() -> Path:
+    """deploy/make_certs.sh of the source checkout: next to the code, or (code installed
+    with `pip install .`, which leaves deploy/ out) in the current directory."""
+    for base in (REPO, Path.cwd()):
+        if (base / "deploy" / "make_certs.sh").is_file():
+            return base / "deploy" / "make_certs.sh"
+    raise CollabSlamError(
+        "deploy/make_certs.sh is neither next to the installed code nor in the current "
+        "directory: run this from the source checkout (e.g. cd /opt/collabslam)"
+    )
 
 
 def make_certs(out: Path, robots: list[str], ca_name: str = "collabslam fleet CA") -> Path:
     """Run deploy/make_certs.sh (CA + basestation + one certificate per robot) into `out`."""
+    script = make_certs_script()
     env = dict(os.environ, CA_NAME=ca_name, BASE_HOSTS="localhost,127.0.0.1")
     res = subprocess.run(
-        ["bash", str(MAKE_CERTS), str(out), *robots], env=env, capture_output=True, text=True
+        ["bash", str(script), str(out), *robots], env=env, capture_output=True, text=True
     )
     if res.returncode != 0:
-        raise CollabSlamError(f"{MAKE_CERTS} failed: {res.stderr.strip()}")
+        raise CollabSlamError(f"{script} failed: {res.stderr.strip()}")
     return out
 
 

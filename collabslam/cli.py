@@ -118,9 +118,26 @@ def _segment(text: str | None) -> tuple[float | None, float | None]:
         raise ConfigError(f"--segment {text!r}: expected START:END in seconds") from None
 
 
+def arrays_on_disk(arrays_dir: str, db_path: str) -> None:
+    """Where the base station keeps its per-keyframe arrays (`basestation.arrays_dir`):
+    "memory", in memory; "", in files next to the database, whose folder is made now as
+    SQLite would make it (a unit's `--db /var/lib/collabslam/basestation/mission.db`),
+    or in the temporary directory without one; else in that directory."""
+    from common.growable import keep_on_disk
+
+    if arrays_dir == "memory":
+        return
+    if not arrays_dir and db_path:
+        arrays_dir = str(Path(db_path).resolve().parent)
+        try:
+            Path(arrays_dir).mkdir(parents=True, exist_ok=True)
+        except OSError as exc:
+            raise ConfigError(f"basestation.db_path: cannot make {arrays_dir!r}: {exc}") from None
+    keep_on_disk(arrays_dir)
+
+
 def cmd_basestation(args: argparse.Namespace) -> int:
     from basestation.node import BaseStationNode
-    from common.growable import keep_on_disk
     from common.memory import fix_mmap_threshold, limit_malloc_arenas
     from common.scenario import read_scenario
     from common.shutdown import install_signal_handlers
@@ -129,9 +146,7 @@ def cmd_basestation(args: argparse.Namespace) -> int:
     b = cfg.basestation
     limit_malloc_arenas(b.malloc_arenas)  # before Zenoh starts its threads
     fix_mmap_threshold(b.malloc_mmap_threshold_kb)
-    if b.arrays_dir != "memory":  # "": next to the database, else the temporary directory
-        db_dir = str(Path(b.db_path).resolve().parent) if b.db_path else ""
-        keep_on_disk(b.arrays_dir or db_dir)
+    arrays_on_disk(b.arrays_dir, b.db_path)
     scenario = read_scenario(args.scenario) if args.scenario else None
     stop = threading.Event()
     install_signal_handlers(stop)
@@ -257,7 +272,9 @@ def build_parser() -> argparse.ArgumentParser:
     e.add_argument("log", help="CARMEN .clf or .clf.bz2")
     e.add_argument("--relations", required=True)
     e.add_argument("--robots", type=int, default=3)
-    e.add_argument("--json", required=True, help="output JSON; outputs go next to it")
+    e.add_argument(
+        "--json", required=True, help="output JSON; the rest in a folder beside it, of its name"
+    )
     e.set_defaults(func=cmd_eval_carmen)
     return p
 

@@ -41,11 +41,10 @@ def zenoh_config(zc: ZenohConfig) -> zenoh.Config:
         raise ConfigError(f"zenoh.config_file {zc.config_file!r}: {exc}") from None
     if zc.config_file:
         check_tls_files(conf, f"zenoh.config_file {zc.config_file!r}")
-    settings = {
-        "mode": zc.mode,
-        "scouting/multicast/enabled": zc.multicast_scouting,
-        "scouting/gossip/enabled": zc.gossip_scouting,
-    }
+    settings: dict[str, Any] = {"mode": zc.mode}
+    if not zc.config_file:  # a file decides its own scouting (deploy/'s: none at all)
+        settings["scouting/multicast/enabled"] = zc.multicast_scouting
+        settings["scouting/gossip/enabled"] = zc.gossip_scouting
     if zc.listen or not zc.config_file:
         # [] listens nowhere. Zenoh's own default for a peer is every interface on a random
         # port, and gossip then tells the others to connect there: a base station restarted

@@ -33,7 +33,9 @@ class ZenohConfig:
     # Learn other peers' endpoints from the peers one is connected to (and connect to
     # them). Off: only the configured endpoints (e.g. a drone behind a radio relay).
     gossip_scouting: bool = True
-    config_file: str = ""  # optional Zenoh JSON5 config (deploy/); its settings come first
+    # optional Zenoh JSON5 config (deploy/); its settings come first, and with one the two
+    # scouting keys above are not used: the file's own scouting section decides
+    config_file: str = ""
 
 
 @dataclass

@@ -83,6 +83,14 @@ def validate(cfg: Config) -> None:
             "exploration.handover_unknown: expected a factor >= 1, "
             f"got {cfg.exploration.handover_unknown}"
         )
+    a, e = cfg.agent, cfg.exploration
+    if e.enabled and a.vehicle_radius_m + a.safety_margin_m >= e.inflation_m:
+        # paths keep inflation_m from walls: the guard would hold the drone along them
+        raise ConfigError(
+            "agent.vehicle_radius_m + agent.safety_margin_m: expected less than "
+            f"exploration.inflation_m ({e.inflation_m}), got "
+            f"{a.vehicle_radius_m} + {a.safety_margin_m}"
+        )
     _validate_gps(cfg)
 
 

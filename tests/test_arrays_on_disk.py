@@ -14,6 +14,7 @@ import pytest
 from process_helpers import synthetic_keyframe
 
 from basestation.node import BaseStationNode
+from collabslam.cli import arrays_on_disk
 from common.bus import Bus
 from common.config import Config
 from common.errors import ConfigError
@@ -127,3 +128,17 @@ def test_an_array_the_disk_has_no_room_for_goes_on_in_memory(
     assert not on_disk(b) and len(b) == 1000
     assert np.all(b[:100] == 1.0) and np.all(b[100:] == 2.0)
     assert "cannot grow on disk" in caplog.text
+
+
+def test_the_database_folder_is_made_for_the_arrays_next_to_it(tmp_path: Path) -> None:
+    """`--db DIR/sub/mission.db` with sub/ missing (a systemd unit's state directory holds
+    only its top folder): the folder is made, not refused."""
+    db = tmp_path / "basestation" / "mission.db"
+    try:
+        arrays_on_disk("", str(db))
+        assert db.parent.is_dir()
+        assert on_disk(empty((3,), np.float64))
+    finally:
+        keep_on_disk(None)
+    with pytest.raises(ConfigError, match="not a writable directory"):
+        arrays_on_disk(str(tmp_path / "missing"), str(db))

@@ -45,10 +45,11 @@ def test_round_trip(tmp_path: Path) -> None:
         ({"agent.malloc_arenas": -2}, "agent.malloc_arenas"),
         ({"agent.max_off_nose_deg": 200.0}, "agent.full_speed_off_nose_deg"),
         ({"agent.local_slam.max_match_yaw_jump_deg": -1.0}, "agent.local_slam.max_match_yaw"),
+        ({"agent.safety_margin_m": 0.3}, "agent.vehicle_radius_m + agent.safety_margin_m"),
     ],
 )
 def test_bad_values_name_the_key(overrides: dict, key: str) -> None:
-    with pytest.raises(ConfigError, match=key.replace(".", r"\.")):
+    with pytest.raises(ConfigError, match=key.replace(".", r"\.").replace("+", r"\+")):
         load_config(overrides=overrides)
 
 

@@ -223,6 +223,9 @@ def test_zenoh_config_cli_option_and_merge(tmp_path: Path, certs: tuple[Path, Pa
     assert json.loads(conf.get_json("connect/endpoints")) == ["tls/127.0.0.1:7447"]
     assert json.loads(conf.get_json("transport/link/tls/enable_mtls")) is True
     assert json.loads(conf.get_json("listen/endpoints")) == []  # not Zenoh's tcp/[::]:0
+    # the file's scouting stays off (zenoh.gossip_scouting's default, on, is for no file)
+    assert json.loads(conf.get_json("scouting/gossip/enabled")) is False
+    assert json.loads(conf.get_json("scouting/multicast/enabled")) is False
     zc.connect = ["tcp/127.0.0.1:9999"]
     assert json.loads(zenoh_config(zc).get_json("connect/endpoints")) == ["tcp/127.0.0.1:9999"]
 

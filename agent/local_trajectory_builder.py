@@ -30,6 +30,9 @@ from protocol import LaserScan
 
 log = logging.getLogger(__name__)
 
+MAX_SPEED_MPS = 50.0  # m/s: no drone flown with this goes faster (odometry sanity check)
+JUMP_SLACK_M = 5.0  # m
+
 
 @dataclass
 class LocalSlamResult:
@@ -79,6 +82,7 @@ class LocalTrajectoryBuilder:
         self.scans = 0
         self.matched = 0
         self.rejected_scans = 0
+        self.jumped_scans = 0  # of them: the odometry jumped farther than a drone flies
         self.gated_matches = 0  # matches that turned too far from the prediction
         self.distance_m = 0.0
 
@@ -116,6 +120,26 @@ class LocalTrajectoryBuilder:
         )
         return True
 
+    def _jumped(self, predicted: np.ndarray, stamp: float) -> bool:
+        """Whether the odometry put the drone farther from its last pose than it can fly
+        since (`MAX_SPEED_MPS`, plus `JUMP_SLACK_M`): a reset or a corrupt source. The
+        scan is dropped, not mapped (an offset of 1e7 m once made a submap grow to
+        petabytes, and the agent died with its unsent keyframes), and the odometry
+        before the jump is forgotten: the next scans follow the odometry from there."""
+        if self.last_stamp is None:
+            return False
+        far = float(np.hypot(*(predicted[:2] - self.pose[:2])))
+        if far <= JUMP_SLACK_M + MAX_SPEED_MPS * (stamp - self.last_stamp):
+            return False
+        if self.jumped_scans % 400 == 0:  # ~10 s of scans at 40 Hz between two lines
+            log.error(
+                "odometry puts the drone %.3g m from its pose %.3f s before: scan dropped "
+                "(%d so far)", far, stamp - self.last_stamp, self.jumped_scans + 1,
+            )  # fmt: skip
+        self.jumped_scans += 1
+        self.extrapolator.forget_odometry()
+        return True
+
     # --- scans --------------------------------------------------------------------------
     def add_scan(self, scan: LaserScan) -> LocalSlamResult | None:
         """Process one scan; None if it was rejected (time going back, too few points)."""
@@ -145,8 +169,11 @@ class LocalTrajectoryBuilder:
             )
             self.rejected_scans += 1
             return None
-        self.last_stamp = scan.stamp
         predicted = self.extrapolator.predict(scan.stamp)
+        if self._jumped(predicted, scan.stamp):
+            self.rejected_scans += 1
+            return None
+        self.last_stamp = scan.stamp
         pose2, cov, score, matched = predicted, np.diag([0.1, 0.1, 0.05]) ** 2, math.nan, False
         submap = self.submaps.matching_submap()
         if submap is not None:

@@ -57,6 +57,11 @@ class PoseExtrapolator:
             keep = max(keep, len(self._odom_t) - MAX_ODOMETRY)
             del self._odom_t[:keep], self._odom[:keep]
 
+    def forget_odometry(self) -> None:
+        """Keep only the newest odometry: the source jumped (a reset moved its frame), so
+        motion is predicted from what comes after it, not across the jump."""
+        del self._odom_t[:-1], self._odom[:-1]
+
     def _oldest_needed(self) -> int:
         """Index of the oldest odometry still needed: the last one at or before the
         newest matched pose's stamp (it brackets that stamp)."""

@@ -492,7 +492,7 @@ class GlobalSlam:
                 continue
             est = self.graph.poses(rid)
             poses4 = np.column_stack([est[:, :2], r.poses_odom.view()[: len(est), 2], est[:, 2]])
-            out[rid] = Trajectory.from_pose4(r.stamps.view()[: len(est), 0].copy(), poses4)
+            out[rid] = Trajectory.in_time_order(r.stamps.view()[: len(est), 0].copy(), poses4, rid)
         return out
 
     def stats(self) -> dict[str, Any]:

@@ -143,6 +143,10 @@ class KeyframeStore:
             r.duplicates += 1
             return []
         if kf.seq > r.next_seq:
+            if kf.seq > r.next_seq + self.reorder_window:  # no agent is that far ahead
+                log.error("robot %s: keyframe seq %d is beyond the reorder window (waiting "
+                          "for seq %d): dropped", kf.robot_id, kf.seq, r.next_seq)  # fmt: skip
+                return []
             if len(r.held) >= self.reorder_window:
                 log.error(
                     "robot %s: reorder window full (%d held, waiting for seq %d); "
@@ -161,7 +165,8 @@ class KeyframeStore:
         for k in ready:
             if len(r.stamps) and k.stamp < r.stamps[-1, 0]:
                 log.warning(
-                    "robot %s: keyframe %d stamp %.3f is before the previous one",
+                    "robot %s: keyframe %d stamp %.3f is before the previous one (kept in the "
+                    "graph, left out of the written trajectory)",
                     k.robot_id,
                     k.seq,
                     k.stamp,

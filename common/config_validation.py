@@ -142,6 +142,7 @@ def _validate_agent(cfg: Config) -> None:
             "keyframe_distance_m",
             "keyframe_angle_rad",
             "outbox_max",
+            "resend_batch",  # 0 would never resend a keyframe lost on the way
             "resend_timeout_s",
             "replay_max_unacked",
             "cruise_speed_mps",

@@ -9,6 +9,7 @@ carries its frame's WGS84 origin in a comment line that evo ignores:
 
 from __future__ import annotations
 
+import bisect
 import logging
 from dataclasses import dataclass
 from pathlib import Path
@@ -53,6 +54,22 @@ class Trajectory:
         """From (N,) stamps and (N, 4) [x, y, z, yaw] poses (m, rad)."""
         p = np.asarray(poses, dtype=np.float64).reshape(-1, 4)
         return cls(stamps=np.asarray(stamps), positions=p[:, :3], quats_xyzw=yaw_to_quat(p[:, 3]))
+
+    @classmethod
+    def in_time_order(cls, stamps: ArrayLike, poses: ArrayLike, name: str = "") -> Trajectory:
+        """`from_pose4` of the longest run of poses whose stamps do not go back (a
+        subsequence): a pose stamped out of order (a sender's clock that jumped back, or
+        far ahead once) is left out, the fewest possible, with a warning; the others
+        stay (the base station had kept one such keyframe in its graph, and then failed
+        to write every output at the end)."""
+        t = np.asarray(stamps, dtype=np.float64).reshape(-1)
+        p = np.asarray(poses, dtype=np.float64).reshape(-1, 4)
+        if np.all(np.diff(t) >= 0.0):
+            return cls.from_pose4(t, p)
+        keep = longest_non_decreasing(t)
+        logger.warning("trajectory %s: %d poses stamped out of time order left out",
+                    name, len(t) - len(keep))  # fmt: skip
+        return cls.from_pose4(t[keep], p[keep])
 
     def poses_se2(self) -> NDArray[np.float64]:
         """(N, 3) [x, y, yaw] (z, roll and pitch dropped)."""
@@ -140,3 +157,26 @@ def write_tum(path: str | Path, traj: Trajectory, wgs84_origin: GeoOrigin | None
     with path.open("w", encoding="utf-8") as f:
         np.savetxt(f, table, fmt="%.9f", delimiter=" ", header=header, comments="# ")
     logger.debug("wrote %d poses to %s", len(traj), path)
+
+
+def longest_non_decreasing(values: NDArray[np.float64]) -> NDArray[np.intp]:
+    """Indices of a longest non-decreasing subsequence of `values` (patience sorting,
+    O(n log n))."""
+    tails: list[float] = []  # smallest last value of a run of each length
+    tail_at: list[int] = []  # ... and its index
+    parent = np.full(len(values), -1, dtype=np.intp)
+    for i, v in enumerate(values.tolist()):
+        k = bisect.bisect_right(tails, v)
+        if k:
+            parent[i] = tail_at[k - 1]
+        if k == len(tails):
+            tails.append(v)
+            tail_at.append(i)
+        else:
+            tails[k], tail_at[k] = v, i
+    out = []
+    i = tail_at[-1] if tail_at else -1
+    while i >= 0:
+        out.append(i)
+        i = int(parent[i])
+    return np.array(out[::-1], dtype=np.intp)

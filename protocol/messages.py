@@ -17,6 +17,11 @@ from common.errors import ProtocolError
 from protocol.codec import array_field, message
 
 ROBOT_ID_RE = re.compile(r"^[A-Za-z0-9_-]{1,32}$")
+# What one keyframe may carry and the pose graph still solves (iSAM2 failed on a step of
+# 2e4 m, on a variance of 1e4 m^2 or 1e3 rad^2, and on one of 1e-12): keyframes come
+# every 0.2 m, and one spanning an outage of the link is still far inside these.
+KEYFRAME_MAX_STEP_M = 1000.0  # m
+KEYFRAME_VAR_RANGE = (1e-10, 100.0)  # m^2 or rad^2, each diagonal entry of delta_cov
 ROBOT_STATUSES = ("starting", "waiting", "flying", "blocked", "hovering", "done", "landed")
 
 
@@ -229,9 +234,28 @@ class Keyframe(Message):
         _check_pose7("Keyframe.delta", self.delta)
         if (self.scan2d is None) == (self.cloud3d is None):
             raise ProtocolError("Keyframe: exactly one of scan2d / cloud3d must be set")
+        step = float(np.linalg.norm(self.delta[:3]))
+        if step > KEYFRAME_MAX_STEP_M:
+            raise ProtocolError(
+                f"Keyframe.delta moves {step:.3g} m (> {KEYFRAME_MAX_STEP_M:g} m from one keyframe)"
+            )
         cov = self.delta_cov
         if not np.allclose(cov, cov.T, atol=1e-9) or np.any(np.diag(cov) <= 0.0):
             raise ProtocolError("Keyframe.delta_cov must be symmetric with a positive diagonal")
+        var = np.diag(cov)
+        if var.min() < KEYFRAME_VAR_RANGE[0] or var.max() > KEYFRAME_VAR_RANGE[1]:
+            raise ProtocolError(
+                f"Keyframe.delta_cov variances {var.min():.3g}..{var.max():.3g} outside "
+                f"{KEYFRAME_VAR_RANGE[0]:g}..{KEYFRAME_VAR_RANGE[1]:g}"
+            )
+        try:
+            np.linalg.cholesky(cov)
+        except np.linalg.LinAlgError:
+            raise ProtocolError("Keyframe.delta_cov is not positive definite") from None
+        if self.scan2d is not None and not 0.0 < self.scan2d.range_max:
+            raise ProtocolError(
+                f"Keyframe.scan2d.range_max must be > 0, got {self.scan2d.range_max}"
+            )
 
 
 @message

@@ -167,3 +167,20 @@ def test_a_match_that_turns_far_from_the_odometry_is_not_used(caplog) -> None:
     assert b.gated_matches == 1 and "28.6 deg" in caplog.text
     b.cfg.max_match_yaw_jump_deg = 0.0  # off
     assert not b._gated(match_turning(-0.5), sub, predicted)
+
+
+def test_an_odometry_jump_drops_scans_instead_of_growing_a_huge_submap(cfg, caplog) -> None:
+    """Odometry offset by 1e7 m (a reset, a corrupt source) once made a submap allocate
+    petabytes and the agent die: now the scan at the jump is dropped and logged, and
+    the next ones follow the odometry from its new frame (as after the jump back)."""
+    b = LocalTrajectoryBuilder(cfg.agent.local_slam)
+    room = 3.0 + np.abs(np.sin(np.linspace(0, 6, 361)))
+    caplog.set_level(logging.ERROR)
+    kept = []
+    for k in range(15):
+        offset = 1e7 if 5 <= k < 10 else 0.0
+        b.add_odometry(0.1 * k, np.array([offset + 0.01 * k, 0.0, 0.0]))
+        kept.append(b.add_scan(_scan(0.1 * k + 0.05, room)) is not None)
+    assert kept == [True] * 5 + [False] + [True] * 4 + [False] + [True] * 4
+    assert b.jumped_scans == 2 and "scan dropped" in caplog.text
+    assert abs(b.pose[0]) < 1.0  # still in the room, not 1e7 m away

@@ -197,3 +197,34 @@ def test_gnss_fix_validation() -> None:
     with pytest.raises(ProtocolError, match="sigmas"):
         GnssFix("r0", 1.0, np.array([45.0, 16.0, 0.0]), np.array([1.5, 0.0, 3.0])).validate()
     assert Keys("f").sensor("r0", "gnss") == "collabslam/f/robot/r0/sensor/gnss"
+
+
+def _keyframe(delta_xy: float = 0.2, cov=None, range_max: float = 30.0) -> Keyframe:
+    scan = Scan2D.from_ranges(-2.356, 0.00436, 30.0, np.linspace(0.5, 29.0, 1081))
+    scan = dataclasses.replace(scan, range_max=range_max)
+    cov = np.eye(6) * 1e-4 if cov is None else cov
+    return Keyframe("r0", 1, 1.0, P7, pose4_to_pose7([delta_xy, 0, 0, 0]), cov, scan, None)
+
+
+def _not_positive_definite() -> np.ndarray:
+    cov = np.eye(6) * 1e-4
+    cov[0, 1] = cov[1, 0] = 2e-4
+    return cov
+
+
+@pytest.mark.parametrize(
+    "kf, reason",
+    [
+        (_keyframe(cov=_not_positive_definite()), "not positive definite"),
+        (_keyframe(cov=np.eye(6) * 1e-300), "variances"),
+        (_keyframe(cov=np.eye(6) * 1e300), "variances"),
+        (_keyframe(delta_xy=1e7), "moves"),
+        (_keyframe(range_max=-5.0), "range_max"),
+    ],
+)
+def test_keyframes_the_pose_graph_cannot_take_are_refused(kf: Keyframe, reason: str) -> None:
+    """Each of these, once admitted, had made iSAM2 (or the map) fail and the base
+    station exit: now decoding refuses them and the bus drops them with a log line."""
+    with pytest.raises(ProtocolError, match=reason):
+        decode(encode(kf))
+    decode(encode(_keyframe()))  # the same keyframe with sane values passes

@@ -87,3 +87,17 @@ def test_trajectory_validates() -> None:
         Trajectory.from_pose4([1.0, 0.0], np.zeros((2, 4)))
     with pytest.raises(CollabSlamError, match="expected 2 positions"):
         Trajectory(np.zeros(2), np.zeros((3, 3)), np.zeros((2, 4)))
+
+
+def test_poses_stamped_out_of_time_order_are_left_out_the_fewest() -> None:
+    """A stamp that went back once (-100) and one that jumped far ahead once (1e9) are
+    left out; every other pose stays, in order."""
+    t = np.array([0.0, 1.0, -100.0, 3.0, 1e9, 5.0, 6.0])
+    poses = np.column_stack([np.arange(7.0), np.zeros((7, 3))])
+    tr = Trajectory.in_time_order(t, poses, "r0")
+    assert tr.stamps.tolist() == [0.0, 1.0, 3.0, 5.0, 6.0]
+    assert tr.positions[:, 0].tolist() == [0.0, 1.0, 3.0, 5.0, 6.0]
+    same = Trajectory.in_time_order(t[[0, 1, 3]], poses[[0, 1, 3]])
+    assert same.stamps.tolist() == [0.0, 1.0, 3.0]
+    with pytest.raises(CollabSlamError, match="non-decreasing"):
+        Trajectory.from_pose4(t, poses)  # the plain constructor still refuses them

@@ -178,6 +178,12 @@ def test_store_dedups_and_reorders() -> None:
     assert st.admit(_kf(6)) == []  # window full: dropped, will be resent
     assert [k.seq for k in st.admit(_kf(3))] == [3, 4, 5]
     assert [k.seq for k in st.admit(_kf(6))] == [6]
+    # far beyond the window (seq 10**9 from a broken or hostile sender): dropped at once,
+    # without taking the room the next out-of-order keyframe needs
+    assert st.admit(_kf(10**9)) == [] and st.admit(_kf(10)) == []  # 10 > 7 + 2
+    assert st.admit(_kf(9)) == [] and st.admit(_kf(8)) == []  # both held
+    assert sorted(st.robot("r0").held) == [8, 9]
+    assert [k.seq for k in st.admit(_kf(7))] == [7, 8, 9]
 
 
 def test_path_follower_reaches_waypoints() -> None:

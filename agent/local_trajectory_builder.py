@@ -23,6 +23,7 @@ from agent.motion_filter import MotionFilter
 from agent.pose_extrapolator import PoseExtrapolator
 from agent.scan_matcher import MatchResult, ScanMatcher
 from agent.scan_preprocessor import ScanPreprocessor
+from agent.stamps import JumpGate
 from agent.submaps import ActiveSubmaps, Submap
 from common.config import LocalSlamConfig
 from common.geometry import quat_to_rpy, se2_compose, se2_inverse, wrap_angle
@@ -83,6 +84,7 @@ class LocalTrajectoryBuilder:
         self.matched = 0
         self.rejected_scans = 0
         self.jumped_scans = 0  # of them: the odometry jumped farther than a drone flies
+        self._jump = JumpGate()  # a stamp far ahead of the last (`agent.stamps`)
         self.gated_matches = 0  # matches that turned too far from the prediction
         self.distance_m = 0.0
 
@@ -143,6 +145,11 @@ class LocalTrajectoryBuilder:
     # --- scans --------------------------------------------------------------------------
     def add_scan(self, scan: LaserScan) -> LocalSlamResult | None:
         """Process one scan; None if it was rejected (time going back, too few points)."""
+        if self._jump.holds(scan.stamp, self.last_stamp):
+            log.error("scan stamp %.3f is far past the previous %.3f: dropped unless the "
+                      "next scan follows it", scan.stamp, self.last_stamp)  # fmt: skip
+            self.rejected_scans += 1
+            return None
         if self.last_stamp is not None and scan.stamp <= self.last_stamp:
             log.error(
                 "scan stamp %.3f is not after the previous %.3f: dropped",

@@ -16,6 +16,7 @@ import logging
 
 import numpy as np
 
+from agent.stamps import JumpGate
 from common.geometry import se2_compose, se2_inverse, wrap_angle
 
 log = logging.getLogger(__name__)
@@ -36,9 +37,16 @@ class PoseExtrapolator:
         self._odom: list[np.ndarray] = []  # odometry poses [x, y, yaw], its own frame
         self._poses: list[tuple[float, np.ndarray]] = []  # last two (stamp, T_local_base)
         self.rejected_odometry = 0
+        self._jump = JumpGate()
 
     def add_odometry(self, stamp: float, pose_xyyaw: np.ndarray) -> None:
-        """One odometry pose; stamps must increase (an older one is logged and dropped)."""
+        """One odometry pose; stamps must increase (an older one is logged and dropped,
+        as is one far ahead of the last until the next follows it: `JumpGate`)."""
+        if self._jump.holds(stamp, self._odom_t[-1] if self._odom_t else None):
+            log.error("odometry stamp %.3f is far past the previous %.3f: dropped unless "
+                      "the next follows it", stamp, self._odom_t[-1])  # fmt: skip
+            self.rejected_odometry += 1
+            return
         if self._odom_t and stamp <= self._odom_t[-1]:
             if stamp < self._odom_t[-1]:
                 log.error(

@@ -184,3 +184,20 @@ def test_an_odometry_jump_drops_scans_instead_of_growing_a_huge_submap(cfg, capl
     assert kept == [True] * 5 + [False] + [True] * 4 + [False] + [True] * 4
     assert b.jumped_scans == 2 and "scan dropped" in caplog.text
     assert abs(b.pose[0]) < 1.0  # still in the room, not 1e7 m away
+
+
+def test_a_stamp_far_ahead_once_does_not_freeze_the_scans_or_the_odometry(cfg, caplog) -> None:
+    """One scan and one odometry message stamped 1e9 s (a driver's glitch) had every
+    later one refused as going back in time: now only they are dropped. A real jump
+    (the sensor off for 100 s) is taken once the next message follows it."""
+    b = LocalTrajectoryBuilder(cfg.agent.local_slam)
+    room = 3.0 + np.abs(np.sin(np.linspace(0, 6, 361)))
+    caplog.set_level(logging.ERROR)
+    kept = []
+    for k in range(8):
+        b.add_odometry(1e9 if k == 3 else 0.1 * k, np.array([0.01 * k, 0.0, 0.0]))
+        kept.append(b.add_scan(_scan(1e9 if k == 5 else 0.1 * k + 0.05, room)) is not None)
+    assert kept == [True] * 5 + [False] + [True] * 2
+    assert b.rejected_odometry == 1 and "far past the previous" in caplog.text
+    later = [b.add_scan(_scan(100.0 + 0.1 * k, room)) is not None for k in range(3)]
+    assert later == [False, True, True]  # the first held back, then followed

@@ -59,6 +59,8 @@ class Outbox:
         self._last_progress = clock()
         self._warned = False
         self.acked_seq = -1  # highest seq the base station confirmed
+        self.added_seq = -1  # highest seq queued
+        self.bad_acks = 0  # acks past added_seq: ignored
         self.resent = 0
         self.high_water = 0
         self.deferred = 0  # has_room() calls answered False
@@ -92,6 +94,7 @@ class Outbox:
                 raise ValueError(f"outbox expects consecutive seqs, got {seq}")
             self._pending[seq] = payload
             self._sent_at[seq] = self._clock()
+            self.added_seq = max(self.added_seq, seq)
             n = len(self._pending)
             self.high_water = max(self.high_water, n)
             if n == 1:
@@ -107,6 +110,12 @@ class Outbox:
         """Drop everything <= acked_seq; returns how many were released."""
         released = 0
         with self._lock:
+            if acked_seq > self.added_seq:  # nothing sent that far: it would release
+                self.bad_acks += 1  # keyframes the base station never had
+                if self.bad_acks == 1 or self.bad_acks % 100 == 0:
+                    log.error("ack for seq %d past the last queued (%d): ignored (%d so far)",
+                              acked_seq, self.added_seq, self.bad_acks)  # fmt: skip
+                return 0
             if acked_seq <= self.acked_seq:
                 return 0
             self.acked_seq = acked_seq

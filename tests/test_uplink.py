@@ -34,6 +34,9 @@ def test_outbox_acks_and_resends_in_order() -> None:
     assert ob.due_for_resend() == []  # timer restarted
     assert ob.ack(2) == 3 and len(ob) == 2 and ob.acked_seq == 2
     assert ob.ack(1) == 0  # a stale ack changes nothing
+    # an ack past anything queued (a broken or hostile sender) would release keyframes
+    # the base station never had: ignored
+    assert ob.ack(10**9) == 0 and len(ob) == 2 and ob.acked_seq == 2 and ob.bad_acks == 1
     clock.t = 3.0
     assert ob.due_for_resend() == [b"\x03", b"\x04"]
     # still no progress: the wait doubles (2 s, then 4 s), an ack resets it

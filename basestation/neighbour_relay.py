@@ -19,12 +19,16 @@ that it is the same on every run.
 
 from __future__ import annotations
 
+import logging
 from dataclasses import dataclass
 
 import numpy as np
 
+from agent.stamps import JumpGate
 from common.geometry import pose7_to_pose4
 from protocol import Neighbours, RobotState
+
+log = logging.getLogger(__name__)
 
 
 @dataclass
@@ -45,6 +49,7 @@ class NeighbourRelay:
         self.strictly_earlier = strictly_earlier
         self._tracks: dict[str, _Track] = {}
         self._previous: dict[str, _Track] = {}  # each robot's track before its latest
+        self._jumps: dict[str, JumpGate] = {}  # a stamp far past a robot's last (1e9 s)
 
     def on_state(self, msg: RobotState) -> Neighbours:
         """Take `msg`'s position; the answer to send back to its robot."""
@@ -57,7 +62,11 @@ class NeighbourRelay:
             c, s = np.cos(turn), np.sin(turn)
             d = (odom_xy - old.odom_xy) / (msg.stamp - old.stamp)
             velocity = np.array([c * d[0] - s * d[1], s * d[0] + c * d[1]])
-        if old is None or msg.stamp > old.stamp:  # a late or repeated state changes nothing
+        gate = self._jumps.setdefault(msg.robot_id, JumpGate())
+        if gate.holds(msg.stamp, None if old is None else old.stamp):
+            log.error("robot %s: state stamp %.3f far past its last: held back unless the "
+                      "next follows it", msg.robot_id, msg.stamp)  # fmt: skip
+        elif old is None or msg.stamp > old.stamp:  # a late or repeated state changes nothing
             if old is not None:
                 self._previous[msg.robot_id] = old
             self._tracks[msg.robot_id] = _Track(
@@ -84,3 +93,4 @@ class NeighbourRelay:
         """A robot that went away (liveliness lost) is no longer anyone's neighbour."""
         self._tracks.pop(robot_id, None)
         self._previous.pop(robot_id, None)
+        self._jumps.pop(robot_id, None)

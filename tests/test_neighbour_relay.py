@@ -98,3 +98,15 @@ def test_a_tick_uses_only_answers_to_states_sent_before_it(cfg: Config, endpoint
         np.testing.assert_allclose(node.guard.neighbours, [[2.0, 0.0]], atol=1e-9)
         node._command(1.05)  # the next tick
         np.testing.assert_allclose(node.guard.neighbours, [[3.0, 0.0]], atol=1e-9)
+
+
+def test_a_state_stamped_far_ahead_once_leaves_no_ghost() -> None:
+    """A state stamped 1e9 s (a broken clock) had frozen its robot's track: every later
+    state counted as late, and the others were told of it where it once was."""
+    relay = NeighbourRelay()
+    relay.on_state(_state("r1", 1.0, 5.0, 0.0))
+    relay.on_state(_state("r1", 1e9, 9.0, 9.0))  # held back
+    relay.on_state(_state("r1", 1.5, 5.0, 0.5))
+    ans = relay.on_state(_state("r0", 1.6, 0.0, 0.0))
+    np.testing.assert_allclose(ans.xy, [[5.0, 0.5]])
+    np.testing.assert_allclose(ans.stamps, [1.5])

@@ -7,13 +7,54 @@ loading; here only values and their relations.
 
 from __future__ import annotations
 
-from collections.abc import Iterable
+import dataclasses
+import typing
+from collections.abc import Iterable, Iterator
 from typing import TYPE_CHECKING, Any
 
 from common.errors import ConfigError
 
 if TYPE_CHECKING:  # common.config imports this module
     from common.config import BaseStationConfig, Config
+
+
+# Numbers that may be negative: biases, offsets and coordinates. Every other number in the
+# tree is a length, duration, rate, count, weight or seed and must be >= 0 (stricter
+# checks below where 0 means nothing sensible).
+SIGNED_KEYS = frozenset(
+    {
+        "sim.odometry.yaw_rate_bias",
+        "sim.imu.gyro_bias",
+        "sim.imu.accel_bias",
+        "sim.altimeter.bias_m",
+        "sim.gnss.bias_east_m",
+        "sim.gnss.bias_north_m",
+        "sim.gnss.bias_up_m",
+        "sim.gnss.vertical_drift_mps",
+        "sim.gnss.origin_lat_deg",
+        "sim.gnss.origin_lon_deg",
+        "sim.gnss.origin_alt_m",
+        "basestation.gps.antenna_x_m",
+        "basestation.gps.antenna_y_m",
+    }
+)
+
+
+def numeric_keys(obj: Any, prefix: str = "") -> Iterator[tuple[str, int | float]]:
+    """(dotted key, value) of every int or float leaf of a config dataclass tree."""
+    hints = typing.get_type_hints(type(obj))
+    for f in dataclasses.fields(obj):
+        value, hint = getattr(obj, f.name), hints[f.name]
+        if dataclasses.is_dataclass(hint):
+            yield from numeric_keys(value, f"{prefix}{f.name}.")
+        elif hint in (int, float):
+            yield f"{prefix}{f.name}", value
+
+
+def _no_negatives(cfg: Config) -> None:
+    for key, value in numeric_keys(cfg):
+        if value < 0 and key not in SIGNED_KEYS:
+            raise ConfigError(f"{key}: expected a value >= 0, got {value}")
 
 
 def _positive(key: str, value: float) -> None:
@@ -52,6 +93,7 @@ def validate(cfg: Config) -> None:
         raise ConfigError(f"zenoh.mode: expected peer, client or router, got {cfg.zenoh.mode!r}")
     if cfg.sim.clock not in ("lockstep", "realtime"):
         raise ConfigError(f"sim.clock: expected lockstep or realtime, got {cfg.sim.clock!r}")
+    _no_negatives(cfg)
     _validate_sim(cfg)
     _validate_map(cfg)
     _validate_agent(cfg)
@@ -109,7 +151,13 @@ def _validate_sim(cfg: Config) -> None:
     )
     _positive_fields("sim.laser", las, ("beams", "fov_deg", "range_max_m", "rate_hz"))
     quad = sim.quadrotor
-    _positive_fields("sim.quadrotor", quad, ("max_speed_mps", "max_accel_mps2", "radius_m"))
+    _positive_fields(
+        "sim.quadrotor",
+        quad,
+        ("max_speed_mps", "max_accel_mps2", "radius_m", "max_vertical_speed_mps",
+         "max_yaw_rate_rps"),
+    )  # fmt: skip
+    _positive("sim.start_timeout_s", sim.start_timeout_s)
     if las.fov_deg > 360.0:
         raise ConfigError(f"sim.laser.fov_deg: expected <= 360, got {las.fov_deg}")
     if not 0 <= las.range_min_m < las.range_max_m:
@@ -147,6 +195,10 @@ def _validate_agent(cfg: Config) -> None:
             "replay_max_unacked",
             "cruise_speed_mps",
             "odom_sigma_min",
+            "waypoint_tolerance_m",
+            "max_accel_mps2",
+            "yaw_gain",
+            "state_period_s",
         ),
     )
     _non_negative_fields(
@@ -206,6 +258,7 @@ def _validate_backend(b: BaseStationConfig) -> None:
             "relinearize_threshold",
             "relinearize_skip",
             "reduce_lag",
+            "batch_max",  # 0 would never take a keyframe from the inbox
         ),
     )
     if not b.reduce_distance_m >= 0.0:
@@ -251,6 +304,7 @@ def _validate_backend(b: BaseStationConfig) -> None:
             "pcm_chi2",
             "pcm_window",
             "robust_k",
+            "max_queue",
         ),
     )
     _non_negative_fields("basestation.constraints", cc, ("inter_redundant_keyframes",))

@@ -61,3 +61,18 @@ def test_bad_toml(tmp_path: Path) -> None:
         load_config(p)
     with pytest.raises(ConfigError, match="not found"):
         load_config(tmp_path / "missing.toml")
+
+
+def test_no_number_takes_a_negative_unless_signed() -> None:
+    """Every numeric key refuses -1 (naming it) except biases, offsets and coordinates."""
+    from common.config_validation import SIGNED_KEYS, numeric_keys
+
+    keys = dict(numeric_keys(Config()))
+    assert len(keys) > 150 and SIGNED_KEYS <= set(keys)
+    for key, value in keys.items():
+        bad = {key: type(value)(-1)}
+        if key in SIGNED_KEYS:
+            assert dict(numeric_keys(load_config(overrides=bad)))[key] == -1
+            continue
+        with pytest.raises(ConfigError, match=key.replace(".", r"\.")):
+            load_config(overrides=bad)

@@ -17,6 +17,7 @@ from __future__ import annotations
 import logging
 import threading
 
+from common.stamps import JumpGate
 from protocol import DownlinkMark
 
 log = logging.getLogger(__name__)
@@ -26,6 +27,8 @@ class DownlinkGate:
     def __init__(self, timeout_s: float) -> None:
         self.timeout_s = timeout_s  # s wall, then go on (and stop waiting for neighbours)
         self._due = -1.0  # the latest clock the base station answered, by the simulator
+        self._clock = 0.0  # the latest such clock (not reset: `_clock_jump` compares to it)
+        self._clock_jump = JumpGate()  # one at 1e9 s had every tick wait `timeout_s`
         self._mark: DownlinkMark | None = None  # the base station's latest
         self._paths = 0  # Path messages received
         self._epoch = -1  # the latest correction's epoch received
@@ -61,6 +64,11 @@ class DownlinkGate:
     def on_clock(self, stamp: float) -> None:
         """The simulator: the base station has answered its clock at `stamp`."""
         with self._cond:
+            if self._clock_jump.holds(stamp, self._clock):
+                log.error("simulator clock t=%.3f is far past t=%.3f: dropped unless the "
+                          "next follows it", stamp, self._clock)  # fmt: skip
+                return
+            self._clock = max(self._clock, stamp)
             self._due = max(self._due, stamp)
 
     def state_sent(self, stamp: float) -> None:

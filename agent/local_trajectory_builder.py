@@ -23,10 +23,10 @@ from agent.motion_filter import MotionFilter
 from agent.pose_extrapolator import PoseExtrapolator
 from agent.scan_matcher import MatchResult, ScanMatcher
 from agent.scan_preprocessor import ScanPreprocessor
-from agent.stamps import JumpGate
 from agent.submaps import ActiveSubmaps, Submap
 from common.config import LocalSlamConfig
 from common.geometry import quat_to_rpy, se2_compose, se2_inverse, wrap_angle
+from common.stamps import JumpGate
 from protocol import LaserScan
 
 log = logging.getLogger(__name__)
@@ -84,7 +84,7 @@ class LocalTrajectoryBuilder:
         self.matched = 0
         self.rejected_scans = 0
         self.jumped_scans = 0  # of them: the odometry jumped farther than a drone flies
-        self._jump = JumpGate()  # a stamp far ahead of the last (`agent.stamps`)
+        self._jump = JumpGate()  # a stamp far ahead of the last (`common.stamps`)
         self.gated_matches = 0  # matches that turned too far from the prediction
         self.distance_m = 0.0
 

@@ -9,8 +9,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from agent.stamps import due
 from common.geometry import wrap_angle
+from common.stamps import due
 
 
 class MotionFilter:

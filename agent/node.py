@@ -36,14 +36,15 @@ from agent.path_follower import PathFollower
 from agent.pose_smoother import IDENTITY7, PoseSmoother, pose7_compose
 from agent.safety_guard import SafetyGuard, neighbours_in_body
 from agent.sensor_sources import SensorSource
-from agent.stamps import due
 from agent.vehicle import NullVehicle, ZenohVehicle
 from common.bus import Bus
 from common.config import Config
+from common.errors import ProtocolError
 from common.geometry import map_to_odom, odom_to_map, pose4_to_pose7, pose7_to_pose4
 from common.memory import HeapTrimmer
 from common.metrics import percentiles
 from common.row_spool import RowSpool
+from common.stamps import MAX_EPOCH_JUMP, STAMP_SLACK_S, JumpGate, due
 from common.trajectory_io import Trajectory, write_tum
 from protocol import (
     Altimeter,
@@ -121,6 +122,9 @@ class AgentNode:
         self._corr_lock = threading.Lock()
         self.T_map_odom = np.zeros(4) if T_map_odom is None else np.asarray(T_map_odom, float)
         self.epoch = -1
+        # an epoch far past the last is held until the next follows it (one of 2^63 had
+        # every later correction ignored)
+        self._epoch_jump = JumpGate(MAX_EPOCH_JUMP)
         # Control pose (main thread only); corrections reach it on the next scan.
         self.smoother = PoseSmoother(
             a.smoothing, None if T_map_odom is None else pose4_to_pose7(self.T_map_odom)
@@ -132,6 +136,7 @@ class AgentNode:
         self.exploring = cfg.exploration.enabled
         self.mission_over = False
         self.next_seq = 0
+        self.keyframes_refused = 0  # failed the checks the base station makes: not sent
         self.last_scan_stamp: float | None = None
         self.last_state_stamp = -np.inf
         self.scans = 0
@@ -184,6 +189,10 @@ class AgentNode:
 
     def _on_correction(self, msg: PoseCorrection, key: str) -> None:
         with self._corr_lock:
+            if self._epoch_jump.holds(msg.epoch, max(self.epoch, 0)):
+                log.error("correction epoch %d is far past the last %d: dropped unless the "
+                          "next follows it", msg.epoch, self.epoch)  # fmt: skip
+                return
             if msg.epoch > self.epoch:
                 self.epoch = msg.epoch
                 self.T_map_odom = pose7_to_pose4(msg.T_map_odom)
@@ -193,6 +202,10 @@ class AgentNode:
         self.downlink.on_correction(msg.epoch)  # taken: a held tick may go on
 
     def _on_neighbours(self, msg: Neighbours, key: str) -> None:
+        if msg.stamp > self.last_state_stamp + STAMP_SLACK_S:  # 1e9 s had frozen them
+            log.error("neighbours answering a state of t=%.3f, not sent yet (last t=%.3f): "
+                      "dropped", msg.stamp, self.last_state_stamp)  # fmt: skip
+            return
         with self._corr_lock:
             if not self._neighbours or msg.stamp >= self._neighbours[-1].stamp:
                 self._neighbours = [*self._neighbours[-1:], msg]
@@ -275,7 +288,7 @@ class AgentNode:
         self._command(scan.stamp)
 
     def _send_keyframe(self, scan: LaserScan, result: LocalSlamResult) -> None:
-        pose = result.pose
+        pose, last = result.pose, self.selector.last_pose
         delta, cov = self.selector.cut(pose)
         # The match covariance carries degenerate directions (a corridor) to the graph.
         cov[np.ix_([0, 1, 5], [0, 1, 5])] += result.covariance
@@ -290,6 +303,12 @@ class AgentNode:
                 scan.angle_min, scan.angle_increment, scan.range_max, scan.ranges
             ),
         )
+        try:  # one the base station would refuse would hold back all after it, for good
+            kf.validate()  # (an altimeter's 1e9 m once)
+        except ProtocolError as exc:
+            log.error("keyframe at t=%.3f not sent: %s", scan.stamp, exc)
+            self.selector.last_pose, self.keyframes_refused = last, self.keyframes_refused + 1
+            return
         payload = encode(kf)
         self.outbox.add(self.next_seq, payload)
         self.next_seq += 1
@@ -419,6 +438,7 @@ class AgentNode:
             "keyframes_resent": self.outbox.resent,
             "outbox_high_water": self.outbox.high_water,
             "keyframes_deferred": self.outbox.deferred,
+            "keyframes_refused": self.keyframes_refused,
             "base_station_links": dict(self.base_links),
             "lockstep_downlink_waits": self.downlink.waits,
             "lockstep_downlink_timeouts": self.downlink.timeouts,

@@ -16,8 +16,8 @@ import logging
 
 import numpy as np
 
-from agent.stamps import JumpGate
 from common.geometry import se2_compose, se2_inverse, wrap_angle
+from common.stamps import JumpGate
 
 log = logging.getLogger(__name__)
 

@@ -47,8 +47,8 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import NDArray
 
-from agent.stamps import due
 from common.geometry import pose4_compose, pose4_inverse
+from common.stamps import due
 
 GIVE_WAY_MPS = 0.3  # m/s aside when a neighbour is in the way
 REPEL_GAIN = 1.0  # m/s away from a neighbour per m inside the keep distance

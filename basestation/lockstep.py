@@ -26,11 +26,15 @@ explores by the wall clock instead.
 
 from __future__ import annotations
 
+import logging
 import threading
 import time
 from collections.abc import Callable, Iterable
 
+from common.stamps import JumpGate
 from protocol import ClockSync, DownlinkMark, VehicleCommand
+
+log = logging.getLogger(__name__)
 
 POLL_S = 0.002  # s: keyframes and states come on other subscribers than the commands
 
@@ -46,11 +50,17 @@ class LockstepClock:
         self._epochs: dict[str, int] = {}  # robot -> the latest correction epoch sent to it
         self._fixes = self._fixes_due = 0  # GNSS fixes received / sent by the simulator
         self.takes_fixes = False  # the base station takes them (basestation.gps.enabled)
+        self._jump = JumpGate()  # a request far past the last: held (one at 1e9 s had
+        # been answered, and every real one after it taken as answered already)
         self._cond = threading.Condition()
 
     # --- Zenoh threads ------------------------------------------------------------------
     def on_request(self, msg: ClockSync, key: str) -> None:
         with self._cond:
+            if self._jump.holds(msg.stamp, max(self.requested, 0.0)):
+                log.error("clock request for t=%.3f, far past the last (t=%.3f): dropped "
+                          "unless the next follows it", msg.stamp, self.requested)  # fmt: skip
+                return
             self.requested = max(self.requested, msg.stamp)
             self._fixes_due = max(self._fixes_due, msg.gnss_fixes)
             self._cond.notify_all()

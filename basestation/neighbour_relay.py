@@ -24,8 +24,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from agent.stamps import JumpGate
 from common.geometry import pose7_to_pose4
+from common.stamps import JumpGate
 from protocol import Neighbours, RobotState
 
 log = logging.getLogger(__name__)

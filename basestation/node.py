@@ -147,15 +147,9 @@ class BaseStationNode:
             "in_graph": {r: self.slam.graph.num_nodes(r) for r in self.slam.graph.robots()},
             "seconds": time.monotonic() - t0,
         }
-        log.info(
-            "recovered from %s (start %d): %d keyframes, %d matches in %.1f s; epoch %d",
-            self.db.path,
-            rec.starts,
-            len(rec.keyframes),
-            len(rec.constraints),
-            self.recovered["seconds"],
-            self.epoch,
-        )
+        log.info("recovered from %s (start %d): %d keyframes, %d matches in %.1f s; epoch %d",
+                 self.db.path, rec.starts, len(rec.keyframes), len(rec.constraints),
+                 self.recovered["seconds"], self.epoch)  # fmt: skip
 
     def _persist(self, batch: Batch | None = None) -> None:
         """Write what changed (one transaction) before anything is acked or published."""
@@ -193,7 +187,7 @@ class BaseStationNode:
 
     def _on_state(self, msg: RobotState, key: str) -> None:
         """(Zenoh thread) keep it; answer with where the others are (neighbour guard)."""
-        if self.roster is not None and msg.robot_id not in self.roster:
+        if self._unknown(msg.robot_id, "state"):
             return
         with self._lock:
             self.states[msg.robot_id] = msg
@@ -359,13 +353,24 @@ class BaseStationNode:
                 fix = self.gnss_inbox.get_nowait()
             except queue.Empty:
                 return
-            if self.roster is not None and fix.robot_id not in self.roster:
+            if self._unknown(fix.robot_id, "GNSS fix"):
                 continue
             if self.wgs84_origin is None:
                 self.wgs84_origin = GeoOrigin.from_sequence(fix.lla)
                 log.info("map frame: ENU at the first GNSS fix %s", self.wgs84_origin)
             enu = geodetic_to_enu(fix.lla, self.wgs84_origin)
             self.slam.add_gps_fix(fix.robot_id, fix.stamp, enu[:2], fix.sigmas_enu)
+
+    def _unknown(self, rid: str, what: str) -> bool:
+        """Whether `rid` is off the roster: its `what` is dropped (logged: the first 20)."""
+        if self.roster is None or rid in self.roster:
+            return False
+        self.unknown_robot_drops += 1
+        n = self.unknown_robot_drops
+        if n <= 20 or n % 1000 == 0:
+            log.error("%s from unknown robot %r dropped (%d so far); known: %s",
+                      what, rid, n, sorted(self.roster))  # fmt: skip
+        return True
 
     def _take_batch(self, timeout: float) -> int:
         batch = self.inbox.take(self.cfg.basestation.batch_max, timeout)
@@ -376,15 +381,7 @@ class BaseStationNode:
         admitted = 0
         for kf in batch:
             rid = kf.robot_id
-            if self.roster is not None and rid not in self.roster:
-                self.unknown_robot_drops += 1
-                if self.unknown_robot_drops <= 20 or self.unknown_robot_drops % 1000 == 0:
-                    log.error(
-                        "keyframe from unknown robot %r dropped (%d so far); known: %s",
-                        rid,
-                        self.unknown_robot_drops,
-                        sorted(self.roster),
-                    )
+            if self._unknown(rid, "keyframe"):
                 continue
             touched.add(rid)
             admitted += self.slam.admit(kf)

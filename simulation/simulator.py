@@ -30,6 +30,7 @@ from common.errors import ProcessError
 from common.geometry import pose4_to_pose7
 from common.row_spool import RowSpool
 from common.scenario import Scenario
+from common.stamps import JumpGate
 from common.trajectory_io import Trajectory, write_tum
 from protocol import (
     Altimeter,
@@ -131,6 +132,7 @@ class Simulator:
         # lock-step handshake with the base station (exploration decisions in sim time)
         self.sync_period = cfg.base_sync_period_s()
         self._base_clock = -1.0
+        self._base_jump = JumpGate()  # an answer far past the clock (1e9 s) is held
         self.base_syncs = 0
         self.gnss_fixes = 0  # published (told to the base station with each clock request)
         self.base_sync_timeouts = 0
@@ -148,6 +150,10 @@ class Simulator:
 
     def _on_base_clock(self, msg: ClockSync, key: str) -> None:
         with self._cond:
+            if self._base_jump.holds(msg.stamp, max(self._base_clock, 0.0)):
+                log.error("base station's clock answer t=%.3f is far past t=%.3f: dropped",
+                          msg.stamp, self._base_clock)  # fmt: skip
+                return
             self._base_clock = max(self._base_clock, msg.stamp)
             self._cond.notify_all()
 

@@ -20,7 +20,7 @@ from common.bus import Bus
 from common.config import ZenohConfig
 from common.geometry import pose4_to_pose7
 from common.scenario import RobotScenario, Scenario, write_scenario
-from protocol import Keyframe, KeyframeAck, PoseCorrection, Scan2D, encode
+from protocol import Keyframe, KeyframeAck, PoseCorrection, RobotState, Scan2D, encode
 
 
 def _keyframe(seq: int, robot: str = "r0", x: float | None = None) -> Keyframe:
@@ -100,6 +100,10 @@ def test_basestation_survives_bad_input_and_acks_valid(tmp_path: Path, endpoint:
             # a keyframe claiming to be another robot on r0's key, and an unknown robot
             bus.put_raw(key, encode(_keyframe(0, robot="r9")))
             bus.put_raw(bus.keys.robot("r9", "keyframe"), encode(_keyframe(0, robot="r9")))
+            p7 = pose4_to_pose7([0.0, 0.0, 1.0, 0.0])
+            bus.publish(
+                bus.keys.robot("r9", "state"), RobotState("r9", 1.0, "flying", -1, 0, 0, 0, p7, p7)
+            )
             # valid keyframes, out of order and duplicated
             for seq in (0, 2, 1, 1, 3, 4):
                 bus.publish(key, _keyframe(seq))
@@ -115,10 +119,11 @@ def test_basestation_survives_bad_input_and_acks_valid(tmp_path: Path, endpoint:
             proc.kill()
     log = out.decode()
     assert proc.returncode == 0, log
-    assert "dropped bad message" in log and "unknown robot" in log
+    assert "dropped bad message" in log and "keyframe from unknown robot 'r9'" in log
+    assert "state from unknown robot 'r9'" in log
     stats = json.loads((tmp_path / "basestation.json").read_text())
     assert stats["robots"]["r0"]["keyframes_in_graph"] == 5
     assert stats["robots"]["r0"]["duplicates"] >= 1
     assert sum(stats["rejected_messages"].values()) == len(bad_payloads) + 1
-    assert stats["unknown_robot_drops"] == 1
+    assert stats["unknown_robot_drops"] == 2
     assert (tmp_path / "map.pgm").is_file() and (tmp_path / "trajectories" / "r0.tum").is_file()

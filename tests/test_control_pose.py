@@ -16,7 +16,16 @@ from agent.vehicle import NullVehicle
 from common.bus import Bus
 from common.config import Config, ZenohConfig
 from common.geometry import pose4_to_pose7
-from protocol import ControlPose, LaserScan, Odometry, PoseCorrection
+from protocol import (
+    Altimeter,
+    ControlPose,
+    Keyframe,
+    LaserScan,
+    Neighbours,
+    Odometry,
+    PoseCorrection,
+    decode,
+)
 
 
 def _wait(cond, timeout_s: float = 10.0) -> bool:
@@ -88,3 +97,45 @@ def test_agent_publishes_blended_control_pose(cfg: Config, endpoint: str, tmp_pa
         np.testing.assert_allclose(m.pose_map_raw, raw, atol=1e-8)
         assert (m.epoch == 1) == (m.stamp >= t_corr - 1e-9)
         assert 0.0 <= m.alpha <= 1.0
+
+
+def test_agent_holds_back_an_epoch_or_relay_far_ahead(cfg: Config, endpoint: str) -> None:
+    """A correction of epoch 2^63 - 1 had every later correction ignored (now held until
+    the next follows it), and a relay stamped 1e9 s every later relay (one answering a
+    state not sent yet is dropped)."""
+    pose = pose4_to_pose7([1.0, 0.0, 0.0, 0.0])
+    with Bus(ZenohConfig(listen=[endpoint]), cfg.fleet) as bus:
+        node = AgentNode(cfg, "r0", bus, np.zeros((0, 2)), np.zeros(4), NullVehicle())
+        node._on_correction(PoseCorrection("r0", 2**63 - 1, 0.0, pose), "")
+        assert node.epoch == -1
+        node._on_correction(PoseCorrection("r0", 1, 0.0, pose), "")
+        assert node.epoch == 1 and node.T_map_odom[0] == 1.0
+        node._on_correction(PoseCorrection("r0", 5001, 0.0, pose), "")  # a restart's block
+        assert node.epoch == 5001
+        empty = (np.zeros(0), np.zeros((0, 2)), np.zeros((0, 2)))
+        for stamp in (1e9, 0.2, 0.4):
+            node.last_state_stamp = min(stamp, 0.4)  # a state of 1e9 s was never sent
+            node._on_neighbours(Neighbours("r0", stamp, *empty), "")
+        assert [m.stamp for m in node._neighbours] == [0.2, 0.4]
+
+
+def test_agent_sends_no_keyframe_the_base_station_would_refuse(cfg: Config, endpoint: str) -> None:
+    """An altimeter reading of 1e9 m put a keyframe's height out of the pose graph's
+    reach: refused by the base station, it held back every later keyframe of the robot
+    for good. Such a keyframe is not sent; the next one spans from the last one sent."""
+    cfg.agent.local_slam.enabled = False  # odometry integration: exact local poses
+    with Bus(ZenohConfig(listen=[endpoint]), cfg.fleet) as bus:
+        node = AgentNode(cfg, "r0", bus, np.zeros((0, 2)), np.zeros(4), NullVehicle())
+        for k in range(60):  # 0.5 m/s along x: a keyframe every 0.2 m
+            t = 0.1 * k
+            node.handle(Altimeter("r0", t, 1e9 if 10 <= k < 14 else 1.0))
+            pose = pose4_to_pose7([0.5 * t, 0.0, 0.0, 0.0])
+            node.handle(Odometry("r0", t, pose, np.array([0.5, 0.0, 0.0, 0.0])))
+            node.handle(LaserScan("r0", t, -1.0, 0.01, 0.1, 30.0, np.ones(201, np.float32)))
+        sent = [decode(p, Keyframe) for p in node.outbox._pending.values()]
+    assert node.keyframes_refused >= 2
+    assert [kf.seq for kf in sent] == list(range(len(sent))) and len(sent) >= 12
+    steps = np.array([kf.delta[:3] for kf in sent[1:]])
+    assert np.all(np.abs(steps[:, 2]) < 1e-9) and np.all(steps[:, 0] > 0.0)
+    travel = sent[-1].pose_odom[0] - sent[0].pose_odom[0]
+    assert abs(steps[:, 0].sum() - travel) < 1e-9  # the keyframe after the gap spans it

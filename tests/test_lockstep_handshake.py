@@ -131,3 +131,25 @@ def test_a_drones_sensor_messages_arrive_in_the_order_they_were_sent(endpoint: s
                 break
             got.append((type(msg).__name__, msg.stamp))
         assert got == sent
+
+
+def test_a_clock_stamped_far_ahead_is_held_back() -> None:
+    """A ClockSync of 1e9 s on clock/sim had been answered, and every real request after it
+    taken as answered already (the simulator hung); on a drone's sensor key it had every
+    tick wait for a mark that would never come."""
+    clock = LockstepClock(active=True, timeout_s=60.0)
+    clock.on_request(ClockSync("sim", 1e9), "")
+    assert clock.wait_request(0.0) is None
+    clock.on_request(ClockSync("sim", 0.2), "")
+    assert clock.wait_request(0.0) == 0.2
+    gate = DownlinkGate(timeout_s=0.2)
+    gate.on_clock(1e9)
+    gate.on_clock(1.0)
+    gate.on_mark(DownlinkMark("r0", 1.0, paths=0, epoch=-1))
+    gate.wait()
+    assert gate.timeouts == 0
+    gate.on_clock(70.0)  # a real jump (the next follows it): taken
+    gate.on_clock(70.2)
+    gate.on_mark(DownlinkMark("r0", 70.2, paths=0, epoch=-1))
+    gate.wait()
+    assert gate.timeouts == 0

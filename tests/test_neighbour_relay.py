@@ -92,6 +92,7 @@ def test_a_tick_uses_only_answers_to_states_sent_before_it(cfg: Config, endpoint
                 "",
             )  # fmt: skip
 
+        node.last_state_stamp = 1.0  # the states of t = 0.8 and 1.0 went out
         answer(0.8, 2.0)
         answer(1.0, 3.0)  # the answer to the state of t = 1.0, in before its command
         node._command(1.0)

@@ -74,6 +74,18 @@ class CarmenOdometry:
     rv: float  # rotational velocity (rad/s)
 
 
+# PARAM name -> (CarmenParams field, scale to m / rad, must be > 0)
+_PARAM_FIELDS = {
+    "robot_frontlaser_offset": ("frontlaser_offset_m", 1.0, False),
+    "robot_frontlaser_side_offset": ("frontlaser_side_offset_m", 1.0, False),
+    "robot_frontlaser_angular_offset": ("frontlaser_angular_offset_rad", 1.0, False),
+    "laser_front_laser_fov": ("laser_fov_rad", math.pi / 180.0, True),
+    "laser_front_laser_resolution": ("laser_resolution_rad", math.pi / 180.0, True),
+    "robot_front_laser_max": ("laser_range_max_m", 1.0, True),
+    "laser_front_laser_maxrange": ("laser_range_max_m", 1.0, True),
+}
+
+
 @dataclass
 class CarmenParams:
     """Robot / laser parameters from PARAM lines. `None` means "not in the log": the
@@ -95,20 +107,22 @@ class CarmenParams:
     raw: dict[str, str] = field(default_factory=dict)
 
     def update(self, name: str, value: str) -> None:
-        """Apply one PARAM line (raises ValueError if a known numeric parameter is not a number)."""
+        """Apply one PARAM line (raises ValueError naming the rule if a known numeric
+        parameter is not a finite number, or a laser's field of view, resolution or
+        range not > 0: a maximum range of nan had every keyframe refused)."""
+        if name not in _PARAM_FIELDS:
+            self.raw[name] = value
+            return
+        number = float(value)
+        if not math.isfinite(number):
+            raise ValueError(f"expected a finite number, got {value!r}")
+        attr, scale, positive = _PARAM_FIELDS[name]
+        if positive and not number > 0.0:
+            raise ValueError(f"expected a value > 0, got {value!r}")
+        if name == "laser_front_laser_fov" and number > 360.0:
+            raise ValueError(f"expected at most 360 deg, got {value!r}")
         self.raw[name] = value
-        if name == "robot_frontlaser_offset":
-            self.frontlaser_offset_m = float(value)
-        elif name == "robot_frontlaser_side_offset":
-            self.frontlaser_side_offset_m = float(value)
-        elif name == "robot_frontlaser_angular_offset":
-            self.frontlaser_angular_offset_rad = float(value)
-        elif name == "laser_front_laser_fov":
-            self.laser_fov_rad = math.radians(float(value))
-        elif name == "laser_front_laser_resolution":
-            self.laser_resolution_rad = math.radians(float(value))
-        elif name in ("robot_front_laser_max", "laser_front_laser_maxrange"):
-            self.laser_range_max_m = float(value)
+        setattr(self, attr, scale * number)
 
     def beam_geometry(self, n: int) -> tuple[float, float, float]:
         """(angle_min, angle_increment, range_max) for an FLASER scan with n beams."""
@@ -223,6 +237,11 @@ def _parse_robotlaser(path: Path, lineno: int, f: list[str]) -> CarmenLaser:
             f"{path}:{lineno}: {name}: expected {expected} fields for {n} ranges and "
             f"{m} remissions, got {len(f)}"
         )
+    if not (cfg[3] > 0.0 and cfg[4] > 0.0):
+        raise FileFormatError(
+            f"{path}:{lineno}: {name}: expected an angular resolution and a maximum range "
+            f"> 0, got {cfg[3]} and {cfg[4]}"
+        )
     ranges = _numbers(path, lineno, name, f[9 : 9 + n])
     tail = _numbers(path, lineno, name, f[10 + n + m : expected - 2])
     return CarmenLaser(
@@ -257,10 +276,9 @@ def _apply_param(path: Path, lineno: int, f: list[str], params: CarmenParams) ->
         raise FileFormatError(f"{path}:{lineno}: PARAM: expected 'PARAM name value ...'")
     try:
         params.update(f[1], f[2])
-    except ValueError:
-        raise FileFormatError(
-            f"{path}:{lineno}: PARAM {f[1]}: expected a number, got {f[2]!r}"
-        ) from None
+    except ValueError as exc:
+        why = str(exc) if str(exc).startswith("expected") else f"expected a number, got {f[2]!r}"
+        raise FileFormatError(f"{path}:{lineno}: PARAM {f[1]}: {why}") from None
 
 
 MALFORMED_LOGGED = 10  # malformed lines logged one by one (drop_malformed); then a count

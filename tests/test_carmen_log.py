@@ -156,6 +156,17 @@ def test_params_and_time_span(tmp_path: Path) -> None:
         ("ODOM 1.0 2.0 0.5 0.0 0.0 100.3 nohost 0.3", "expected 9 fields"),
         ("ODOM 1.0 2.0 nan 0.0 0.0 0.0 100.3 nohost 0.3", "non-finite"),
         ("PARAM robot_frontlaser_offset abc nohost 0", "expected a number"),
+        # one of these had every keyframe refused, or every scan dropped unexplained
+        ("PARAM laser_front_laser_maxrange nan nohost 0", "expected a finite number"),
+        ("PARAM robot_front_laser_max -5 nohost 0", "expected a value > 0"),
+        ("PARAM laser_front_laser_resolution 0 nohost 0", "expected a value > 0"),
+        ("PARAM laser_front_laser_fov inf nohost 0", "expected a finite number"),
+        ("PARAM laser_front_laser_fov 720 nohost 0", "at most 360"),
+        (
+            "ROBOTLASER1 0 -1.0 2.0 0.0 20.0 0.01 0 3 7.0 8.0 9.0 0 1.0 1.0 0.1 1.1 1.1 0.2 "
+            "0.3 0.01 0.5 0.5 0.3 100.3 nohost 0.3",
+            "angular resolution and a maximum range > 0",
+        ),
     ],
 )
 def test_malformed_line_raises_with_line_number(

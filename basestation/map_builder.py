@@ -92,6 +92,8 @@ class MapBuilder:
         self._n = 0
         self._angles: dict[tuple[float, float, int], np.ndarray] = {}
         self._anchor = np.zeros(2)  # world xy of the tile lattice's corner (0, 0)
+        self._center: np.ndarray | None = None  # xy of the first keyframe: the map's middle
+        self.beyond_radius = 0  # keyframes not drawn: farther from it than max_radius_m
         self._tile_cells = max(int(round(cfg.rerender_tile_m / cfg.resolution_m)), 10)
         self._dirty: dict[Tile, float] = {}  # tile -> largest move (m) since drawn
         self._job: _TileJob | None = None
@@ -200,9 +202,9 @@ class MapBuilder:
             self._append([keys[j] for j in part], part_scans, poses[part])
         idx = self._rows_of(keys)
         self._pose[idx] = poses
-        lo, hi = self._boxes(slice(n_old, self._n))
+        lo, hi = self._within_reach(*self._boxes(slice(n_old, self._n)))
         c = self.cfg
-        if self.grid is None:
+        if self.grid is None and len(lo):
             self.grid = OccupancyGrid.from_bounds(
                 lo.min(axis=0) - 1.0, hi.max(axis=0) + 1.0, c.resolution_m,
                 p_hit=c.p_hit, p_miss=c.p_miss, p_min=c.p_min, p_max=c.p_max,
@@ -211,7 +213,8 @@ class MapBuilder:
         elif len(lo):
             self.grid.grow_to_include(lo.min(axis=0), hi.max(axis=0), 1.0)
         moved = self._mark_moved(idx[idx < n_old])
-        for k, i in enumerate(range(n_old, self._n, CHUNK)):  # bounded after a recovery
+        last_new = self._n if self.grid is not None else n_old  # none drawn without a grid
+        for k, i in enumerate(range(n_old, last_new, CHUNK)):  # bounded after a recovery
             last = k == len(parts) - 1  # its scans are still at hand
             self._draw(self.grid, range(i, min(i + CHUNK, self._n)), part_scans if last else None)
         self.work(None if budget_s is None else c.rerender_budget_s if budget_s < 0 else budget_s)
@@ -240,6 +243,23 @@ class MapBuilder:
         r = self._reach[rows][:, None]
         return p[:, :2] - r, p[:, :2] + r
 
+    def _within_reach(self, lo: np.ndarray, hi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The boxes of keyframes within `max_radius_m` of the first one, cut to that
+        square: the map stops there (a keyframe one far GNSS fix pulled 465 km away had
+        the grid allocate 133 TiB). Those beyond are counted, logged, and not drawn."""
+        if self._center is None and len(lo):
+            self._center = (lo[0] + hi[0]) / 2.0
+        if not len(lo):
+            return lo, hi
+        r, c = self.cfg.max_radius_m, self._center
+        ok = np.all(np.abs((lo + hi) / 2.0 - c) <= r, axis=1)
+        if not ok.all():
+            far = int((~ok).sum())
+            self.beyond_radius += far
+            log.error("map: %d keyframes more than map.max_radius_m = %g m from the first "
+                      "one are not drawn (%d so far)", far, r, self.beyond_radius)  # fmt: skip
+        return np.maximum(lo[ok], c - r), np.minimum(hi[ok], c + r)
+
     def _mark_moved(self, idx: np.ndarray) -> int:
         """Mark dirty the tiles of keyframes `idx` that moved since drawn; returns #moved."""
         c = self.cfg
@@ -255,6 +275,8 @@ class MapBuilder:
         span = self._tile_cells * c.resolution_m
         for poses in (self._drawn[moved], self._pose[moved]):
             lo, hi = self._boxes(moved, poses)
+            lo = np.maximum(lo, self._center - self.cfg.max_radius_m)  # no tiles beyond
+            hi = np.minimum(hi, self._center + self.cfg.max_radius_m)
             t_lo = np.floor((lo - m - self._anchor) / span).astype(np.int64)
             t_hi = np.floor((hi + m - self._anchor) / span).astype(np.int64)
             for tx in range(int(t_lo[:, 0].min()), int(t_hi[:, 0].max()) + 1):

@@ -161,6 +161,9 @@ class MapConfig:
     # thread per map refresh (basestation/map_builder.py); outputs finish every tile.
     rerender_tile_m: float = 12.0  # m (8: 1.7x the CPU of 12 for a full redraw; 16: 0.9x)
     rerender_budget_s: float = 0.1  # s wall per map refresh
+    # m: keyframes farther than this from the first are not drawn, and the map goes no
+    # farther (a 1 km square at most: 2 GB at 0.05 m); one far GNSS fix had allocated TiB
+    max_radius_m: float = 500.0
 
 
 @dataclass

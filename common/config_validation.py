@@ -51,10 +51,15 @@ def numeric_keys(obj: Any, prefix: str = "") -> Iterator[tuple[str, int | float]
             yield f"{prefix}{f.name}", value
 
 
-def _no_negatives(cfg: Config) -> None:
+INT_MAX = 2**31 - 1  # GTSAM and numpy take C ints (2**70 ended in a TypeError)
+
+
+def _numbers_in_range(cfg: Config) -> None:
     for key, value in numeric_keys(cfg):
         if value < 0 and key not in SIGNED_KEYS:
             raise ConfigError(f"{key}: expected a value >= 0, got {value}")
+        if isinstance(value, int) and abs(value) > INT_MAX:
+            raise ConfigError(f"{key}: expected at most {INT_MAX}, got {value}")
 
 
 def _positive(key: str, value: float) -> None:
@@ -93,7 +98,7 @@ def validate(cfg: Config) -> None:
         raise ConfigError(f"zenoh.mode: expected peer, client or router, got {cfg.zenoh.mode!r}")
     if cfg.sim.clock not in ("lockstep", "realtime"):
         raise ConfigError(f"sim.clock: expected lockstep or realtime, got {cfg.sim.clock!r}")
-    _no_negatives(cfg)
+    _numbers_in_range(cfg)
     _validate_sim(cfg)
     _validate_map(cfg)
     _validate_agent(cfg)
@@ -171,6 +176,7 @@ def _validate_map(cfg: Config) -> None:
     if not cfg.map.p_miss < 0.5 < cfg.map.p_hit:
         raise ConfigError("map.p_hit / map.p_miss: expected p_miss < 0.5 < p_hit")
     _positive("map.rerender_tile_m", cfg.map.rerender_tile_m)
+    _positive("map.max_radius_m", cfg.map.max_radius_m)
     if cfg.map.rerender_budget_s < 0.0:
         raise ConfigError("map.rerender_budget_s: expected a value >= 0")
     if cfg.map.rerender_tile_m < 10 * cfg.map.resolution_m:

@@ -22,6 +22,9 @@ ROBOT_ID_RE = re.compile(r"^[A-Za-z0-9_-]{1,32}$")
 # every 0.2 m, and one spanning an outage of the link is still far inside these.
 KEYFRAME_MAX_STEP_M = 1000.0  # m
 KEYFRAME_VAR_RANGE = (1e-10, 100.0)  # m^2 or rad^2, each diagonal entry of delta_cov
+# m: no pose, correction or waypoint is farther out (a correction of 1e308 m had made
+# every command NaN, a waypoint of 1e9 m sent the drone off toward it)
+MAX_POSITION_M = 1e7
 ROBOT_STATUSES = ("starting", "waiting", "flying", "blocked", "hovering", "done", "landed")
 
 
@@ -32,7 +35,13 @@ def _check_robot_id(robot_id: str) -> None:
         )
 
 
+def _check_position(name: str, xyz: np.ndarray) -> None:
+    if xyz.size and float(np.abs(xyz).max()) > MAX_POSITION_M:
+        raise ProtocolError(f"{name}: a position beyond {MAX_POSITION_M:g} m")
+
+
 def _check_pose7(name: str, pose: np.ndarray) -> None:
+    _check_position(name, pose[:3])
     norm = float(np.linalg.norm(pose[3:7]))
     if abs(norm - 1.0) > 1e-3:
         raise ProtocolError(f"{name}: quaternion norm is {norm:.6f}, expected 1")
@@ -314,6 +323,7 @@ class Path(Message):
     def validate(self) -> None:
         super().validate()
         _check_frame(self.frame)
+        _check_position("Path.waypoints", self.waypoints[:, :3])
 
 
 @message

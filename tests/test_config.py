@@ -64,7 +64,8 @@ def test_bad_toml(tmp_path: Path) -> None:
 
 
 def test_no_number_takes_a_negative_unless_signed() -> None:
-    """Every numeric key refuses -1 (naming it) except biases, offsets and coordinates."""
+    """Every numeric key refuses -1 (naming it) except biases, offsets and coordinates,
+    and every integer key 2**70."""
     from common.config_validation import SIGNED_KEYS, numeric_keys
 
     keys = dict(numeric_keys(Config()))
@@ -76,3 +77,7 @@ def test_no_number_takes_a_negative_unless_signed() -> None:
             continue
         with pytest.raises(ConfigError, match=key.replace(".", r"\.")):
             load_config(overrides=bad)
+    for key, value in keys.items():  # C ints: 2**70 had ended in a TypeError in GTSAM
+        if isinstance(value, int):
+            with pytest.raises(ConfigError, match=key.replace(".", r"\.") + ": expected at most"):
+                load_config(overrides={key: 2**70})

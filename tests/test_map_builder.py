@@ -266,3 +266,26 @@ def test_published_map_calls_a_cell_free_after_two_looks_exploration_after_one()
     assert _after_looks(MapConfig(), 2) == (0, 0)
     assert _after_looks(MapConfig(free_thresh=0.196), 3) == (-1, 0)
     assert _after_looks(MapConfig(free_thresh=0.196), 4) == (0, 0)
+
+
+def test_keyframes_beyond_max_radius_are_not_drawn_and_the_map_stays_bounded() -> None:
+    """One far GNSS fix pulled a robot 465 km away and the grid tried to allocate 133 TiB,
+    and a second robot started 1e8 m off allocated 3.2 TiB: the map stops
+    `max_radius_m` from the first keyframe."""
+    cfg = MapConfig(max_radius_m=50.0)
+    rng = np.random.default_rng(3)
+    n = 20
+    keys = [("a", i) for i in range(n)] + [("b", 0), ("b", 1)]
+    scans = [_scan(rng) for _ in keys]
+    poses = np.vstack([_line(rng, n), [[1e8, 0.0, 0.0], [1e8 + 1.0, 0.0, 0.0]]])
+    mb = MapBuilder(cfg)
+    mb.update(keys, scans, poses, budget_s=None)
+    assert mb.beyond_radius == 2 and mb.grid is not None
+    assert mb.grid.shape[1] * cfg.resolution_m < 2 * cfg.max_radius_m + 5.0
+    moved = poses.copy()
+    moved[10:n, 0] += 465e3  # half of robot a's keyframes pulled 465 km east
+    mb.update(keys, scans, moved, budget_s=None)
+    h, w = mb.grid.shape
+    assert w * cfg.resolution_m < 2 * cfg.max_radius_m + 5.0 and mb.pending == 0
+    ref = _full_render(mb, scans[:10], moved[:10])  # what is left in reach is drawn
+    assert (np.abs(mb.grid.log_odds - ref) > 1e-5).sum() <= 30

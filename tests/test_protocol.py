@@ -228,3 +228,16 @@ def test_keyframes_the_pose_graph_cannot_take_are_refused(kf: Keyframe, reason: 
     with pytest.raises(ProtocolError, match=reason):
         decode(encode(kf))
     decode(encode(_keyframe()))  # the same keyframe with sane values passes
+
+
+def test_positions_beyond_ten_thousand_km_are_refused() -> None:
+    """A correction of 1.5e308 m had made every command of the drone NaN, and a path
+    waypoint of 1e9 m sent it off toward it."""
+    far = pose4_to_pose7([1.5e308, 0.0, 0.0, 0.0])
+    with pytest.raises(ProtocolError, match="beyond"):
+        decode(encode(PoseCorrection("r0", 1, 0.0, far)))
+    wp = np.array([[1.0, 1.0, 1.0, 0.0], [1e9, 1.0, 1.0, 0.0]], dtype=np.float32)
+    with pytest.raises(ProtocolError, match="beyond"):
+        decode(encode(Path("r0", 1, 0.0, "map", 1, wp)))
+    decode(encode(Path("r0", 1, 0.0, "map", 1, wp[:1])))  # a sane one passes
+    decode(encode(PoseCorrection("r0", 1, 0.0, pose4_to_pose7([5e6, 0.0, 0.0, 0.0]))))

@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import math
 import sys
 import threading
 from pathlib import Path
@@ -111,11 +112,14 @@ def _segment(text: str | None) -> tuple[float | None, float | None]:
         return None, None
     a, sep, b = text.partition(":")
     try:
-        if not sep:
+        start, end = (float(a) if a else None, float(b) if b else None)
+        if not sep or not all(math.isfinite(v) for v in (start, end) if v is not None):
             raise ValueError
-        return (float(a) if a else None, float(b) if b else None)
     except ValueError:
         raise ConfigError(f"--segment {text!r}: expected START:END in seconds") from None
+    if start is not None and end is not None and not start < end:
+        raise ConfigError(f"--segment {text!r}: START must come before END")
+    return start, end
 
 
 def arrays_on_disk(arrays_dir: str, db_path: str) -> None:

@@ -93,6 +93,8 @@ def _parse_line(graph: G2oGraph, tag: str, fields: list[str], where: str) -> Non
         raise FileFormatError(f"{where}: {tag} has a non-numeric field ({exc})") from exc
     if not np.all(np.isfinite(numbers)):
         raise FileFormatError(f"{where}: {tag} has a non-finite value")
+    if min(ids) < 0:
+        raise FileFormatError(f"{where}: {tag} has a negative vertex id {min(ids)}")
     if info_dim == 0:
         vertices = graph.vertices_se2 if tag == "VERTEX_SE2" else graph.vertices_se3
         if ids[0] in vertices:
@@ -101,6 +103,12 @@ def _parse_line(graph: G2oGraph, tag: str, fields: list[str], where: str) -> Non
         return
     n_meas = 3 if info_dim == 3 else 7
     info = _upper_to_full(numbers[n_meas:], info_dim)
+    try:  # an all-zero information matrix had ended in a LinAlgError traceback
+        np.linalg.cholesky(info)
+    except np.linalg.LinAlgError:
+        raise FileFormatError(
+            f"{where}: {tag} information matrix is not positive definite"
+        ) from None
     if info_dim == 3:
         graph.edges_se2.append(EdgeSE2(ids[0], ids[1], numbers[:n_meas], info))
     else:

@@ -44,6 +44,11 @@ PIXEL_UNKNOWN = 205
 
 _REQUIRED_KEYS = ("image", "resolution", "origin", "negate", "occupied_thresh", "free_thresh")
 _PGM_EXTENSIONS = (".pgm", ".pnm")
+# Limits on what a map file may claim: a 57-byte PNG claiming 10^6 x 10^6 pixels, a
+# resolution of 1e-320 m and an origin of 1e300 m had each ended in a traceback.
+MAX_MAP_CELLS = 10**8  # 10,000 x 10,000 (500 m square at 0.05 m)
+MAP_RESOLUTION_RANGE_M = (1e-3, 100.0)
+MAX_ORIGIN_M = 1e7
 
 
 @dataclass(eq=False)
@@ -254,6 +259,7 @@ def _read_pgm(path: Path, buf: bytes) -> tuple[NDArray[np.float64], None]:
             f"{path}: PGM header: expected width, height > 0 and 0 < maxval < 65536, "
             f"got {width} x {height}, maxval {maxval}"
         )
+    _check_size(path, width, height)
     count = width * height
     if magic == b"P5":
         pos += 1  # exactly one whitespace byte separates the header from the raster
@@ -287,6 +293,7 @@ def _read_with_pil(path: Path) -> tuple[NDArray[np.float64], NDArray[np.float64]
 
     try:
         with Image.open(path) as img:
+            _check_size(path, *img.size)
             img.load()
             if img.mode.startswith("I;16"):
                 arr = np.asarray(img, dtype=np.float64) * (255.0 / 65535.0)
@@ -296,13 +303,28 @@ def _read_with_pil(path: Path) -> tuple[NDArray[np.float64], NDArray[np.float64]
                 img = img.convert("RGBA" if has_alpha else "RGB")
             arr = np.asarray(img, dtype=np.float64)
             mode = img.mode
-    except (UnidentifiedImageError, OSError, ValueError, SyntaxError) as exc:
+    except (
+        UnidentifiedImageError,
+        OSError,
+        ValueError,
+        SyntaxError,
+        Image.DecompressionBombError,
+    ) as exc:
         raise FileFormatError(f"{path}: cannot decode map image: {exc}") from exc
     if arr.ndim == 2:
         return arr, None
     if mode in ("LA", "RGBA"):
         return arr[..., :-1].mean(axis=-1), arr[..., -1]
     return arr.mean(axis=-1), None
+
+
+def _check_size(path: Path, width: int, height: int) -> None:
+    """A map image's header may claim any size (a 57-byte PNG claimed 10^6 x 10^6)."""
+    if width * height > MAX_MAP_CELLS:
+        raise FileFormatError(
+            f"{path}: map image of {width} x {height} pixels is larger than "
+            f"{MAX_MAP_CELLS:.0e} cells"
+        )
 
 
 def _read_image(path: Path) -> tuple[NDArray[np.float64], NDArray[np.float64] | None]:
@@ -344,12 +366,17 @@ def read_map(yaml_path: str | Path) -> GridMap:
     if not isinstance(image, str) or not image:
         raise FileFormatError(f"{yaml_path}: 'image' must be a file name, got {image!r}")
     resolution = _number(meta["resolution"], "resolution", yaml_path)
-    if resolution <= 0.0:
-        raise FileFormatError(f"{yaml_path}: 'resolution' must be > 0, got {resolution}")
+    if not MAP_RESOLUTION_RANGE_M[0] <= resolution <= MAP_RESOLUTION_RANGE_M[1]:
+        lo, hi = MAP_RESOLUTION_RANGE_M
+        raise FileFormatError(
+            f"{yaml_path}: 'resolution' must be {lo:g}..{hi:g} m, got {resolution}"
+        )
     origin = meta["origin"]
     if not isinstance(origin, list) or len(origin) != 3:
         raise FileFormatError(f"{yaml_path}: 'origin' must be [x, y, yaw], got {origin!r}")
     ox, oy, oyaw = (_number(v, "origin", yaml_path) for v in origin)
+    if max(abs(ox), abs(oy)) > MAX_ORIGIN_M:
+        raise FileFormatError(f"{yaml_path}: 'origin' must lie within {MAX_ORIGIN_M:g} m")
     if abs(oyaw) > 1e-9:
         raise FileFormatError(f"{yaml_path}: origin yaw must be 0, got {oyaw}")
     negate = _flag(meta["negate"], "negate", yaml_path)

@@ -24,6 +24,8 @@ from common.geodesy import GeoOrigin, georeferenced_waypoints
 from common.world_files import world_wgs84_origin
 from protocol.messages import ROBOT_ID_RE
 
+MAX_COORDINATE_M = 1e6  # m: start poses and tour points (map frame)
+
 
 @dataclass
 class RobotScenario:
@@ -88,18 +90,27 @@ def read_scenario(path: str | Path) -> Scenario:
                 tour = np.asarray(r.get("tour", []), dtype=np.float64).reshape(-1, 2)
             if start.shape != (3,) or not np.all(np.isfinite(start)):
                 raise ValueError(f"robot {rid}: start_pose must be 3 finite numbers")
+            for name, xy in (("start_pose", start[:2]), ("tour", tour)):
+                # a tour point of Infinity had made every command NaN
+                if not (np.all(np.isfinite(xy)) and np.all(np.abs(xy) <= MAX_COORDINATE_M)):
+                    raise ValueError(f"robot {rid}: {name} beyond {MAX_COORDINATE_M:g} m")
             robots.append(RobotScenario(rid, start, tour))
         if len({r.robot_id for r in robots}) != len(robots):
             raise ValueError("duplicate robot ids")
-        return Scenario(str(doc["world"]), robots, int(doc.get("seed", 0)))
+        seed = doc.get("seed", 0)
+        if isinstance(seed, bool) or not isinstance(seed, int) or not 0 <= seed < 2**31:
+            raise ValueError(f"seed must be an integer in 0..2**31-1, got {seed!r}")
+        return Scenario(str(doc["world"]), robots, seed)
     except FileNotFoundError:
         raise FileFormatError(f"scenario file not found: {path}") from None
     except (OSError, UnicodeDecodeError) as exc:  # a folder, no permission, not text
         raise FileFormatError(f"{path}: cannot read the scenario: {exc}") from None
     except KeyError as exc:
         raise FileFormatError(f"{path}: invalid scenario: no {exc} given") from None
-    except (TypeError, ValueError, json.JSONDecodeError, CollabSlamError) as exc:
+    except (TypeError, ValueError, json.JSONDecodeError, CollabSlamError, OverflowError) as exc:
         raise FileFormatError(f"{path}: invalid scenario: {exc}") from None
+    except RecursionError:  # nested 100,000 deep
+        raise FileFormatError(f"{path}: invalid scenario: nested too deep") from None
 
 
 def _origin(doc: dict) -> GeoOrigin:

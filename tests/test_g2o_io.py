@@ -110,6 +110,8 @@ def test_skips_unknown_tags_and_comments(tmp_path: Path, caplog: pytest.LogCaptu
         "VERTEX_SE2 1.5 0 0 0",
         "VERTEX_SE2 1 nan 0 0",
         "VERTEX_SE2 0 1 1 1",  # duplicate id
+        "EDGE_SE2 0 1 1 0 0 0 0 0 0 0 0",  # zero information: a LinAlgError traceback
+        "EDGE_SE2 -5 0 1 0 0 1 0 0 1 0 1",  # negative id: a KeyError traceback
     ],
 )
 def test_malformed_line_names_the_line(tmp_path: Path, bad_line: str) -> None:

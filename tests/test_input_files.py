@@ -19,6 +19,19 @@ from common.scenario import read_scenario
         ({"world": "bshape", "robots": "r0"}, 'a list of "robots"'),
         ({"robots": []}, "no 'world' given"),
         ({"world": "bshape", "robots": [{"id": "r0"}]}, "no 'start_pose' given"),
+        # each of these had ended in a traceback, or every command NaN
+        ({"world": "b", "robots": [], "seed": 1e300}, "seed must be an integer"),
+        ({"world": "b", "robots": [], "seed": -1}, "seed must be an integer"),
+        ({"world": "b", "robots": [{"id": "r0", "start_pose": [1e300, 0, 0]}]}, "beyond"),
+        (
+            {
+                "world": "b",
+                "robots": [
+                    {"id": "r0", "start_pose": [0, 0, 0], "tour": [[1, 1], [float("inf"), 0]]}
+                ],
+            },
+            "tour beyond",
+        ),
     ],
 )
 def test_a_bad_scenario_names_what_is_wrong(tmp_path: Path, doc: object, match: str) -> None:
@@ -27,6 +40,16 @@ def test_a_bad_scenario_names_what_is_wrong(tmp_path: Path, doc: object, match: 
     with pytest.raises(FileFormatError, match=match) as err:
         read_scenario(path)
     assert str(path) in str(err.value)
+
+
+def test_a_scenario_nested_too_deep_is_a_clear_error(tmp_path: Path) -> None:
+    path = tmp_path / "s.json"
+    path.write_text("[" * 100_000)
+    with pytest.raises(FileFormatError, match="nested too deep|invalid scenario"):
+        read_scenario(path)
+    path.write_text('{"world": "b", "robots": [], "seed": 1e400}')  # json: inf
+    with pytest.raises(FileFormatError, match="seed must be an integer"):
+        read_scenario(path)
 
 
 def test_a_folder_given_for_a_file_is_a_clear_error(tmp_path: Path) -> None:
@@ -38,3 +61,13 @@ def test_a_folder_given_for_a_file_is_a_clear_error(tmp_path: Path) -> None:
     binary.write_bytes(b"\xff\xfe\x00junk")
     with pytest.raises(ConfigError, match=str(binary)):
         load_config(binary)
+
+
+def test_a_segment_must_be_finite_and_in_order() -> None:
+    """`--segment nan:` or `20:10` had replayed 0 scans and exited 0."""
+    from collabslam.cli import _segment
+
+    assert _segment("1:2.5") == (1.0, 2.5) and _segment(":5") == (None, 5.0)
+    for bad in ("nan:", "inf:", "5:3", "4:4", "1-2", "a:b"):
+        with pytest.raises(ConfigError, match="--segment"):
+            _segment(bad)

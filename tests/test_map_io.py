@@ -117,7 +117,10 @@ def test_yaml_comments_quotes_and_block_lists(tmp_path: Path) -> None:
     [
         (YAML_OK.replace("resolution: 0.1\n", ""), None, "missing map YAML keys"),
         (YAML_OK.replace("0.1", "abc"), None, "'resolution' must be a finite number"),
-        (YAML_OK.replace("0.1", "-0.1"), None, "'resolution' must be > 0"),
+        (YAML_OK.replace("0.1", "-0.1"), None, "'resolution' must be 0.001..100 m"),
+        (YAML_OK.replace("0.1", "1e-320"), None, "'resolution' must be 0.001..100 m"),
+        (YAML_OK.replace("-1.5, 2.0", "-1.5, 1e300"), None, "'origin' must lie within"),
+        (YAML_OK, b"P5\n20000 20000\n255\n", "larger than"),
         (YAML_OK.replace("2.0, 0.0]", "2.0, 0.5]"), None, "origin yaw must be 0"),
         (YAML_OK.replace("[-1.5, 2.0, 0.0]", "[-1.5, 2.0"), None, "unterminated list"),
         (YAML_OK.replace("[-1.5, 2.0, 0.0]", "[1, 2]"), None, "'origin' must be [x, y, yaw]"),
@@ -151,6 +154,24 @@ def test_missing_files_and_undecodable_png(tmp_path: Path) -> None:
     (tmp_path / "p.yaml").write_text(YAML_OK.format(image="bad.png", negate=0))
     with pytest.raises(FileFormatError, match="bad.png: cannot decode"):
         read_map(tmp_path / "p.yaml")
+
+
+def test_a_png_claiming_a_huge_size_is_refused(tmp_path: Path) -> None:
+    """A 57-byte PNG whose header claims 10^6 x 10^6 pixels had ended in PIL's
+    DecompressionBombError and a traceback."""
+    import struct
+    import zlib
+
+    def chunk(kind: bytes, data: bytes) -> bytes:
+        crc = zlib.crc32(kind + data) & 0xFFFFFFFF
+        return struct.pack(">I", len(data)) + kind + data + struct.pack(">I", crc)
+
+    ihdr = struct.pack(">IIBBBBB", 10**6, 10**6, 8, 0, 0, 0, 0)
+    png = b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", ihdr) + chunk(b"IEND", b"")
+    (tmp_path / "bomb.png").write_bytes(png)
+    (tmp_path / "m.yaml").write_text(YAML_OK.format(image="bomb.png", negate=0))
+    with pytest.raises(FileFormatError, match="bomb.png: .*(1000000 x 1000000|bomb)"):
+        read_map(tmp_path / "m.yaml")
 
 
 def test_cell_helpers() -> None:

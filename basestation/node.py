@@ -28,6 +28,7 @@ import numpy as np
 
 from basestation.exploration_setup import make_explorer
 from basestation.global_slam import GlobalSlam
+from basestation.gnss_intake import GnssIntake
 from basestation.inbox import KeyframeInbox
 from basestation.lockstep import LockstepClock
 from basestation.map_builder import MapBuilder
@@ -39,7 +40,6 @@ from basestation.persistence import EPOCH_BLOCK, Batch, open_database
 from common.bus import Bus
 from common.config import Config
 from common.errors import CollabSlamError
-from common.geodesy import GeoOrigin, geodetic_to_enu
 from common.geometry import pose4_to_pose7, pose7_to_pose4
 from common.memory import HeapTrimmer
 from common.metrics import TIMINGS_KEPT, percentiles
@@ -93,12 +93,13 @@ class BaseStationNode:
         self.clock = LockstepClock(lockstep, cfg.sim.basestation_timeout_s)
         self.slam = GlobalSlam(cfg, starts, headings, self.db.scan_reader(), threaded=not lockstep)
         # With a scenario, map is the world frame: ENU at the world's WGS84 origin (if any).
-        self.wgs84_origin = None
+        origin = None
         if scenario is not None:
             try:
-                self.wgs84_origin = world_wgs84_origin(scenario.world)
+                origin = world_wgs84_origin(scenario.world)
             except CollabSlamError as exc:
                 log.warning("no WGS84 origin for the map: %s", exc)
+        self.gnss = GnssIntake(origin, 2.0 * cfg.map.max_radius_m)  # fixes -> map frame
         self.map = MapBuilder(cfg.map, self.slam.store.scans)
         self.explorer = make_explorer(cfg, lockstep) if cfg.exploration.enabled else None
         self._last_explore = 0.0
@@ -347,7 +348,7 @@ class BaseStationNode:
             self.clock.sent_path(rid)
 
     def _take_fixes(self) -> None:
-        """GNSS fixes -> ENU at the map's WGS84 origin (the first fix's, if none) -> graph."""
+        """GNSS fixes -> ENU at the map's WGS84 origin (`GnssIntake`) -> graph."""
         while True:
             try:
                 fix = self.gnss_inbox.get_nowait()
@@ -355,11 +356,8 @@ class BaseStationNode:
                 return
             if self._unknown(fix.robot_id, "GNSS fix"):
                 continue
-            if self.wgs84_origin is None:
-                self.wgs84_origin = GeoOrigin.from_sequence(fix.lla)
-                log.info("map frame: ENU at the first GNSS fix %s", self.wgs84_origin)
-            enu = geodetic_to_enu(fix.lla, self.wgs84_origin)
-            self.slam.add_gps_fix(fix.robot_id, fix.stamp, enu[:2], fix.sigmas_enu)
+            for f, xy in self.gnss.take(fix):
+                self.slam.add_gps_fix(f.robot_id, f.stamp, xy, f.sigmas_enu)
 
     def _unknown(self, rid: str, what: str) -> bool:
         """Whether `rid` is off the roster: its `what` is dropped (logged: the first 20)."""
@@ -490,7 +488,7 @@ class BaseStationNode:
             self.heap.trim()  # the redraws' freed temporaries, back to the system
         self.heap.trim()  # and a last memory sample, however short the mission was
         trajs, grid = self.slam.trajectories(), self.map.gridmap()
-        write_map_outputs(out, trajs, grid, self.slam.graph.is_anchored, self.wgs84_origin)
+        write_map_outputs(out, trajs, grid, self.slam.graph.is_anchored, self.gnss.origin)
         if len(self.map_history):
             self.map_history.write(out / "map_history.npz")
         (out / "basestation.json").write_text(json.dumps(self.stats(), indent=1))

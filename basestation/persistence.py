@@ -146,6 +146,11 @@ class KeyframeDatabase:
         self.path.parent.mkdir(parents=True, exist_ok=True)
         try:
             self._db = sqlite3.connect(self.path, isolation_level=None)
+            tables = sorted(r[0] for r in self._db.execute("SELECT name FROM sqlite_master"))
+            if tables and "schema" not in tables:  # another program's file: not written to
+                raise PersistenceError(
+                    f"{self.path}: not a collabslam database (it holds {', '.join(tables)})"
+                )
             mode = self._db.execute("PRAGMA journal_mode=WAL").fetchone()[0]
             self._db.execute(f"PRAGMA synchronous={synchronous}")
             self._db.executescript(_SCHEMA)

@@ -25,6 +25,7 @@ KEYFRAME_VAR_RANGE = (1e-10, 100.0)  # m^2 or rad^2, each diagonal entry of delt
 # m: no pose, correction or waypoint is farther out (a correction of 1e308 m had made
 # every command NaN, a waypoint of 1e9 m sent the drone off toward it)
 MAX_POSITION_M = 1e7
+GNSS_ALTITUDE_RANGE_M = (-1000.0, 100_000.0)  # m above the ellipsoid
 ROBOT_STATUSES = ("starting", "waiting", "flying", "blocked", "hovering", "done", "landed")
 
 
@@ -142,6 +143,9 @@ class GnssFix(Message):
         super().validate()
         if abs(self.lla[0]) > 90.0 or abs(self.lla[1]) > 180.0:
             raise ProtocolError(f"GnssFix.lla: latitude/longitude out of range: {self.lla}")
+        if not GNSS_ALTITUDE_RANGE_M[0] <= self.lla[2] <= GNSS_ALTITUDE_RANGE_M[1]:
+            # one of 1e9 m scaled east/north by ~158x
+            raise ProtocolError(f"GnssFix.lla: altitude {self.lla[2]:g} m out of range")
         if np.any(self.sigmas_enu <= 0.0):
             raise ProtocolError(f"GnssFix.sigmas_enu must be > 0, got {self.sigmas_enu}")
 

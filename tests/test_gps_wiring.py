@@ -72,7 +72,7 @@ def test_fixes_travel_over_zenoh_to_the_graph(tmp_path: Path, endpoint: str) -> 
     with Bus(ZenohConfig(listen=[endpoint]), "default") as base_bus:
         node = BaseStationNode(cfg, base_bus, scenario)
         node.start()
-        assert node.wgs84_origin == ORIGIN
+        assert node.gnss.origin == ORIGIN
         with Bus(ZenohConfig(connect=[endpoint]), "default") as robot_bus:
             time.sleep(0.5)
             kf_key = robot_bus.keys.robot("r0", "keyframe")
@@ -138,3 +138,23 @@ def test_time_going_backwards_does_not_stop_the_graph() -> None:
         )
     slam.optimize()
     assert slam.graph.num_nodes("r0") == 4
+
+
+def test_origin_from_the_first_fixes_median_and_far_fixes_dropped() -> None:
+    """Taken from the first fix, one bad fix (-45, -170) had set the map's origin for
+    good; a fix 465 km off had pulled its robot there and the map allocated TiB."""
+    from basestation.gnss_intake import ORIGIN_FIXES, GnssIntake
+
+    intake = GnssIntake(None, 1000.0)
+    bad = GnssFix("r0", 0.0, np.array([-45.0, -170.0, 0.0]), SIG)
+    assert intake.take(bad) == [] and intake.origin is None
+    got = [intake.take(_fix(0.1 * k, 2.0 * k, 1.0)) for k in range(1, ORIGIN_FIXES)]
+    assert got[:-1] == [[]] * (ORIGIN_FIXES - 2) and intake.dropped == 1  # the bad one
+    east = [xy[0] for _, xy in got[-1]]
+    assert len(east) == ORIGIN_FIXES - 1 and abs(np.ptp(east) - 2.0 * (ORIGIN_FIXES - 2)) < 1e-6
+    far = GnssFix("r0", 1.0, enu_to_geodetic([465e3, 0.0, 1.0], ORIGIN), SIG)
+    assert intake.take(far) == [] and intake.dropped == 2
+    assert len(intake.take(_fix(1.1, 3.0, 1.0))) == 1
+    known = GnssIntake(ORIGIN, 1000.0)  # the world's origin: fixes go at once
+    ((f, xy),) = known.take(_fix(0.0, 3.0, 4.0))
+    assert np.allclose(xy, [3.0, 4.0], atol=1e-6)

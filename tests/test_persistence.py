@@ -103,6 +103,23 @@ def test_wrong_schema_version_is_refused(tmp_path: Path) -> None:
         KeyframeDatabase(tmp_path / "base.db")
 
 
+def test_another_programs_database_is_refused_untouched(tmp_path: Path) -> None:
+    """A SQLite file of another program had been stamped with our schema version, and
+    the base station died at its first keyframe on the foreign `keyframes` table."""
+    path = tmp_path / "other.db"
+    con = sqlite3.connect(path)
+    con.execute("CREATE TABLE keyframes (x)")
+    con.commit()
+    con.close()
+    with pytest.raises(PersistenceError, match="not a collabslam database .*keyframes"):
+        KeyframeDatabase(path)
+    con = sqlite3.connect(path)
+    names = [r[0] for r in con.execute("SELECT name FROM sqlite_master")]
+    mode = con.execute("PRAGMA journal_mode").fetchone()[0]
+    con.close()
+    assert names == ["keyframes"] and mode == "delete"
+
+
 def test_null_database() -> None:
     db = open_database("")
     assert isinstance(db, NullDatabase)

@@ -1,0 +1,56 @@
+"""GNSS fixes into the map frame (ENU at the map's WGS84 origin) for the pose graph.
+
+The origin is the world's (its map YAML) when it has one, else the median of the first
+`ORIGIN_FIXES` fixes (held until then): taken from the first fix alone, one bad fix
+had set it for good, and every later fix lay thousands of km away. A fix farther from
+the origin than `reach_m` is dropped with an error line: one 465 km off had pulled its
+robot there (with `basestation.gps.huber` off), and the map with it.
+"""
+
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+from numpy.typing import NDArray
+
+from common.geodesy import GeoOrigin, geodetic_to_enu
+from protocol import GnssFix
+
+log = logging.getLogger(__name__)
+
+ORIGIN_FIXES = 5  # fixes whose median sets an origin the world does not give
+
+
+class GnssIntake:
+    def __init__(self, origin: GeoOrigin | None, reach_m: float) -> None:
+        self.origin = origin
+        self.reach_m = reach_m  # m from the origin: farther fixes are dropped
+        self._first: list[GnssFix] = []  # held until the origin is known
+        self.dropped = 0
+
+    def take(self, fix: GnssFix) -> list[tuple[GnssFix, NDArray[np.float64]]]:
+        """The fixes now ready for the graph (this one, or the held ones once the origin
+        is set), each with its east-north position (m) in the map frame."""
+        fixes = [fix]
+        if self.origin is None:
+            self._first.append(fix)
+            if len(self._first) < ORIGIN_FIXES:
+                return []
+            fixes, self._first = self._first, []
+            self.origin = GeoOrigin.from_sequence(np.median([f.lla for f in fixes], axis=0))
+            log.info("map frame: ENU at the median of the first %d GNSS fixes %s",
+                     len(fixes), self.origin)  # fmt: skip
+        ready = []
+        for f in fixes:
+            xy = np.asarray(geodetic_to_enu(f.lla, self.origin)[:2], dtype=np.float64)
+            if np.hypot(*xy) <= self.reach_m:
+                ready.append((f, xy))
+                continue
+            self.dropped += 1
+            log.error("GNSS fix of %s at t=%.3f lies %.0f m from the map's origin (> %.0f m): "
+                      "dropped", f.robot_id, f.stamp, np.hypot(*xy), self.reach_m)  # fmt: skip
+        return ready
+
+
+__all__ = ["ORIGIN_FIXES", "GnssIntake"]

@@ -15,6 +15,10 @@ from numpy.typing import ArrayLike, NDArray
 
 FloatArray = NDArray[np.float64]
 
+# m: no pose, waypoint or trajectory point is farther out (10,000 km; a correction of
+# 1e308 m had made every command NaN, a waypoint of 1e9 m sent a drone off toward it)
+MAX_POSITION_M = 1e7
+
 
 def wrap_angle(a: ArrayLike) -> FloatArray:
     """Wrap angles (rad) to (-pi, pi]."""

@@ -19,7 +19,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from common.errors import CollabSlamError, FileFormatError
 from common.geodesy import GeoOrigin
-from common.geometry import quat_to_yaw, yaw_to_quat
+from common.geometry import MAX_POSITION_M, quat_to_yaw, yaw_to_quat
 
 logger = logging.getLogger(__name__)
 
@@ -112,6 +112,11 @@ def read_tum(path: str | Path) -> Trajectory:
     bad = ~np.all(np.isfinite(data), axis=1)
     if bad.any():
         raise FileFormatError(f"{path}:{linenos[int(np.argmax(bad))]}: non-finite value")
+    far = np.any(np.abs(data[:, 1:4]) > MAX_POSITION_M, axis=1)  # errors of inf had followed
+    if far.any():
+        raise FileFormatError(
+            f"{path}:{linenos[int(np.argmax(far))]}: a position beyond {MAX_POSITION_M:g} m"
+        )
     back = np.flatnonzero(np.diff(data[:, 0]) < 0.0)
     if back.size:
         raise FileFormatError(

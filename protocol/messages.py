@@ -14,6 +14,7 @@ from typing import Any
 import numpy as np
 
 from common.errors import ProtocolError
+from common.geometry import MAX_POSITION_M
 from protocol.codec import array_field, message
 
 ROBOT_ID_RE = re.compile(r"^[A-Za-z0-9_-]{1,32}$")
@@ -22,9 +23,6 @@ ROBOT_ID_RE = re.compile(r"^[A-Za-z0-9_-]{1,32}$")
 # every 0.2 m, and one spanning an outage of the link is still far inside these.
 KEYFRAME_MAX_STEP_M = 1000.0  # m
 KEYFRAME_VAR_RANGE = (1e-10, 100.0)  # m^2 or rad^2, each diagonal entry of delta_cov
-# m: no pose, correction or waypoint is farther out (a correction of 1e308 m had made
-# every command NaN, a waypoint of 1e9 m sent the drone off toward it)
-MAX_POSITION_M = 1e7
 GNSS_ALTITUDE_RANGE_M = (-1000.0, 100_000.0)  # m above the ellipsoid
 ROBOT_STATUSES = ("starting", "waiting", "flying", "blocked", "hovering", "done", "landed")
 

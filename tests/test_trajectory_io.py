@@ -59,6 +59,7 @@ def test_reads_comments_blank_lines_and_commas(tmp_path: Path) -> None:
         ("3.0 1 2 3 0 0 0", "expected 8 values"),
         ("3.0 1 2 x 0 0 0 1", "expected 8 numbers"),
         ("3.0 1 2 nan 0 0 0 1", "non-finite"),
+        ("3.0 1e308 2 3 0 0 0 1", "beyond"),  # an error of Infinity in the JSON had followed
         ("0.5 1 2 3 0 0 0 1", "timestamp goes backwards"),
         ("3.0 1 2 3 0 0 0 2", "not unit length"),
     ],

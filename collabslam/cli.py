@@ -287,8 +287,10 @@ def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     from common.logging_setup import setup_logging
+    from common.shutdown import stop_with_supervisor
 
     setup_logging(args.log_level, getattr(args, "command", "") or "")
+    stop_with_supervisor()
     try:
         if args.version:
             print(_version())
@@ -300,6 +302,9 @@ def main(argv: list[str] | None = None) -> int:
     except CollabSlamError as exc:
         log.error("%s", exc)
         return 1
+    except KeyboardInterrupt:  # before the signal handlers are in place (start-up)
+        log.error("interrupted while starting")
+        return 130
     except Exception:
         log.exception("unexpected error")
         return 1

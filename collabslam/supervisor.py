@@ -77,6 +77,11 @@ class Child:
     log_file: IO[bytes]
 
 
+# a child given this (its supervisor's pid) stops (SIGTERM) when the supervisor dies,
+# even by SIGKILL or a second Ctrl-C (`common.shutdown.stop_with_supervisor`)
+SUPERVISOR_ENV = "COLLABSLAM_SUPERVISOR_PID"
+
+
 class ProcessGroup:
     def __init__(self, out: Path, log_level: str = "INFO") -> None:
         self.out = out
@@ -92,7 +97,7 @@ class ProcessGroup:
             cmd,
             stdout=f,
             stderr=subprocess.STDOUT,
-            env=dict(os.environ, PYTHONUNBUFFERED="1"),
+            env=dict(os.environ, PYTHONUNBUFFERED="1", **{SUPERVISOR_ENV: str(os.getpid())}),
             stdin=subprocess.DEVNULL,
             start_new_session=True,
         )

@@ -168,7 +168,8 @@ class KeyframeDatabase:
             raise PersistenceError(f"{self.path}: WAL journal mode refused ({mode})")
         self._batch = self._meta("batch", 0)
         self.starts = self._meta("starts", 0) + 1
-        self._set_meta("starts", self.starts)
+        with self._transaction():  # a read-only file fails here, with one line
+            self._set_meta("starts", self.starts)
         self.commits = 0
         self._reader: ScanReader | None = None
 
@@ -273,7 +274,7 @@ class KeyframeDatabase:
 
     # --- helpers ------------------------------------------------------------------------
     def _transaction(self) -> _Transaction:
-        return _Transaction(self._db)
+        return _Transaction(self._db, self.path)
 
     def _meta(self, key: str, default: int) -> int:
         row = self._db.execute("SELECT value FROM meta WHERE key = ?", (key,)).fetchone()
@@ -286,14 +287,27 @@ class KeyframeDatabase:
 class _Transaction:
     """BEGIN IMMEDIATE ... COMMIT, or ROLLBACK if the block raises."""
 
-    def __init__(self, db: sqlite3.Connection) -> None:
+    def __init__(self, db: sqlite3.Connection, path: Path) -> None:
         self._db = db
+        self._path = path
 
     def __enter__(self) -> None:
-        self._db.execute("BEGIN IMMEDIATE")
+        try:
+            self._db.execute("BEGIN IMMEDIATE")
+        except sqlite3.Error as exc:
+            raise PersistenceError(f"{self._path}: cannot write: {exc}") from None
 
-    def __exit__(self, exc_type: object, *rest: object) -> None:
-        self._db.execute("ROLLBACK" if exc_type else "COMMIT")
+    def __exit__(self, exc_type: type[BaseException] | None, exc: object, tb: object) -> None:
+        """A write that fails (disk full, file made read-only) is a PersistenceError: it
+        had ended the base station in a traceback. Nothing of it was acknowledged."""
+        try:
+            self._db.execute("ROLLBACK" if exc_type else "COMMIT")
+        except sqlite3.Error as err:
+            if exc_type is None:
+                raise PersistenceError(f"{self._path}: cannot commit: {err}") from None
+        if exc_type is not None and issubclass(exc_type, sqlite3.Error):
+            if not issubclass(exc_type, sqlite3.IntegrityError):  # commit() words that one
+                raise PersistenceError(f"{self._path}: cannot write: {exc}") from None
 
 
 class NullDatabase:

@@ -14,7 +14,7 @@ from typing import Any
 from collabslam import __version__
 from collabslam.bench_cli import add_bench_parsers
 from collabslam.cli_options import add_common_args, load_cfg
-from common.errors import CollabSlamError, ConfigError
+from common.errors import CollabSlamError, ConfigError, PersistenceError
 
 log = logging.getLogger("collabslam")
 
@@ -158,8 +158,12 @@ def cmd_basestation(args: argparse.Namespace) -> int:
         node = BaseStationNode(cfg, bus, scenario, lockstep=args.lockstep)
         node.start()
         log.info("base station running (fleet %s)", cfg.fleet)
-        node.run(stop)
-        node.drain()
+        try:
+            node.run(stop)
+            node.drain()
+        except PersistenceError:  # nothing unstored was acked; keep what it has
+            node.write_outputs(Path(args.out))
+            raise
         node.write_outputs(Path(args.out))
     return 0
 

@@ -8,7 +8,9 @@
 from __future__ import annotations
 
 import argparse
+import tempfile
 import tomllib
+from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from common.errors import ConfigError
@@ -76,4 +78,18 @@ def load_cfg(args: argparse.Namespace) -> Config:
         overrides["zenoh.config_file"] = args.zenoh_config
     if getattr(args, "db", None):
         overrides["basestation.db_path"] = args.db
-    return load_config(args.config, overrides)
+    cfg = load_config(args.config, overrides)
+    if getattr(args, "out", None):
+        writable_folder(args.out)
+    return cfg
+
+
+def writable_folder(path: str) -> None:
+    """Make `--out` and try writing in it now: found unusable only at shutdown (a file in
+    its path, a read-only disk), a whole mission's outputs had been lost to a traceback."""
+    try:
+        Path(path).mkdir(parents=True, exist_ok=True)
+        with tempfile.TemporaryFile(dir=path):
+            pass
+    except OSError as exc:
+        raise ConfigError(f"--out {path}: not a writable folder: {exc}") from None

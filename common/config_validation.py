@@ -62,6 +62,25 @@ def _numbers_in_range(cfg: Config) -> None:
             raise ConfigError(f"{key}: expected at most {INT_MAX}, got {value}")
 
 
+IP_LINKS = ("tcp", "udp", "tls", "quic", "ws")  # Zenoh locators of host:port
+
+
+def _check_endpoint(key: str, endpoint: str) -> None:
+    """`proto/host:port` (Zenoh's metadata after `?` or `#` allowed): `--connect
+    tcp/127.0.0.1` had been taken, and the agent never connected, without a word."""
+    proto, _, address = endpoint.partition("/")
+    address = address.split("?")[0].split("#")[0]
+    if proto not in IP_LINKS:
+        if proto and address:  # another link type (unixsock-stream, serial): Zenoh's
+            return
+        raise ConfigError(f"{key}: expected proto/host:port, got {endpoint!r}")
+    host, _, port = address.rpartition(":")
+    if not host or not port.isdigit() or not 0 < int(port) < 65536:
+        raise ConfigError(
+            f"{key}: expected {proto}/host:port with a port 1..65535, got {endpoint!r}"
+        )
+
+
 def _positive(key: str, value: float) -> None:
     if not value > 0:
         raise ConfigError(f"{key}: expected a value > 0, got {value}")
@@ -94,6 +113,9 @@ def validate(cfg: Config) -> None:
         Keys(cfg.fleet)
     except ConfigError as exc:
         raise ConfigError(f"fleet: {exc}") from None
+    for key in ("listen", "connect"):
+        for ep in getattr(cfg.zenoh, key):
+            _check_endpoint(f"zenoh.{key}", ep)
     if cfg.zenoh.mode not in ("peer", "client", "router"):
         raise ConfigError(f"zenoh.mode: expected peer, client or router, got {cfg.zenoh.mode!r}")
     if cfg.sim.clock not in ("lockstep", "realtime"):

@@ -35,6 +35,9 @@ def test_round_trip(tmp_path: Path) -> None:
         ({"map.p_hit": 1.5}, "map.p_hit"),
         ({"fleet": "a/b"}, "fleet"),
         ({"zenoh.listen": "tcp/x"}, "zenoh.listen"),
+        ({"zenoh.connect": ["tcp/127.0.0.1"]}, "zenoh.connect"),  # had been taken silently
+        ({"zenoh.connect": ["tcp/127.0.0.1:99999"]}, "zenoh.connect"),
+        ({"zenoh.connect": ["127.0.0.1:7447"]}, "zenoh.connect"),
         ({"agent.outbox_max": 1.5}, "agent.outbox_max"),
         ({"basestation.isam2_factorization": "LU"}, "basestation.isam2_factorization"),
         ({"basestation.adaptive_reorder_threshold": 0.5}, "basestation.adaptive_reorder"),

@@ -71,3 +71,17 @@ def test_a_segment_must_be_finite_and_in_order() -> None:
     for bad in ("nan:", "inf:", "5:3", "4:4", "1-2", "a:b"):
         with pytest.raises(ConfigError, match="--segment"):
             _segment(bad)
+
+
+def test_an_unusable_out_folder_is_refused_at_start(tmp_path: Path) -> None:
+    """Found only at shutdown, it had lost a whole mission's outputs to a traceback."""
+    import argparse
+
+    from collabslam.cli_options import load_cfg
+
+    (tmp_path / "afile").write_text("")
+    args = argparse.Namespace(config=None, set=[], out=str(tmp_path / "afile" / "sub"))
+    with pytest.raises(ConfigError, match="--out .*not a writable folder"):
+        load_cfg(args)
+    args.out = str(tmp_path / "new" / "run")
+    assert load_cfg(args).fleet == "default" and (tmp_path / "new" / "run").is_dir()

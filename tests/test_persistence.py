@@ -77,6 +77,24 @@ def test_round_trip_and_wal(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> 
     again.close()
 
 
+def test_a_full_disk_is_a_persistence_error_and_nothing_is_half_written(
+    tmp_path: Path,
+) -> None:
+    """ "database or disk is full" had ended the base station in a traceback; now it is a
+    PersistenceError (the node writes its outputs and exits 1, having acked nothing of
+    the batch), and the stored batches stay whole."""
+    db = KeyframeDatabase(tmp_path / "base.db")
+    db.commit(Batch(_square_keyframes("r0", np.zeros(3), 3)))
+    pages = db._db.execute("PRAGMA page_count").fetchone()[0]
+    db._db.execute(f"PRAGMA max_page_count = {pages}")  # the disk is full now
+    many = _square_keyframes("r1", np.zeros(3), 200)
+    with pytest.raises(PersistenceError, match="base.db: cannot write: database or disk is full"):
+        db.commit(Batch(many))
+    assert db.counts() == {"r0": 3}
+    db.close()
+    assert KeyframeDatabase(tmp_path / "base.db").counts() == {"r0": 3}
+
+
 def test_a_batch_is_one_transaction(tmp_path: Path) -> None:
     db = KeyframeDatabase(tmp_path / "base.db")
     kfs = _square_keyframes("r0", np.zeros(3), 3)

@@ -24,6 +24,8 @@ from protocol.messages import Keyframe, Scan2D
 
 log = logging.getLogger(__name__)
 
+GAP_WARN = 50  # keyframes held behind one missing seq: an error line (and at 10x)
+
 
 @dataclass
 class RobotKeyframes:
@@ -158,6 +160,11 @@ class KeyframeStore:
                 )
                 return []
             r.held[kf.seq] = kf
+            if len(r.held) in (GAP_WARN, 10 * GAP_WARN):  # not a reordering: a lost start
+                log.error("robot %s: still waiting for keyframe seq %d with %d later ones "
+                          "held; a base station without the database of the one that "
+                          "acknowledged it cannot get it back",
+                          kf.robot_id, r.next_seq, len(r.held))  # fmt: skip
             return []
         ready = [kf]
         while r.next_seq + len(ready) in r.held:

@@ -227,3 +227,16 @@ def test_path_follower_flies_off_the_nose_only_where_the_laser_sees() -> None:
     assert v_back == 0.0 and wz_back < 0.0  # turns first
     with pytest.raises(ValueError):
         PathFollower(1.0, 0.3, 1.5, 1.0, 1.0, full_speed_off_nose_deg=90.0, max_off_nose_deg=80.0)
+
+
+def test_a_keyframe_that_never_comes_is_named(caplog: pytest.LogCaptureFixture) -> None:
+    """A base station restarted without its database waits for seq 0, which the agents
+    dropped once the first one acked it: its keyframes had been held without a word."""
+    from basestation.keyframe_store import GAP_WARN
+
+    st = KeyframeStore(reorder_window=1000)
+    with caplog.at_level(logging.ERROR):
+        for seq in range(60, 60 + GAP_WARN):
+            st.admit(_kf(seq))
+    assert len(st.robot("r0").held) == GAP_WARN
+    assert "still waiting for keyframe seq 0 with 50 later ones held" in caplog.text

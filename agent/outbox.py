@@ -143,10 +143,16 @@ class Outbox:
 
     def kick(self) -> None:
         """The base station is (back) up: resend at the next `due_for_resend` call,
-        without the backoff built up while it was gone."""
+        without the backoff built up while it was gone, nor the ack delay measured before
+        (a new link: until an ack makes progress, retries come every `resend_timeout_s`,
+        doubling). A batch resent at once can be lost while the link's routes form; with
+        the old delay's timeout (seconds, from a busy base station) the next try came so
+        late that the keyframes cut meanwhile overran the base station's reorder window
+        (the link-cut test lost 556 keyframes that way under load)."""
         with self._lock:
             self._backoff = 1
             self._resend_now = True
+            self._srtt, self._rttvar = None, 0.0
 
     @property
     def timeout_s(self) -> float:

@@ -126,6 +126,25 @@ def test_outbox_kick_resends_at_once() -> None:
     assert ob.due_for_resend() == [b"a"]
 
 
+def test_outbox_after_a_kick_retries_on_the_fixed_timeout() -> None:
+    """The ack delay measured before an outage (a busy base station: seconds) says
+    nothing about the new link: a batch resent at once and lost while its routes formed
+    was retried only that late, and the keyframes cut meanwhile overran the base
+    station's reorder window."""
+    clock = FakeClock()
+    ob = Outbox(max_len=100, warn_fraction=0.8, resend_timeout_s=1.0, resend_batch=5, clock=clock)
+    for seq in range(3):
+        ob.add(seq, b"k")
+        clock.t += 6.0
+        ob.ack(seq)  # each acked 6 s after it was sent: a busy base station
+    assert ob.timeout_s > 6.0
+    ob.add(3, b"x")
+    ob.kick()  # the link is back
+    assert ob.timeout_s == 1.0 and ob.due_for_resend() == [b"x"]  # lost on the way
+    clock.t += 2.0
+    assert ob.due_for_resend() == [b"x"]  # again after 2 x 1 s, not after 2 x > 6 s
+
+
 def test_outbox_bound(caplog: pytest.LogCaptureFixture) -> None:
     """Stated policy: warn at warn_fraction, refuse new keyframes when full (the
     agent then cuts none), never drop a queued one."""

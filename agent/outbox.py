@@ -153,6 +153,7 @@ class Outbox:
             self._backoff = 1
             self._resend_now = True
             self._srtt, self._rttvar = None, 0.0
+            self._sent_at.clear()  # sent into the outage: their delay is the outage's
 
     @property
     def timeout_s(self) -> float:

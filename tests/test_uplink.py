@@ -139,10 +139,15 @@ def test_outbox_after_a_kick_retries_on_the_fixed_timeout() -> None:
         ob.ack(seq)  # each acked 6 s after it was sent: a busy base station
     assert ob.timeout_s > 6.0
     ob.add(3, b"x")
+    ob.add(4, b"y")  # both sent into the outage
+    clock.t += 6.0
     ob.kick()  # the link is back
-    assert ob.timeout_s == 1.0 and ob.due_for_resend() == [b"x"]  # lost on the way
+    assert ob.timeout_s == 1.0 and ob.due_for_resend() == [b"x", b"y"]  # lost on the way
     clock.t += 2.0
-    assert ob.due_for_resend() == [b"x"]  # again after 2 x 1 s, not after 2 x > 6 s
+    assert ob.due_for_resend() == [b"x", b"y"]  # again after 2 x 1 s, not after 2 x > 6 s
+    ob.add(5, b"z")
+    ob.ack(4)  # past the batch: no delay sampled from keyframes sent into the outage
+    assert ob.timeout_s == 1.0
 
 
 def test_outbox_bound(caplog: pytest.LogCaptureFixture) -> None:

@@ -42,6 +42,7 @@ class RobotKeyframes:
     var_cumsum: Rows = field(default_factory=lambda: Rows(2))  # running [var_xy, var_yaw]
     held: dict[int, Keyframe] = field(default_factory=dict)
     duplicates: int = 0
+    id_conflicts: int = 0  # duplicates whose stamp differs: two agents with this id?
 
     def chain_covariance(self, i: ArrayLike, j: ArrayLike) -> np.ndarray:
         """Approximate (n, 3, 3) covariances of nodes j relative to nodes i (index arrays)
@@ -143,6 +144,13 @@ class KeyframeStore:
         r = self.robot(kf.robot_id)
         if kf.seq < r.next_seq or kf.seq in r.held:
             r.duplicates += 1
+            kept = r.held[kf.seq].stamp if kf.seq in r.held else float(r.stamps[kf.seq, 0])
+            if kf.stamp != kept:  # a resent keyframe is the same bytes: another source
+                r.id_conflicts += 1
+                if r.id_conflicts == 1 or r.id_conflicts % 1000 == 0:
+                    log.error("robot %s: keyframe seq %d came again stamped %.3f (kept: %.3f); "
+                              "are two agents using this robot id? (%d so far)", kf.robot_id,
+                              kf.seq, kf.stamp, kept, r.id_conflicts)  # fmt: skip
             return []
         if kf.seq > r.next_seq:
             if kf.seq > r.next_seq + self.reorder_window:  # no agent is that far ahead

@@ -21,6 +21,7 @@ def slam_stats(slam: GlobalSlam) -> dict[str, Any]:
                 if rid in slam.graph.robots()
                 else 0,
                 "duplicates": r.duplicates,
+                "id_conflicts": r.id_conflicts,
                 "held_out_of_order": len(r.held),
                 "anchored": rid in slam.graph.robots() and slam.graph.is_anchored(rid),
             }

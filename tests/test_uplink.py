@@ -264,3 +264,21 @@ def test_a_keyframe_that_never_comes_is_named(caplog: pytest.LogCaptureFixture) 
             st.admit(_kf(seq))
     assert len(st.robot("r0").held) == GAP_WARN
     assert "still waiting for keyframe seq 0 with 50 later ones held" in caplog.text
+
+
+def test_a_second_agent_with_the_same_id_is_named(caplog: pytest.LogCaptureFixture) -> None:
+    """Two agents started as r0 had their keyframes mixed into one trajectory, the
+    other's counted as mere duplicates, without a word."""
+    import dataclasses
+
+    st = KeyframeStore(reorder_window=100)
+    for seq in range(3):
+        st.admit(_kf(seq))
+    st.admit(_kf(5))  # held
+    st.admit(_kf(1))  # resent: the same keyframe
+    assert st.robot("r0").id_conflicts == 0
+    with caplog.at_level(logging.ERROR):
+        st.admit(dataclasses.replace(_kf(1), stamp=1e9 + 0.1))  # another drone's seq 1
+        st.admit(dataclasses.replace(_kf(5), stamp=1e9 + 0.5))  # and its seq 5
+    assert st.robot("r0").id_conflicts == 2 and st.robot("r0").duplicates == 3
+    assert "are two agents using this robot id?" in caplog.text

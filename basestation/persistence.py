@@ -171,6 +171,7 @@ class KeyframeDatabase:
         with self._transaction():  # a read-only file fails here, with one line
             self._set_meta("starts", self.starts)
         self.commits = 0
+        self._inode = self.path.stat().st_ino  # the file this connection writes
         self._reader: ScanReader | None = None
 
     # --- writing ------------------------------------------------------------------------
@@ -178,6 +179,7 @@ class KeyframeDatabase:
         """Write one batch in one transaction (durable when this returns)."""
         if not batch:
             return
+        self._check_file()
         self._batch += 1
         b = self._batch
         try:
@@ -215,6 +217,16 @@ class KeyframeDatabase:
                 f"{self.path}: batch {b} conflicts with stored data: {exc}"
             ) from None
         self.commits += 1
+
+    def _check_file(self) -> None:
+        """The file is still the one opened: one deleted (or replaced) while the base
+        station ran had taken commits and acks into an unlinked inode, lost on exit."""
+        try:
+            same = self.path.stat().st_ino == self._inode
+        except OSError:
+            same = False
+        if not same:
+            raise PersistenceError(f"{self.path}: the database file was removed or replaced")
 
     def reserve_epochs(self, upto: int) -> None:
         """Record that epochs below `upto` may be sent (a restart starts at `upto`)."""

@@ -225,3 +225,14 @@ def test_node_resumes_epochs_paths_and_acks(tmp_path: Path, cfg: Config, endpoin
     again = KeyframeDatabase(tmp_path / "base.db")
     assert again.load().epoch >= 1001 + 999 and again.starts == 3  # the next epoch block
     again.close()
+
+
+def test_a_database_file_removed_while_running_stops_the_commits(tmp_path: Path) -> None:
+    """Deleted under a running base station, it had taken commits (and so acks) into an
+    unlinked file, lost on exit."""
+    db = KeyframeDatabase(tmp_path / "base.db")
+    db.commit(Batch(_square_keyframes("r0", np.zeros(3), 2)))
+    for name in ("base.db", "base.db-wal", "base.db-shm"):
+        (tmp_path / name).unlink(missing_ok=True)
+    with pytest.raises(PersistenceError, match="removed or replaced"):
+        db.commit(Batch(_square_keyframes("r1", np.zeros(3), 2)))

@@ -28,6 +28,7 @@ import numpy as np
 
 from agent.control_log import ControlRecorder, write_control_log
 from agent.downlink_gate import DownlinkGate
+from agent.keyframe_history import KeyframeHistory
 from agent.keyframe_selector import KeyframeSelector
 from agent.local_trajectory_builder import LocalSlamResult, LocalTrajectoryBuilder
 from agent.odometry_tracker import OdometryTracker
@@ -96,8 +97,11 @@ class AgentNode:
         self.selector = KeyframeSelector(a)
         self.heap = HeapTrimmer()
         self.outbox = Outbox(
-            a.outbox_max, a.outbox_warn_fraction, a.resend_timeout_s, a.resend_batch
-        )
+            a.outbox_max, a.outbox_warn_fraction, a.resend_timeout_s, a.resend_batch,
+            history=KeyframeHistory(a.keyframe_history),
+        )  # fmt: skip
+        self.chain = 0  # keyframe chain (Keyframe.chain): a new one for a base station
+        self._chain_lost = threading.Event()  # that has none of the keyframes acknowledged
         self.follower = PathFollower.from_config(a)
         self.guard = SafetyGuard(
             a.vehicle_radius_m,
@@ -185,7 +189,20 @@ class AgentNode:
             )
 
     def _on_ack(self, msg: KeyframeAck, key: str) -> None:
-        self.outbox.ack(msg.acked_seq)
+        if msg.chain != self.chain:  # about a chain this agent has left
+            return
+        if msg.acked_seq < 0 <= self.outbox.acked_seq:  # it has none of those acknowledged
+            self._chain_lost.set()  # (by a base station whose database it has not)
+        else:
+            self.outbox.ack(msg.acked_seq)
+
+    def _new_chain(self) -> None:
+        """(Main thread: it owns next_seq) send every keyframe kept as a new chain."""
+        self._chain_lost.clear()
+        self.chain += 1
+        self.next_seq = self.outbox.new_chain(self.chain)
+        with self._corr_lock:
+            self.epoch = -1  # a new base station numbers its corrections from 0 again
 
     def _on_correction(self, msg: PoseCorrection, key: str) -> None:
         with self._corr_lock:
@@ -294,6 +311,7 @@ class AgentNode:
         cov[np.ix_([0, 1, 5], [0, 1, 5])] += result.covariance
         kf = Keyframe(
             robot_id=self.robot_id,
+            chain=self.chain,
             seq=self.next_seq,
             stamp=scan.stamp,
             pose_odom=pose4_to_pose7(pose),
@@ -380,6 +398,8 @@ class AgentNode:
         self.vehicle.command(stamp, vx, vy, vz, yaw_rate, *sent)
 
     def _resend(self) -> None:
+        if self._chain_lost.is_set():
+            self._new_chain()
         key = self.keys.robot(self.robot_id, "keyframe")
         batch = self.outbox.due_for_resend()
         if batch:
@@ -439,6 +459,7 @@ class AgentNode:
             "outbox_high_water": self.outbox.high_water,
             "keyframes_deferred": self.outbox.deferred,
             "keyframes_refused": self.keyframes_refused,
+            "keyframe_chain": self.chain,
             "base_station_links": dict(self.base_links),
             "lockstep_downlink_waits": self.downlink.waits,
             "lockstep_downlink_timeouts": self.downlink.timeouts,

@@ -17,6 +17,10 @@ once: after an outage the outbox drains, in order, at the pace of the acks. An a
 beyond the batch means the base station had the rest queued (busy, not cut off):
 nothing more is resent until the acks stall again.
 
+Acknowledged keyframes go on to a `KeyframeHistory` on disk (if given), for a base
+station that has lost them: `new_chain` then queues history and pending together,
+oldest first, renumbered as a new keyframe chain.
+
 Bound policy: the outbox holds at most `max_len` keyframes. It warns once when
 it passes `warn_fraction` of that; when full, `has_room()` is False and the
 agent does not cut new keyframes (it keeps flying on local SLAM and the next
@@ -32,9 +36,16 @@ import time
 from collections import OrderedDict
 from collections.abc import Callable
 
+import numpy as np
+
+from agent.keyframe_history import KeyframeHistory
+from protocol.codec import relabel
+from protocol.messages import Keyframe
+
 log = logging.getLogger(__name__)
 
 MAX_TIMEOUT_S = 30.0  # the measured retransmission timeout's ceiling (s)
+IDENTITY7 = np.array([0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0])
 
 
 class Outbox:
@@ -46,6 +57,7 @@ class Outbox:
         resend_batch: int,
         clock: Callable[[], float] = time.monotonic,
         max_backoff: int = 8,
+        history: KeyframeHistory | None = None,
     ) -> None:
         self.max_len = max_len
         self.warn_len = max(1, int(max_len * warn_fraction))
@@ -53,6 +65,7 @@ class Outbox:
         self.resend_batch = resend_batch
         self._clock = clock
         self.max_backoff = max_backoff
+        self.history = KeyframeHistory(0) if history is None else history
         self._backoff = 1
         self._pending: OrderedDict[int, bytes] = OrderedDict()
         self._lock = threading.Lock()
@@ -123,8 +136,9 @@ class Outbox:
             if sent_at is not None:
                 self._sample_delay(self._clock() - sent_at)
             while self._pending and next(iter(self._pending)) <= acked_seq:
-                seq, _ = self._pending.popitem(last=False)
+                seq, payload = self._pending.popitem(last=False)
                 self._sent_at.pop(seq, None)
+                self.history.add(seq, payload)
                 released += 1
             self._last_progress = self._clock()
             self._backoff = 1
@@ -154,6 +168,31 @@ class Outbox:
             self._resend_now = True
             self._srtt, self._rttvar = None, 0.0
             self._sent_at.clear()  # sent into the outage: their delay is the outage's
+
+    def new_chain(self, chain: int) -> int:
+        """Every keyframe kept, acknowledged (the history) or not, renumbered as keyframe
+        chain `chain` from seq 0 (the first with no delta: nothing precedes it), to be
+        sent again from the first at once, paced by the acks; returns how many (the
+        chain's next seq). For a base station that has none of them (~4 us a keyframe:
+        the payloads are relabelled, not decoded)."""
+        with self._lock:
+            lost = self.acked_seq + 1 - len(self.history)  # acknowledged, not kept
+            payloads = [*self.history.payloads(), *self._pending.values()]
+            self.history.clear()
+            self._pending.clear()
+            self._sent_at.clear()
+            for i, p in enumerate(payloads):
+                first = {"delta": IDENTITY7} if i == 0 else {}
+                self._pending[i] = relabel(p, Keyframe, seq=i, chain=chain, **first)
+            self.acked_seq, self.added_seq, self._resent_upto = -1, len(payloads) - 1, -1
+            self._backoff, self._resend_now = 1, True
+            self._srtt, self._rttvar = None, 0.0
+            self._last_progress = self._clock()
+            self.high_water = max(self.high_water, len(payloads))
+        log.warning("the base station has none of this robot's keyframes (a new database): "
+                    "sending the %d kept as keyframe chain %d (%d acknowledged before were "
+                    "not kept)", len(payloads), chain, lost)  # fmt: skip
+        return len(payloads)
 
     @property
     def timeout_s(self) -> float:

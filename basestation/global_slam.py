@@ -52,7 +52,7 @@ from basestation.update_series import UpdateSeries
 from basestation.whole_map_search import WholeMapSearch, tie
 from common.config import Config
 from common.errors import CollabSlamError
-from common.geometry import quat_to_yaw, se2_between, se2_compose, se2_inverse
+from common.geometry import pose7_to_pose4, quat_to_yaw, se2_between, se2_compose, se2_inverse
 from common.metrics import TIMINGS_KEPT
 from common.trajectory_io import Trajectory
 from protocol import Keyframe
@@ -186,20 +186,20 @@ class GlobalSlam:
     def _add_node(self, kf: Keyframe) -> None:
         rid = kf.robot_id
         stamp = self._node_stamp(kf) if self.gps_enabled else None
-        if kf.seq == 0:
-            start = self.known_starts.get(rid)
-            start_sigmas = None
+        if kf.seq == 0:  # a known start is T_map_odom: a chain can start on the way
+            odom, start = pose7_to_pose4(kf.pose_odom)[[0, 1, 3]], self.known_starts.get(rid)
+            start, start_sigmas = None if start is None else se2_compose(start, odom), None
             if start is None and rid in self.start_headings and rid in self._last_fix:
                 g = self.cfg.basestation.gps  # virtual ENU-origin trajectory (seed 000 §III-C)
-                start = np.array([*self._last_fix[rid], self.start_headings[rid]])
+                start = np.array([*self._last_fix[rid], self.start_headings[rid] + odom[2]])
                 start_sigmas = (g.start_sigma_xy_m, g.start_sigma_xy_m, g.start_sigma_yaw_rad)
                 self._georeferenced.add(rid)
                 log.info("robot %s starts georeferenced at its latest GNSS fix", rid)
             elif start is None and rid in self.start_headings:
                 log.warning("robot %s: no GNSS fix before its first keyframe, it floats", rid)
             elif start is None and self._defines_map(rid):
-                start = np.zeros(3)
-                self.known_starts[rid] = start
+                self.known_starts[rid] = np.zeros(3)
+                start = odom
                 log.info("robot %s defines the map frame", rid)
             self.graph.add_robot(rid, start, start_sigmas)
             self.graph.add_node(rid, 0, None, None, initial_guess=start, stamp=stamp)

@@ -24,13 +24,14 @@ class KeyframeInbox:
         self._q: queue.Queue[Keyframe] = queue.Queue(maxsize=max_keyframes)
         self.max_keyframes = max_keyframes
         self.drops = 0
-        self._highest: dict[str, int] = {}  # robot -> highest seq queued (one Zenoh thread)
+        self._highest: dict[str, tuple[int, int]] = {}  # robot -> highest (chain, seq)
 
     def put(self, kf: Keyframe) -> bool:
         """Queue a keyframe (any thread); False if the inbox was full and it was dropped."""
         try:
             self._q.put_nowait(kf)
-            self._highest[kf.robot_id] = max(self._highest.get(kf.robot_id, -1), kf.seq)
+            key = (kf.chain, kf.seq)  # (one Zenoh thread)
+            self._highest[kf.robot_id] = max(self._highest.get(kf.robot_id, key), key)
             return True
         except queue.Full:
             self.drops += 1
@@ -55,8 +56,8 @@ class KeyframeInbox:
         return batch
 
     def highest_seq(self, robot_id: str) -> int:
-        """The highest seq of `robot_id` ever queued here (-1: none)."""
-        return self._highest.get(robot_id, -1)
+        """The highest seq of `robot_id`'s latest keyframe chain queued here (-1: none)."""
+        return self._highest.get(robot_id, (0, -1))[1]
 
     def empty(self) -> bool:
         return self._q.empty()

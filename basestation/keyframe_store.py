@@ -4,6 +4,14 @@ Agents deliver at least once and may resend, so the store admits each robot's
 keyframes strictly in `seq` order: a seq already admitted is a harmless
 duplicate (counted, re-acknowledged, never added twice); a seq beyond a gap is
 held (up to `reorder_window` per robot) until the gap fills.
+
+Seqs count within the agent's keyframe chain (`Keyframe.chain`). An agent whose
+state says keyframes were acknowledged while none of its robot's is admitted here
+(they went with another base station's database: a new laptop, a database lost) is
+told so, an ack of -1 (`none_of`); it then starts a new chain, what it kept renumbered
+from seq 0, and the store follows it. Keyframes of an older chain are dropped (sent
+before the switch); a newer chain once keyframes are admitted is refused with an
+error (a second base station told the agent it had none).
 """
 
 from __future__ import annotations
@@ -20,11 +28,11 @@ from agent.voxel_filter import voxel_mask
 from basestation.scan_archive import NodeKey, ScanArchive
 from common.geometry import pose7_to_pose4
 from common.growable import Rows
-from protocol.messages import Keyframe, Scan2D
+from protocol.messages import Keyframe, KeyframeAck, Scan2D
 
 log = logging.getLogger(__name__)
 
-GAP_WARN = 50  # keyframes held behind one missing seq: an error line (and at 10x)
+GAP_WARN = 200  # keyframes held behind one missing seq: an error line (and at 10x)
 
 
 @dataclass
@@ -43,6 +51,9 @@ class RobotKeyframes:
     held: dict[int, Keyframe] = field(default_factory=dict)
     duplicates: int = 0
     id_conflicts: int = 0  # duplicates whose stamp differs: two agents with this id?
+    chain: int = 0  # the agent's keyframe chain admitted (Keyframe.chain)
+    stale_chain: int = 0  # keyframes of an older chain, dropped
+    chain_conflicts: int = 0  # keyframes of a newer chain after some were admitted
 
     def chain_covariance(self, i: ArrayLike, j: ArrayLike) -> np.ndarray:
         """Approximate (n, 3, 3) covariances of nodes j relative to nodes i (index arrays)
@@ -142,6 +153,8 @@ class KeyframeStore:
     def admit(self, kf: Keyframe) -> list[Keyframe]:
         """Offer one keyframe; returns the keyframes now admitted, in order (maybe none)."""
         r = self.robot(kf.robot_id)
+        if not self._in_chain(r, kf):
+            return []
         if kf.seq < r.next_seq or kf.seq in r.held:
             r.duplicates += 1
             kept = r.held[kf.seq].stamp if kf.seq in r.held else float(r.stamps[kf.seq, 0])
@@ -169,10 +182,10 @@ class KeyframeStore:
                 return []
             r.held[kf.seq] = kf
             if len(r.held) in (GAP_WARN, 10 * GAP_WARN):  # not a reordering: a lost start
-                log.error("robot %s: still waiting for keyframe seq %d with %d later ones "
-                          "held; a base station without the database of the one that "
-                          "acknowledged it cannot get it back",
-                          kf.robot_id, r.next_seq, len(r.held))  # fmt: skip
+                log.error("robot %s: still waiting for keyframe seq %d of chain %d with %d "
+                          "later ones held (lost with another base station's database, and "
+                          "its agent did not start a new chain on the ack -1: an old one?)",
+                          kf.robot_id, r.next_seq, r.chain, len(r.held))  # fmt: skip
             return []
         ready = [kf]
         while r.next_seq + len(ready) in r.held:
@@ -198,9 +211,48 @@ class KeyframeStore:
             self.scan_archive.add((k.robot_id, k.seq), k.scan2d)
         return ready
 
+    @staticmethod
+    def _in_chain(r: RobotKeyframes, kf: Keyframe) -> bool:
+        """Whether `kf` is of the robot's chain; a newer chain is taken up while nothing
+        of the robot's is admitted (what is held of the old one is dropped)."""
+        if kf.chain == r.chain:
+            return True
+        if kf.chain < r.chain:  # sent before its agent started the new chain
+            r.stale_chain += 1
+            return False
+        if r.next_seq == 0:
+            log.warning("robot %s: its agent starts keyframe chain %d (it had keyframes "
+                        "acknowledged by a base station without this one's database: what "
+                        "it kept comes renumbered from seq 0); %d held keyframes of chain "
+                        "%d dropped", kf.robot_id, kf.chain, len(r.held), r.chain)  # fmt: skip
+            r.chain, r.held = kf.chain, {}
+            return True
+        r.chain_conflicts += 1
+        if r.chain_conflicts == 1 or r.chain_conflicts % 1000 == 0:
+            log.error("robot %s: keyframe of chain %d after %d of chain %d: dropped; did "
+                      "another base station tell its agent it had none of them? (run one "
+                      "per fleet; %d so far)", kf.robot_id, kf.chain, r.next_seq, r.chain,
+                      r.chain_conflicts)  # fmt: skip
+        return False
+
     def acked_seq(self, robot_id: str) -> int:
         """Highest seq such that every keyframe up to it is admitted (-1 if none)."""
         return self.robot(robot_id).next_seq - 1
+
+    def ack(self, robot_id: str) -> KeyframeAck | None:
+        """The acknowledgement for `robot_id`: up to where all of its chain's keyframes
+        are admitted (None: none is)."""
+        r = self.robot(robot_id)
+        return KeyframeAck(robot_id, r.next_seq - 1, r.chain) if r.next_seq else None
+
+    def none_of(self, robot_id: str) -> KeyframeAck | None:
+        """Ack -1 if none of `robot_id`'s keyframes is admitted (for an agent that says
+        some were acknowledged: by a base station whose database this one has not), else
+        None. Safe from any thread (it only reads)."""
+        r = self.robots.get(robot_id)
+        if r is None:
+            return KeyframeAck(robot_id, -1, 0)
+        return KeyframeAck(robot_id, -1, r.chain) if r.next_seq == 0 else None
 
 
 class KeyframeScans(Sequence[Scan2D]):

@@ -49,7 +49,6 @@ from protocol import (
     ClockSync,
     GnssFix,
     Keyframe,
-    KeyframeAck,
     PoseCorrection,
     RobotState,
     VehicleCommand,
@@ -178,8 +177,7 @@ class BaseStationNode:
         self.bus.declare_alive("basestation", "base")
         if self.recovered:  # tell agents what is safe, and where their maps are now
             for rid in self.slam.store.robots:
-                acked = self.slam.store.acked_seq(rid)
-                self.bus.publish(self.keys.robot(rid, "ack"), KeyframeAck(rid, acked))
+                self._ack(rid)
             self.publish_corrections()
 
     def _on_fix(self, msg: GnssFix, key: str) -> None:
@@ -194,6 +192,8 @@ class BaseStationNode:
             self.states[msg.robot_id] = msg
             answer = self.neighbours.on_state(msg)
         self.bus.publish(self.keys.robot(msg.robot_id, "neighbours"), answer)
+        if msg.keyframes_acked > 0 and (none := self.slam.store.none_of(msg.robot_id)):
+            self.bus.publish(self.keys.robot(msg.robot_id, "ack"), none)  # a new chain
 
     def _on_agent_alive(self, name: str, alive: bool) -> None:
         """Liveliness (Zenoh thread): a lost agent's state is forgotten and its goal
@@ -386,10 +386,12 @@ class BaseStationNode:
         if admitted:
             self._optimized()  # persists the batch before any ack below
         for rid in touched:  # ack admitted and duplicate keyframes alike
-            acked = self.slam.store.acked_seq(rid)
-            if acked >= 0:
-                self.bus.publish(self.keys.robot(rid, "ack"), KeyframeAck(rid, acked))
+            self._ack(rid)
         return admitted
+
+    def _ack(self, rid: str) -> None:
+        if (ack := self.slam.store.ack(rid)) is not None:
+            self.bus.publish(self.keys.robot(rid, "ack"), ack)
 
     def _optimized(self) -> None:
         self._persist()

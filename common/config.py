@@ -103,6 +103,9 @@ class AgentConfig:
     odom_sigma_min: float = 1e-3  # floor on every std (m or rad)
     outbox_max: int = 20000  # keyframes kept until acknowledged
     outbox_warn_fraction: float = 0.8  # warn when the outbox is this full
+    # acknowledged keyframes kept on disk (agent/keyframe_history.py) for a base station
+    # that has lost them (a new laptop): the latest half at least; 0: none
+    keyframe_history: int = 20000
     resend_timeout_s: float = 1.0  # s wall without ack before resending from the oldest
     resend_batch: int = 50  # keyframes resent per timeout
     waypoint_tolerance_m: float = 0.3  # m

@@ -23,6 +23,7 @@ ROBOT_ID_RE = re.compile(r"^[A-Za-z0-9_-]{1,32}$")
 # every 0.2 m, and one spanning an outage of the link is still far inside these.
 KEYFRAME_MAX_STEP_M = 1000.0  # m
 KEYFRAME_VAR_RANGE = (1e-10, 100.0)  # m^2 or rad^2, each diagonal entry of delta_cov
+MAX_CHAIN = 2**31 - 1  # keyframe chains (an agent starts one per base station that lost its)
 GNSS_ALTITUDE_RANGE_M = (-1000.0, 100_000.0)  # m above the ellipsoid
 ROBOT_STATUSES = ("starting", "waiting", "flying", "blocked", "hovering", "done", "landed")
 
@@ -226,6 +227,10 @@ class Keyframe(Message):
     keyframe, expressed in the previous keyframe's body frame (pose7); identity
     for seq 0. delta_cov: 6x6 covariance of delta, order [x, y, z, roll, pitch,
     yaw]. Exactly one of scan2d / cloud3d is set.
+
+    chain: the agent's keyframe chain, 0 from its start. An agent whose keyframes were
+    acknowledged by a base station that has since lost them (a new one, without the
+    database) starts a new chain: what it kept, renumbered from seq 0 (agent/node.py).
     """
 
     robot_id: str
@@ -236,11 +241,14 @@ class Keyframe(Message):
     delta_cov: np.ndarray = array_field("f8", (6, 6))
     scan2d: Scan2D | None = None
     cloud3d: Cloud3D | None = None
+    chain: int = 0
 
     def validate(self) -> None:
         super().validate()
         if self.seq < 0:
             raise ProtocolError(f"Keyframe.seq must be >= 0, got {self.seq}")
+        if not 0 <= self.chain <= MAX_CHAIN:
+            raise ProtocolError(f"Keyframe.chain must be in 0..{MAX_CHAIN}, got {self.chain}")
         _check_pose7("Keyframe.pose_odom", self.pose_odom)
         _check_pose7("Keyframe.delta", self.delta)
         if (self.scan2d is None) == (self.cloud3d is None):
@@ -271,10 +279,13 @@ class Keyframe(Message):
 
 @message
 class KeyframeAck(Message):
-    """Cumulative acknowledgement: every keyframe with seq <= acked_seq is safe."""
+    """Cumulative acknowledgement: every keyframe of `chain` with seq <= acked_seq is
+    safe. -1 with keyframes held: the base station has none of this chain's (an agent
+    that had some acknowledged starts a new chain with what it kept)."""
 
     robot_id: str
     acked_seq: int
+    chain: int = 0
 
 
 @message

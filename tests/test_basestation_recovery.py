@@ -1,7 +1,9 @@
 """End to end, real processes: a base station with `--db` is SIGKILLed in the
 middle of a two-drone mission and restarted on the same database. The agents keep
 flying on local SLAM meanwhile, keep their keyframes in their outboxes, and drain
-them when it is back; at the end every keyframe sent is in the graph exactly once."""
+them when it is back; at the end every keyframe sent is in the graph exactly once.
+Replaced by one with a new database instead (a new laptop), it gets every keyframe
+again: the agents send what they kept as a new keyframe chain."""
 
 from __future__ import annotations
 
@@ -13,6 +15,7 @@ import sqlite3
 import time
 from pathlib import Path
 
+import numpy as np
 import pytest
 from process_helpers import stored_keyframes, wait_for
 
@@ -22,6 +25,7 @@ from collabslam.supervisor import ProcessGroup, free_port
 from common.bus import endpoint
 from common.config import dump_config, load_config
 from common.scenario import write_scenario
+from protocol import Keyframe, decode
 from simulation.world import resolve_world
 
 pytestmark = pytest.mark.e2e
@@ -103,3 +107,80 @@ def test_basestation_killed_and_restarted_loses_nothing(tmp_path: Path) -> None:
     summary = build_summary(out, world, scenario.robot_ids, wall)
     assert summary["map_accuracy"] >= 0.95
     assert all(r["ate_rmse_m"] < 0.5 for r in summary["robots"])
+
+
+def _first_keyframe(db: Path, robot_id: str) -> Keyframe:
+    with sqlite3.connect(db) as con:
+        row = con.execute(
+            "SELECT payload FROM keyframes WHERE robot_id = ? AND seq = 0", (robot_id,)
+        ).fetchone()
+    return decode(row[0], Keyframe)
+
+
+def test_a_base_station_with_a_new_database_gets_the_whole_mission(tmp_path: Path) -> None:
+    """A laptop lost with its database: the base station started in its place has none
+    of the robots' keyframes. It had waited for seq 0, dropped by the agents once the
+    first acked it, and mapped nothing of them; now each agent sends what it kept (its
+    acknowledged keyframes are on disk) as keyframe chain 1, from its first keyframe."""
+    out = tmp_path / "run"
+    cfg = load_config(
+        overrides={
+            "basestation.map_update_period_s": 0.5,
+            "basestation.drain_timeout_s": 5.0,
+            "sim.tour_length_m": 400.0,
+            "exploration.enabled": False,
+        }
+    )
+    world = resolve_world("bshape")
+    scenario = make_scenario(cfg, world, 2)
+    write_scenario(out / "scenario.json", scenario)
+    dump_config(cfg, out / "config.toml")
+    lost, new = out / "lost.db", out / "new.db"
+    common = ["--config", str(out / "config.toml"), "--scenario", str(out / "scenario.json")]
+    common += ["--out", str(out)]
+    base_ep, sim_ep = endpoint(free_port()), endpoint(free_port())
+    base_args = ["basestation", *common, "--listen", base_ep]
+    robots = [r.robot_id for r in scenario.robots]
+    g = ProcessGroup(out)
+    t0 = time.monotonic()
+    try:
+        base = g.spawn("basestation", [*base_args, "--db", str(lost)])
+        sim = g.spawn("sim", ["sim", *common, "--listen", sim_ep, "--connect", base_ep])
+        agents = [g.spawn(r, agent_command(common, r, sim_ep, base_ep)) for r in robots]
+        wait_for(lambda: all(stored_keyframes(lost, r) >= 30 for r in robots), 60,
+                 "keyframes of every robot", g, [sim, *agents])  # fmt: skip
+        os.kill(base.proc.pid, signal.SIGKILL)
+        base.proc.wait()
+        before = {r: stored_keyframes(lost, r) for r in robots}
+        time.sleep(2.0)  # the drones fly on without it
+        base = g.spawn("basestation2", [*base_args, "--db", str(new)])
+        wait_for(lambda: all(stored_keyframes(new, r) >= before[r] + 10 for r in robots), 60,
+                 "the mission so far in the new database", g, [sim, *agents])  # fmt: skip
+        sim.proc.send_signal(signal.SIGINT)
+        g.wait([sim], 30)
+        for a in agents:
+            a.proc.send_signal(signal.SIGINT)
+        g.wait(agents, 60)
+        base.proc.send_signal(signal.SIGINT)
+        g.wait([base], 120)
+    finally:
+        g.terminate_all()
+    wall = time.monotonic() - t0
+
+    stats = json.loads((out / "basestation.json").read_text())
+    assert stats["persistence"]["starts"] == 1  # the new database's
+    for r in robots:
+        agent = json.loads((out / "agents" / f"{r}.json").read_text())
+        assert agent["keyframe_chain"] == 1
+        sent = agent["keyframes_sent"]  # of chain 1: every keyframe cut (none dropped)
+        assert stats["robots"][r]["keyframes_in_graph"] == sent == agent["keyframes_acked"]
+        assert stored_keyframes(new, r) == sent > before[r]
+        first, was = _first_keyframe(new, r), _first_keyframe(lost, r)
+        assert (first.chain, was.chain) == (1, 0)
+        assert first.stamp == was.stamp  # from the mission's first keyframe on
+        np.testing.assert_array_equal(first.pose_odom, was.pose_odom)
+        log = (out / "logs" / f"{r}.log").read_text()
+        assert re.search(r"sending the \d+ kept as keyframe chain 1 \(0 acknowledged", log)
+    summary = build_summary(out, world, robots, wall)
+    assert summary["map_accuracy"] >= 0.95
+    assert all(x["ate_rmse_m"] < 0.5 for x in summary["robots"])

@@ -254,8 +254,9 @@ def test_path_follower_flies_off_the_nose_only_where_the_laser_sees() -> None:
 
 
 def test_a_keyframe_that_never_comes_is_named(caplog: pytest.LogCaptureFixture) -> None:
-    """A base station restarted without its database waits for seq 0, which the agents
-    dropped once the first one acked it: its keyframes had been held without a word."""
+    """A base station restarted without its database waits for seq 0, which an agent
+    that does not start a new chain (an old one) dropped once the first base station
+    acked it: its keyframes had been held without a word."""
     from basestation.keyframe_store import GAP_WARN
 
     st = KeyframeStore(reorder_window=1000)
@@ -263,7 +264,7 @@ def test_a_keyframe_that_never_comes_is_named(caplog: pytest.LogCaptureFixture) 
         for seq in range(60, 60 + GAP_WARN):
             st.admit(_kf(seq))
     assert len(st.robot("r0").held) == GAP_WARN
-    assert "still waiting for keyframe seq 0 with 50 later ones held" in caplog.text
+    assert f"still waiting for keyframe seq 0 of chain 0 with {GAP_WARN} later" in caplog.text
 
 
 def test_a_second_agent_with_the_same_id_is_named(caplog: pytest.LogCaptureFixture) -> None:

@@ -1,0 +1,117 @@
+"""Keyframe chains: an agent whose acknowledged keyframes a new base station has not
+(its database lost) sends what it kept, on disk and in its outbox, renumbered from
+seq 0 as a new chain; the base station follows it (end to end with real processes:
+tests/test_basestation_recovery.py)."""
+
+from __future__ import annotations
+
+import logging
+
+import msgpack
+import numpy as np
+import pytest
+from process_helpers import synthetic_keyframe
+
+from agent.keyframe_history import KeyframeHistory
+from agent.outbox import IDENTITY7, Outbox
+from basestation.global_slam import GlobalSlam
+from basestation.keyframe_store import KeyframeStore
+from common.config import Config
+from common.errors import ProtocolError
+from protocol import Keyframe, KeyframeAck, decode, encode
+from protocol.codec import relabel
+
+
+def _kf(seq: int, chain: int = 0) -> Keyframe:
+    """Keyframe `seq` of r0, 0.5 m apart along x (0.5 s each)."""
+    kf = synthetic_keyframe("r0", seq, np.array([0.5 * seq, 0.0, 0.0]), np.array([0.5, 0, 0]))
+    return Keyframe(**{**kf.__dict__, "chain": chain})
+
+
+def test_history_keeps_the_latest_on_disk_in_two_files() -> None:
+    h = KeyframeHistory(max_keyframes=10)
+    for seq in range(23):
+        h.add(seq, b"kf%d" % seq)
+    # files of 5: 0-4, 5-9, 10-14, 15-19, 20-22; the two latest are kept
+    assert (h.first_seq, len(h), h.dropped) == (15, 8, 15)
+    assert list(h.payloads()) == [b"kf%d" % s for s in range(15, 23)]
+    h.add(30, b"kf30")  # not the next one: what came before cannot precede it
+    assert (h.first_seq, list(h.payloads())) == (30, [b"kf30"])
+    off = KeyframeHistory(max_keyframes=0)
+    off.add(0, b"x")
+    assert len(off) == 0 and off.first_seq is None
+
+
+def test_outbox_sends_history_and_pending_as_a_new_chain() -> None:
+    box = Outbox(100, 0.8, 1.0, 50, history=KeyframeHistory(1000))
+    for seq in range(8):
+        box.add(seq, encode(_kf(seq)))
+    assert box.ack(4) == 5
+    assert len(box.history) == 5 and len(box) == 3  # acknowledged ones go to disk
+    assert box.new_chain(1) == 8
+    assert (box.acked_seq, box.added_seq, len(box), len(box.history)) == (-1, 7, 8, 0)
+    sent = [decode(p, Keyframe) for p in box.due_for_resend()]  # at once, not on a timer
+    assert [k.seq for k in sent] == list(range(8)) and {k.chain for k in sent} == {1}
+    assert [k.stamp for k in sent] == [_kf(s).stamp for s in range(8)]  # the same ones
+    np.testing.assert_array_equal(sent[0].delta, IDENTITY7)  # nothing precedes it now
+    np.testing.assert_array_equal(sent[3].delta, _kf(3).delta)
+    box.add(8, encode(_kf(8, chain=1)))  # the next keyframe cut follows on
+    assert box.ack(8) == 9 and len(box.history) == 9
+
+
+def test_store_follows_a_new_chain_only_while_it_has_nothing(caplog) -> None:
+    st = KeyframeStore()
+    none = st.none_of("r0")  # an agent that says some were acknowledged is told -1
+    assert (none.robot_id, none.acked_seq, none.chain) == ("r0", -1, 0)
+    for seq in (300, 301):  # the old chain's, resent after the outage: held
+        assert st.admit(_kf(seq)) == []
+    assert st.ack("r0") is None  # nothing to acknowledge
+    with caplog.at_level(logging.WARNING):
+        assert st.admit(_kf(1, chain=1)) == []
+        assert "starts keyframe chain 1" in caplog.text
+    r = st.robot("r0")
+    assert r.chain == 1 and list(r.held) == [1]  # the old chain's are dropped
+    assert [k.seq for k in st.admit(_kf(0, chain=1))] == [0, 1]
+    assert st.admit(_kf(302)) == [] and r.stale_chain == 1  # in flight before the switch
+    ack = st.ack("r0")
+    assert (ack.acked_seq, ack.chain) == (1, 1) and st.none_of("r0") is None
+    with caplog.at_level(logging.ERROR):  # a second base station told the agent "none"
+        assert st.admit(_kf(0, chain=2)) == []
+    assert r.chain_conflicts == 1 and "another base station" in caplog.text
+
+
+def test_a_chain_starting_on_the_way_is_placed_by_its_odometry() -> None:
+    """A known start is the odometry frame's pose in `map`: a chain that starts at odom
+    pose (3, 1, 90 deg) is placed there, not at the start."""
+    cfg = Config()
+    cfg.basestation.constraints.enabled = False
+    slam = GlobalSlam(cfg, known_starts={"r0": np.array([10.0, 5.0, np.pi / 2])})
+    kf = synthetic_keyframe("r0", 0, np.array([3.0, 1.0, np.pi / 2]), np.zeros(3))
+    assert slam.admit(kf) == 1
+    slam.optimize()
+    x, y, yaw = slam.graph.pose("r0", 0)
+    np.testing.assert_allclose([x, y, np.cos(yaw)], [9.0, 8.0, -1.0], atol=1e-6)
+    np.testing.assert_allclose(slam.T_map_odom("r0"), [10, 5, np.pi / 2], atol=1e-6)
+
+
+def test_relabel_replaces_fields_without_decoding() -> None:
+    p = encode(_kf(7))
+    kf = decode(relabel(p, Keyframe, seq=0, chain=3, delta=IDENTITY7), Keyframe)
+    assert (kf.seq, kf.chain, kf.stamp) == (0, 3, _kf(7).stamp)
+    np.testing.assert_array_equal(kf.scan2d.ranges_mm, _kf(7).scan2d.ranges_mm)
+    with pytest.raises(ProtocolError, match="no fields"):
+        relabel(p, Keyframe, sequence=1)
+    with pytest.raises(ProtocolError, match="expected a KeyframeAck"):
+        relabel(p, KeyframeAck, chain=1)
+
+
+def test_a_field_added_later_may_be_absent() -> None:
+    """An older peer's ack (or a database's keyframe) has no chain: chain 0. A field
+    without a default is still required."""
+    env = {"v": 2, "t": "KeyframeAck", "d": {"robot_id": "r0", "acked_seq": 4}}
+    assert decode(msgpack.packb(env, use_bin_type=True), KeyframeAck).chain == 0
+    del env["d"]["acked_seq"]
+    with pytest.raises(ProtocolError, match="missing fields"):
+        decode(msgpack.packb(env, use_bin_type=True), KeyframeAck)
+    with pytest.raises(ProtocolError, match="chain"):
+        decode(encode(_kf(0, chain=-1)), Keyframe)

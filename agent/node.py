@@ -16,6 +16,7 @@ raw correction to place map-frame paths in `odom` (seed 002 eq. 4).
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import logging
 import threading
@@ -28,24 +29,22 @@ import numpy as np
 
 from agent.control_log import ControlRecorder, write_control_log
 from agent.downlink_gate import DownlinkGate
-from agent.keyframe_history import KeyframeHistory
 from agent.keyframe_selector import KeyframeSelector
 from agent.local_trajectory_builder import LocalSlamResult, LocalTrajectoryBuilder
 from agent.odometry_tracker import OdometryTracker
-from agent.outbox import Outbox
 from agent.path_follower import PathFollower
 from agent.pose_smoother import IDENTITY7, PoseSmoother, pose7_compose
 from agent.safety_guard import SafetyGuard, neighbours_in_body
 from agent.sensor_sources import SensorSource
+from agent.uplink import KeyframeUplink
 from agent.vehicle import NullVehicle, ZenohVehicle
 from common.bus import Bus
 from common.config import Config
-from common.errors import ProtocolError
 from common.geometry import map_to_odom, odom_to_map, pose4_to_pose7, pose7_to_pose4
 from common.memory import HeapTrimmer
 from common.metrics import percentiles
 from common.row_spool import RowSpool
-from common.stamps import MAX_EPOCH_JUMP, STAMP_SLACK_S, JumpGate, due
+from common.stamps import MAX_EPOCH_JUMP, STAMP_SLACK_S, BackStepRepair, JumpGate, due
 from common.trajectory_io import Trajectory, write_tum
 from protocol import (
     Altimeter,
@@ -53,7 +52,6 @@ from protocol import (
     ControlPose,
     DownlinkMark,
     Imu,
-    Keyframe,
     KeyframeAck,
     LaserScan,
     Neighbours,
@@ -61,7 +59,6 @@ from protocol import (
     PoseCorrection,
     RobotState,
     Scan2D,
-    encode,
 )
 from protocol import Path as PathMsg
 
@@ -96,12 +93,8 @@ class AgentNode:
         )
         self.selector = KeyframeSelector(a)
         self.heap = HeapTrimmer()
-        self.outbox = Outbox(
-            a.outbox_max, a.outbox_warn_fraction, a.resend_timeout_s, a.resend_batch,
-            history=KeyframeHistory(a.keyframe_history),
-        )  # fmt: skip
-        self.chain = 0  # keyframe chain (Keyframe.chain): a new one for a base station
-        self._chain_lost = threading.Event()  # that has none of the keyframes acknowledged
+        self.uplink = KeyframeUplink(a, robot_id, bus)
+        self.outbox = self.uplink.outbox
         self.follower = PathFollower.from_config(a)
         self.guard = SafetyGuard(
             a.vehicle_radius_m,
@@ -139,8 +132,8 @@ class AgentNode:
         self._new_path = False
         self.exploring = cfg.exploration.enabled
         self.mission_over = False
-        self.next_seq = 0
-        self.keyframes_refused = 0  # failed the checks the base station makes: not sent
+        self.clock = BackStepRepair()  # sensor stamps, across a step back of their clock
+        self.clock_dropped = 0  # sensor messages stamped before the latest (not a step)
         self.last_scan_stamp: float | None = None
         self.last_state_stamp = -np.inf
         self.scans = 0
@@ -155,7 +148,7 @@ class AgentNode:
         The sensor source must be created before this (its subscriptions count too).
         """
         rid = self.robot_id
-        self.bus.subscribe(self.keys.robot(rid, "ack"), KeyframeAck, self._on_ack)
+        self.bus.subscribe(self.keys.robot(rid, "ack"), KeyframeAck, self.uplink.on_ack)
         self.bus.subscribe(self.keys.robot(rid, "correction"), PoseCorrection, self._on_correction)
         self.bus.subscribe(self.keys.robot(rid, "path"), PathMsg, self._on_path)
         self.bus.subscribe(self.keys.robot(rid, "neighbours"), Neighbours, self._on_neighbours)
@@ -173,36 +166,10 @@ class AgentNode:
             log.warning("no base station after %.0f s: starting without it", timeout_s)
 
     def _on_base_alive(self, name: str, alive: bool) -> None:
-        """Base-station liveliness (Zenoh thread). Gone: keep flying on local SLAM, the
-        outbox keeps every keyframe. Back: resend from the oldest unacknowledged at once."""
+        """Base-station liveliness (Zenoh thread). Gone: keep flying on local SLAM."""
         self.base_links["joins" if alive else "losses"] += 1
         (self._base_up.set if alive else self._base_up.clear)()
-        if alive:
-            if self.base_links["joins"] > 1:
-                log.info("base station %s is back: resending %d keyframes", name, len(self.outbox))
-            self.outbox.kick()
-        else:
-            log.warning(
-                "base station %s lost: flying on local SLAM, %d keyframes kept in the outbox",
-                name,
-                len(self.outbox),
-            )
-
-    def _on_ack(self, msg: KeyframeAck, key: str) -> None:
-        if msg.chain != self.chain:  # about a chain this agent has left
-            return
-        if msg.acked_seq < 0 <= self.outbox.acked_seq:  # it has none of those acknowledged
-            self._chain_lost.set()  # (by a base station whose database it has not)
-        else:
-            self.outbox.ack(msg.acked_seq)
-
-    def _new_chain(self) -> None:
-        """(Main thread: it owns next_seq) send every keyframe kept as a new chain."""
-        self._chain_lost.clear()
-        self.chain += 1
-        self.next_seq = self.outbox.new_chain(self.chain)
-        with self._corr_lock:
-            self.epoch = -1  # a new base station numbers its corrections from 0 again
+        self.uplink.on_base_alive(name, alive, again=self.base_links["joins"] > 1)
 
     def _on_correction(self, msg: PoseCorrection, key: str) -> None:
         with self._corr_lock:
@@ -262,6 +229,10 @@ class AgentNode:
                 self._resend()
 
     def handle(self, msg: Any) -> None:
+        if isinstance(msg, (Odometry, Imu, Altimeter, LaserScan)) and not (
+            msg := self._sensor_time(msg)
+        ):
+            return
         if isinstance(msg, Odometry):
             self.frontend.add_odometry(msg.stamp, pose7_to_pose4(msg.pose)[[0, 1, 3]])
             self._twist = (msg.stamp, np.asarray(msg.twist[:2], dtype=np.float64))
@@ -273,6 +244,24 @@ class AgentNode:
             self.on_scan(msg)
         elif isinstance(msg, ClockSync):  # a lock-step simulator's, before its next tick
             self.downlink.on_clock(msg.stamp)
+
+    def _sensor_time(self, msg: Any) -> Any:
+        """The message on the agent's timeline (None: dropped): after a backward step of
+        the sensor clock its stamps are moved on by the step (`BackStepRepair`)."""
+        steps = self.clock.steps
+        stamp = self.clock(msg.stamp)
+        if stamp is None:
+            if self.clock_dropped % 400 == 0:  # ~10 s of scans at 40 Hz between two lines
+                log.error("sensor stamp %.3f is %.3f s before the latest: dropped (%d so far)",
+                          msg.stamp, self.clock.latest - msg.stamp - self.clock.offset,
+                          self.clock_dropped + 1)  # fmt: skip
+            self.clock_dropped += 1
+            return None
+        if self.clock.steps > steps:
+            log.error("the sensor clock stepped back: stamps are moved on by %.3f s from t=%.3f "
+                      "(set the drone's clock by slewing, not steps: chrony's makestep at boot "
+                      "only)", self.clock.offset, msg.stamp)  # fmt: skip
+        return msg if stamp == msg.stamp else dataclasses.replace(msg, stamp=stamp)
 
     def on_scan(self, scan: LaserScan) -> None:
         if self.last_scan_stamp is not None and scan.stamp == self.last_scan_stamp:
@@ -309,28 +298,18 @@ class AgentNode:
         delta, cov = self.selector.cut(pose)
         # The match covariance carries degenerate directions (a corridor) to the graph.
         cov[np.ix_([0, 1, 5], [0, 1, 5])] += result.covariance
-        kf = Keyframe(
-            robot_id=self.robot_id,
-            chain=self.chain,
-            seq=self.next_seq,
+        scan2d = Scan2D.from_ranges(
+            scan.angle_min, scan.angle_increment, scan.range_max, scan.ranges
+        )
+        sent = self.uplink.send(
             stamp=scan.stamp,
             pose_odom=pose4_to_pose7(pose),
             delta=pose4_to_pose7(delta),
             delta_cov=cov,
-            scan2d=Scan2D.from_ranges(
-                scan.angle_min, scan.angle_increment, scan.range_max, scan.ranges
-            ),
+            scan2d=scan2d,
         )
-        try:  # one the base station would refuse would hold back all after it, for good
-            kf.validate()  # (an altimeter's 1e9 m once)
-        except ProtocolError as exc:
-            log.error("keyframe at t=%.3f not sent: %s", scan.stamp, exc)
-            self.selector.last_pose, self.keyframes_refused = last, self.keyframes_refused + 1
-            return
-        payload = encode(kf)
-        self.outbox.add(self.next_seq, payload)
-        self.next_seq += 1
-        self.bus.put_raw(self.keys.robot(self.robot_id, "keyframe"), payload)
+        if not sent:  # refused (an altimeter's 1e9 m once): the next spans from the last sent
+            self.selector.last_pose = last
 
     def _publish_control_pose(self, stamp: float, pose_odom: np.ndarray) -> None:
         """One control tick at sensor time `stamp`: the smoothed and raw T_map_base."""
@@ -394,22 +373,13 @@ class AgentNode:
         moving = self._twist  # the guard brakes along it (a turn lags the command)
         fresh = moving is not None and abs(stamp - moving[0]) <= TWIST_MAX_AGE_S
         vx, vy = self.guard.limit(stamp, vx, vy, velocity=moving[1] if fresh else None)
-        sent = (self.next_seq, max(self.last_state_stamp, -1.0))  # for a lock-step base station
+        sent = (self.uplink.next_seq, max(self.last_state_stamp, -1.0))  # lock-step base
         self.vehicle.command(stamp, vx, vy, vz, yaw_rate, *sent)
 
     def _resend(self) -> None:
-        if self._chain_lost.is_set():
-            self._new_chain()
-        key = self.keys.robot(self.robot_id, "keyframe")
-        batch = self.outbox.due_for_resend()
-        if batch:
-            log.info(
-                "resending %d keyframes after seq %d (the last acknowledged)",
-                len(batch),
-                self.outbox.acked_seq,
-            )
-        for payload in batch:
-            self.bus.put_raw(key, payload)
+        if self.uplink.resend():  # a new chain, for a base station with a new database
+            with self._corr_lock:
+                self.epoch = -1  # which numbers its corrections from 0 again
 
     def status(self) -> str:
         if self.scans == 0:
@@ -431,7 +401,7 @@ class AgentNode:
                 stamp=stamp,
                 status=self.status(),
                 correction_epoch=epoch,
-                keyframes_sent=self.next_seq,
+                keyframes_sent=self.uplink.next_seq,
                 keyframes_acked=self.outbox.acked_seq + 1,
                 outbox_len=len(self.outbox),
                 pose_odom=pose4_to_pose7(pose),
@@ -442,28 +412,19 @@ class AgentNode:
     # --- shutdown -----------------------------------------------------------------------
     def drain(self, timeout_s: float) -> bool:
         """Resend until every keyframe is acknowledged or the timeout passes."""
-        deadline = time.monotonic() + timeout_s
-        while len(self.outbox) and time.monotonic() < deadline:
-            self._resend()
-            time.sleep(0.05)
-        if len(self.outbox):
-            log.warning("%d keyframes still unacknowledged at shutdown", len(self.outbox))
-        return len(self.outbox) == 0
+        return self.uplink.drain(timeout_s)
 
     def stats(self) -> dict[str, Any]:
         return {
             "robot_id": self.robot_id,
-            "keyframes_sent": self.next_seq,
-            "keyframes_acked": self.outbox.acked_seq + 1,
-            "keyframes_resent": self.outbox.resent,
-            "outbox_high_water": self.outbox.high_water,
-            "keyframes_deferred": self.outbox.deferred,
-            "keyframes_refused": self.keyframes_refused,
-            "keyframe_chain": self.chain,
+            **self.uplink.stats(),
             "base_station_links": dict(self.base_links),
             "lockstep_downlink_waits": self.downlink.waits,
             "lockstep_downlink_timeouts": self.downlink.timeouts,
             "scans": self.scans,
+            "sensor_clock_steps": self.clock.steps,
+            "sensor_clock_offset_s": self.clock.offset,
+            "sensor_messages_dropped": self.clock_dropped,
             "odom_distance_m": self.frontend.distance_m,
             "scans_rejected": self.frontend.rejected_scans,
             "matches_gated": self.frontend.gated_matches,

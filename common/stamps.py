@@ -3,7 +3,7 @@ period of 10 ticks measures 0.25 s, or 0.2499999999999999 s, or 0.25000000000000
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 # s: stamps this close count as equal
 STAMP_SLACK_S = 1e-6
@@ -40,3 +40,55 @@ class JumpGate:
             return False
         self.pending = stamp
         return True
+
+
+# s: a sensor stamp this far before the latest is not a reordering but the clock's step
+MAX_STAMP_BACK_S = 1.0
+STEP_CONFIRM = 5  # messages in a row from the stepped-back clock before it counts
+
+
+@dataclass
+class BackStepRepair:
+    """A sensor clock that steps back (the host's time set back: NTP, GPS time) taken up:
+    its later stamps are moved on by the step, so what is made of them (local SLAM,
+    keyframes, states, commands) goes on forward. Before, every scan after the step was
+    "not after the previous" and dropped for good: the agent flew blind on its last
+    command, and its commands, stamped before the simulator's last, were ignored.
+
+    All the agent's sensors share one clock. A stamp more than `max_back` before the
+    latest is dropped (the caller counts it); `confirm` such in a row, each within
+    `max_back` of the one before, are the clock's step: the offset then puts the first
+    of them just after the latest, and from there stamps pass moved on by it. A single
+    stray stamp, or one sensor stamping by another clock among good ones, never counts;
+    nor does one far ahead (passed on: local SLAM's `JumpGate` holds it) until the next
+    follows it.
+    """
+
+    max_back: float = MAX_STAMP_BACK_S
+    confirm: int = STEP_CONFIRM
+    offset: float = 0.0  # s added to every stamp
+    latest: float = -float("inf")  # the latest stamp passed (moved on)
+    steps: int = 0
+    _back: tuple[float, ...] = ()  # raw stamps of a step not yet confirmed
+    _ahead: JumpGate = field(default_factory=JumpGate)
+
+    def __call__(self, stamp: float) -> float | None:
+        """`stamp` as the agent takes it (moved on by the offset), None: dropped."""
+        t = stamp + self.offset
+        if t >= self.latest - self.max_back:
+            self._back = ()
+            last = None if self.latest == -float("inf") else self.latest
+            if not self._ahead.holds(t, last):  # one far ahead is not the latest yet
+                self.latest = max(self.latest, t)
+            return t
+        if self._back and abs(stamp - self._back[-1]) > self.max_back:
+            self._back = ()  # not the same clock as the ones before
+        self._back += (stamp,)
+        if len(self._back) < self.confirm:
+            return None
+        self.offset = self.latest + STAMP_SLACK_S - self._back[0]
+        self.steps += 1
+        self._back = ()
+        t = stamp + self.offset
+        self.latest = t
+        return t

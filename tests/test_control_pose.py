@@ -133,7 +133,7 @@ def test_agent_sends_no_keyframe_the_base_station_would_refuse(cfg: Config, endp
             node.handle(Odometry("r0", t, pose, np.array([0.5, 0.0, 0.0, 0.0])))
             node.handle(LaserScan("r0", t, -1.0, 0.01, 0.1, 30.0, np.ones(201, np.float32)))
         sent = [decode(p, Keyframe) for p in node.outbox._pending.values()]
-    assert node.keyframes_refused >= 2
+    assert node.uplink.refused >= 2
     assert [kf.seq for kf in sent] == list(range(len(sent))) and len(sent) >= 12
     steps = np.array([kf.delta[:3] for kf in sent[1:]])
     assert np.all(np.abs(steps[:, 2]) < 1e-9) and np.all(steps[:, 0] > 0.0)

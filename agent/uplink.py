@@ -1,0 +1,114 @@
+"""An agent's keyframes on their way to the base station: seqs within a keyframe chain,
+the outbox that keeps each until it is acknowledged (at least once, resent in order,
+agent/outbox.py), and a new chain for a base station that has none of the keyframes
+acknowledged (its database lost: it answers -1, basestation/keyframe_store.py).
+
+Threads: `on_ack` and `on_base_alive` run on Zenoh's; `send`, `resend` and `drain` on
+the agent's main thread, which alone numbers keyframes (`next_seq`).
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from typing import Any
+
+from agent.keyframe_history import KeyframeHistory
+from agent.outbox import Outbox
+from common.bus import Bus
+from common.config import AgentConfig
+from common.errors import ProtocolError
+from protocol import Keyframe, KeyframeAck, encode
+
+log = logging.getLogger(__name__)
+
+
+class KeyframeUplink:
+    def __init__(self, a: AgentConfig, robot_id: str, bus: Bus) -> None:
+        self.robot_id = robot_id
+        self.bus = bus
+        self.key = bus.keys.robot(robot_id, "keyframe")
+        self.outbox = Outbox(
+            a.outbox_max, a.outbox_warn_fraction, a.resend_timeout_s, a.resend_batch,
+            history=KeyframeHistory(a.keyframe_history),
+        )  # fmt: skip
+        self.next_seq = 0  # of this chain
+        self.chain = 0  # Keyframe.chain
+        self.refused = 0  # failed the checks the base station makes: not sent
+        self._chain_lost = threading.Event()
+
+    def on_ack(self, msg: KeyframeAck, key: str = "") -> None:
+        """(Zenoh thread) An ack of this chain; -1 after some were acknowledged: the base
+        station has none of them (another one acknowledged them), a new chain is due."""
+        if msg.chain != self.chain:  # about a chain this agent has left
+            return
+        if msg.acked_seq < 0 <= self.outbox.acked_seq:
+            self._chain_lost.set()
+        else:
+            self.outbox.ack(msg.acked_seq)
+
+    def on_base_alive(self, name: str, alive: bool, again: bool) -> None:
+        """(Zenoh thread) Gone: the outbox keeps every keyframe. Back (`again`: not the
+        first time): resend from the oldest unacknowledged at once."""
+        if not alive:
+            log.warning("base station %s lost: flying on local SLAM, %d keyframes kept in "
+                        "the outbox", name, len(self.outbox))  # fmt: skip
+            return
+        if again:
+            log.info("base station %s is back: resending %d keyframes", name, len(self.outbox))
+        self.outbox.kick()
+
+    def send(self, **fields: Any) -> bool:
+        """Number, queue and send a keyframe of `fields` (all but robot_id, chain, seq);
+        False if it fails the base station's checks (not sent, no seq taken: one it
+        refused had held back every later keyframe of its robot, for good)."""
+        kf = Keyframe(robot_id=self.robot_id, chain=self.chain, seq=self.next_seq, **fields)
+        try:
+            kf.validate()
+        except ProtocolError as exc:
+            log.error("keyframe at t=%.3f not sent: %s", kf.stamp, exc)
+            self.refused += 1
+            return False
+        payload = encode(kf)
+        self.outbox.add(self.next_seq, payload)
+        self.next_seq += 1
+        self.bus.put_raw(self.key, payload)
+        return True
+
+    def resend(self) -> bool:
+        """Resend what is due (main thread); True if a new chain started first (the
+        caller forgets the old base station's correction epochs)."""
+        new = self._chain_lost.is_set()
+        if new:
+            self._chain_lost.clear()
+            self.chain += 1
+            self.next_seq = self.outbox.new_chain(self.chain)
+        batch = self.outbox.due_for_resend()
+        if batch:
+            log.info("resending %d keyframes after seq %d (the last acknowledged)",
+                     len(batch), self.outbox.acked_seq)  # fmt: skip
+        for payload in batch:
+            self.bus.put_raw(self.key, payload)
+        return new
+
+    def drain(self, timeout_s: float) -> bool:
+        """Resend until every keyframe is acknowledged or the timeout passes."""
+        deadline = time.monotonic() + timeout_s
+        while len(self.outbox) and time.monotonic() < deadline:
+            self.resend()
+            time.sleep(0.05)
+        if len(self.outbox):
+            log.warning("%d keyframes still unacknowledged at shutdown", len(self.outbox))
+        return len(self.outbox) == 0
+
+    def stats(self) -> dict[str, Any]:
+        return {
+            "keyframes_sent": self.next_seq,
+            "keyframes_acked": self.outbox.acked_seq + 1,
+            "keyframes_resent": self.outbox.resent,
+            "outbox_high_water": self.outbox.high_water,
+            "keyframes_deferred": self.outbox.deferred,
+            "keyframes_refused": self.refused,
+            "keyframe_chain": self.chain,
+        }

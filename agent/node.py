@@ -140,6 +140,7 @@ class AgentNode:
         self.local_trajectory = RowSpool(5)  # every scan: stamp, T_odom_base [x y z yaw]
         self.base_links = {"joins": 0, "losses": 0}  # base-station liveliness events
         self._base_up = threading.Event()
+        self._bases: set[str] = set()  # base-station tokens up (one, unless misconfigured)
 
     # --- wiring -------------------------------------------------------------------------
     def start(self) -> None:
@@ -168,7 +169,12 @@ class AgentNode:
     def _on_base_alive(self, name: str, alive: bool) -> None:
         """Base-station liveliness (Zenoh thread). Gone: keep flying on local SLAM."""
         self.base_links["joins" if alive else "losses"] += 1
-        (self._base_up.set if alive else self._base_up.clear)()
+        (self._bases.add if alive else self._bases.discard)(name)
+        (self._base_up.set if self._bases else self._base_up.clear)()
+        if alive and len(self._bases) > 1:  # each would take keyframes the other misses
+            log.error("%d base stations are up (%s): run one per fleet (a restarted one's "
+                      "token lingers for Zenoh's lease, 10 s)", len(self._bases),
+                      ", ".join(sorted(self._bases)))  # fmt: skip
         self.uplink.on_base_alive(name, alive, again=self.base_links["joins"] > 1)
 
     def _on_correction(self, msg: PoseCorrection, key: str) -> None:

@@ -174,7 +174,7 @@ class BaseStationNode:
         if self.cfg.basestation.gps.enabled:
             self.bus.subscribe(self.keys.all_robots("sensor/gnss"), GnssFix, self._on_fix)
             self.clock.takes_fixes = True
-        self.bus.declare_alive("basestation", "base")
+        self.bus.declare_alive("basestation", "base", unique=True)
         if self.recovered:  # tell agents what is safe, and where their maps are now
             for rid in self.slam.store.robots:
                 self._ack(rid)
@@ -456,6 +456,7 @@ class BaseStationNode:
             "heap_trims": self.heap.trims,
             "memory_series": self.heap.series_json(),  # after each trim: where the RSS is
             "rejected_messages": dict(self.bus.rejected),
+            "other_base_stations": sorted(self.bus.rivals),
             "correction_epoch": self.epoch,
             "links": {k: dict(v) for k, v in self.links.items()},
             "persistence": self.db.stats() and {**self.db.stats(), "recovered": self.recovered},

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import json
 import logging
+import secrets
 import threading
 from collections import Counter
 from collections.abc import Callable
@@ -76,6 +77,7 @@ class Bus:
         self.keys = Keys(fleet)
         self.max_message_bytes = max_message_bytes
         self.rejected: Counter[str] = Counter()
+        self.rivals: set[str] = set()  # other processes of a unique role (declare_alive)
         self._lock = threading.Lock()
         self._publishers: dict[str, zenoh.Publisher] = {}
         self._handles: list[Any] = []
@@ -154,7 +156,22 @@ class Bus:
             log.error("dropped bad message on %s: %s (%d rejected so far)", key, reason, n)
 
     # --- liveliness ---------------------------------------------------------------------
-    def declare_alive(self, role: str, name: str) -> None:
+    def declare_alive(self, role: str, name: str, unique: bool = False) -> None:
+        """A liveliness token `role`/`name`. `unique`: there should be one process of this
+        role on the fleet; the token is `name`-<random> and another's token is an error
+        line, its name kept in `rivals` (two base stations had split the agents'
+        keyframes between them without a word: both declared one token)."""
+        if unique:
+            name = f"{name}-{secrets.token_hex(4)}"
+
+            def on_other(other: str, alive: bool) -> None:
+                if alive and other != name and other not in self.rivals:
+                    self.rivals.add(other)
+                    log.error("another %s is up on fleet %s (%s; this is %s): run one per "
+                              "fleet (a restarted one's token lingers for Zenoh's lease, "
+                              "10 s)", role, self.keys.fleet, other, name)  # fmt: skip
+
+            self.watch_alive(role, on_other)
         self._handles.append(self.session.liveliness().declare_token(self.keys.alive(role, name)))
 
     def watch_alive(self, role: str, on_change: Callable[[str, bool], None]) -> None:

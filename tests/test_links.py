@@ -68,3 +68,31 @@ def test_one_link_per_pair_of_processes_after_a_base_station_restart(cfg: Config
     finally:
         for bus in buses:
             bus.close()
+
+
+def test_two_base_stations_on_one_fleet_are_named(
+    cfg: Config, endpoint: str, caplog: pytest.LogCaptureFixture
+) -> None:
+    """Two base stations on one fleet split the agents' keyframes between them; both
+    had declared one token, so nobody could tell. Now each base station's token is its
+    own, and each one, and every agent, names the other in an error line."""
+    from agent.node import AgentNode
+    from agent.vehicle import NullVehicle
+
+    other = f"tcp/127.0.0.1:{free_port()}"  # peers do not route: the agent links to both
+    with (
+        Bus(ZenohConfig(listen=[endpoint]), cfg.fleet) as first,
+        Bus(ZenohConfig(listen=[other], connect=[endpoint]), cfg.fleet) as second,
+        Bus(ZenohConfig(connect=[endpoint, other]), cfg.fleet) as agent_bus,
+    ):
+        first.declare_alive("basestation", "base", unique=True)
+        agent = AgentNode(cfg, "r0", agent_bus, np.zeros((0, 2)), np.zeros(4), NullVehicle())
+        agent.start()  # (lock-step: waits for a base station's token)
+        assert poll_until(lambda: len(agent._bases) == 1)
+        assert not first.rivals and "base stations are up" not in caplog.text
+        second.declare_alive("basestation", "base", unique=True)
+        assert poll_until(lambda: len(first.rivals) == len(second.rivals) == 1)
+        assert first.rivals.isdisjoint(second.rivals)
+        assert poll_until(lambda: len(agent._bases) == 2)
+        assert "another basestation is up on fleet" in caplog.text
+        assert "2 base stations are up" in caplog.text

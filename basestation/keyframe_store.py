@@ -50,7 +50,8 @@ class RobotKeyframes:
     var_cumsum: Rows = field(default_factory=lambda: Rows(2))  # running [var_xy, var_yaw]
     held: dict[int, Keyframe] = field(default_factory=dict)
     duplicates: int = 0
-    id_conflicts: int = 0  # duplicates whose stamp differs: two agents with this id?
+    id_conflicts: int = 0  # refused as another source's (see `foreign`)
+    foreign: bool = False  # another agent sends as this robot: nothing more is admitted
     chain: int = 0  # the agent's keyframe chain admitted (Keyframe.chain)
     stale_chain: int = 0  # keyframes of an older chain, dropped
     chain_conflicts: int = 0  # keyframes of a newer chain after some were admitted
@@ -153,17 +154,17 @@ class KeyframeStore:
     def admit(self, kf: Keyframe) -> list[Keyframe]:
         """Offer one keyframe; returns the keyframes now admitted, in order (maybe none)."""
         r = self.robot(kf.robot_id)
+        if r.foreign:
+            r.id_conflicts += 1
+            return []
         if not self._in_chain(r, kf):
             return []
         if kf.seq < r.next_seq or kf.seq in r.held:
             r.duplicates += 1
             kept = r.held[kf.seq].stamp if kf.seq in r.held else float(r.stamps[kf.seq, 0])
             if kf.stamp != kept:  # a resent keyframe is the same bytes: another source
-                r.id_conflicts += 1
-                if r.id_conflicts == 1 or r.id_conflicts % 1000 == 0:
-                    log.error("robot %s: keyframe seq %d came again stamped %.3f (kept: %.3f); "
-                              "are two agents using this robot id? (%d so far)", kf.robot_id,
-                              kf.seq, kf.stamp, kept, r.id_conflicts)  # fmt: skip
+                self._foreign(r, f"keyframe seq {kf.seq} came again stamped {kf.stamp:.3f} "
+                                 f"(kept: {kept:.3f})")  # fmt: skip
             return []
         if kf.seq > r.next_seq:
             if kf.seq > r.next_seq + self.reorder_window:  # no agent is that far ahead
@@ -228,12 +229,23 @@ class KeyframeStore:
             r.chain, r.held = kf.chain, {}
             return True
         r.chain_conflicts += 1
-        if r.chain_conflicts == 1 or r.chain_conflicts % 1000 == 0:
-            log.error("robot %s: keyframe of chain %d after %d of chain %d: dropped; did "
-                      "another base station tell its agent it had none of them? (run one "
-                      "per fleet; %d so far)", kf.robot_id, kf.chain, r.next_seq, r.chain,
-                      r.chain_conflicts)  # fmt: skip
+        KeyframeStore._foreign(r, f"a keyframe of chain {kf.chain} came after {r.next_seq} "
+                               f"of chain {r.chain} (did another base station tell its "
+                               f"agent it had none?)")  # fmt: skip
         return False
+
+    @staticmethod
+    def _foreign(r: RobotKeyframes, what: str) -> None:
+        """Another source sends as this robot (its agent restarted, a second drone with
+        its id, or its agent gone over to another base station): no more of its keyframes
+        are admitted, acknowledged or answered with corrections. Mixing them had joined
+        two odometry frames in one trajectory."""
+        r.id_conflicts += 1
+        r.foreign, r.held = True, {}
+        log.error("robot %s: %s: another agent sends as %s (restarted, or two with this "
+                  "id); no more of its keyframes are mapped, acknowledged or corrected (two "
+                  "agents' frames cannot be joined): restart the mission, or give the new "
+                  "one another robot id", r.robot_id, what, r.robot_id)  # fmt: skip
 
     def acked_seq(self, robot_id: str) -> int:
         """Highest seq such that every keyframe up to it is admitted (-1 if none)."""
@@ -243,7 +255,8 @@ class KeyframeStore:
         """The acknowledgement for `robot_id`: up to where all of its chain's keyframes
         are admitted (None: none is)."""
         r = self.robot(robot_id)
-        return KeyframeAck(robot_id, r.next_seq - 1, r.chain) if r.next_seq else None
+        ok = r.next_seq and not r.foreign
+        return KeyframeAck(robot_id, r.next_seq - 1, r.chain) if ok else None
 
     def none_of(self, robot_id: str) -> KeyframeAck | None:
         """Ack -1 if none of `robot_id`'s keyframes is admitted (for an agent that says
@@ -252,7 +265,7 @@ class KeyframeStore:
         r = self.robots.get(robot_id)
         if r is None:
             return KeyframeAck(robot_id, -1, 0)
-        return KeyframeAck(robot_id, -1, r.chain) if r.next_seq == 0 else None
+        return KeyframeAck(robot_id, -1, r.chain) if r.next_seq == 0 and not r.foreign else None
 
 
 class KeyframeScans(Sequence[Scan2D]):

@@ -408,7 +408,7 @@ class BaseStationNode:
         stamp = time.time()
         for rid in self.slam.graph.robots():
             T = self.slam.T_map_odom(rid)
-            if T is None:
+            if T is None or self.slam.store.robot(rid).foreign:  # another agent's frame
                 continue
             self.bus.publish(
                 self.keys.robot(rid, "correction"),

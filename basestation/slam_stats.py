@@ -22,6 +22,7 @@ def slam_stats(slam: GlobalSlam) -> dict[str, Any]:
                 else 0,
                 "duplicates": r.duplicates,
                 "id_conflicts": r.id_conflicts,
+                "another_source": r.foreign,  # its later keyframes refused
                 "held_out_of_order": len(r.held),
                 "anchored": rid in slam.graph.robots() and slam.graph.is_anchored(rid),
             }

@@ -78,6 +78,7 @@ def test_store_follows_a_new_chain_only_while_it_has_nothing(caplog) -> None:
     with caplog.at_level(logging.ERROR):  # a second base station told the agent "none"
         assert st.admit(_kf(0, chain=2)) == []
     assert r.chain_conflicts == 1 and "another base station" in caplog.text
+    assert r.foreign and st.ack("r0") is None  # its corrections come from that one now
 
 
 def test_a_chain_starting_on_the_way_is_placed_by_its_odometry() -> None:

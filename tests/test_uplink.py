@@ -268,8 +268,10 @@ def test_a_keyframe_that_never_comes_is_named(caplog: pytest.LogCaptureFixture) 
 
 
 def test_a_second_agent_with_the_same_id_is_named(caplog: pytest.LogCaptureFixture) -> None:
-    """Two agents started as r0 had their keyframes mixed into one trajectory, the
-    other's counted as mere duplicates, without a word."""
+    """Two agents started as r0 (or r0's agent restarted) had their keyframes mixed into
+    one trajectory, the other's counted as mere duplicates, without a word. Now the
+    first sign of another source stops the robot's admission (its frames cannot be
+    joined): nothing more is mapped, acknowledged or corrected."""
     import dataclasses
 
     st = KeyframeStore(reorder_window=100)
@@ -281,5 +283,8 @@ def test_a_second_agent_with_the_same_id_is_named(caplog: pytest.LogCaptureFixtu
     with caplog.at_level(logging.ERROR):
         st.admit(dataclasses.replace(_kf(1), stamp=1e9 + 0.1))  # another drone's seq 1
         st.admit(dataclasses.replace(_kf(5), stamp=1e9 + 0.5))  # and its seq 5
-    assert st.robot("r0").id_conflicts == 2 and st.robot("r0").duplicates == 3
-    assert "are two agents using this robot id?" in caplog.text
+    r = st.robot("r0")
+    assert r.id_conflicts == 2 and r.duplicates == 2 and r.foreign and not r.held
+    assert "another agent sends as r0 (restarted, or two with this id)" in caplog.text
+    assert st.admit(_kf(3)) == [] and r.next_seq == 3  # seq 3 would have joined the two
+    assert st.ack("r0") is None and st.none_of("r0") is None

@@ -1,93 +1,151 @@
-"""Keyframes the base station acknowledged, kept on disk for a base station that
-has lost them.
+"""Every keyframe an agent cut, kept on disk: for a base station that has lost the
+acknowledged ones, and, with a state folder, for the agent itself after a restart.
 
 A base station acknowledges a keyframe once it is in its database. If that database
 is lost (a new laptop, a base station restarted without `--db`), the new base station
 has none of the robot's keyframes and says so (an ack of -1,
-basestation/keyframe_store.py); the agent then sends what it kept here, and what is
-not acknowledged yet, as a new keyframe chain (agent/node.py), so the new base station
-maps the mission so far and not only what comes next.
+basestation/keyframe_store.py); the agent then sends what it kept here as a new
+keyframe chain (agent/outbox.py `new_chain`), so the new base station maps the
+mission so far and not only what comes next. An agent restarted on its state folder
+(`agent.state_dir`, agent/resume.py) finds here the keyframes not acknowledged yet.
 
-The payloads go to unnamed temporary files (deleted by the operating system when the
-process ends); the process holds 8 bytes per keyframe (where it starts in its file).
-At most `max_keyframes` are kept, in two files of up to half as many each: when the
-newer is full the older is deleted, so the latest `max_keyframes / 2` at least are
-always there (2D keyframes of 1081 beams: ~2.8 kB each, 20,000 ~55 MB).
+Payloads are appended, each after its length, to files of up to `max_keyframes / 2`
+keyframes each, named by their first seq: unnamed temporary files (deleted by the
+operating system when the process ends), or files in `directory`, flushed to the
+operating system at each keyframe (a killed process loses none). When a third file
+starts the oldest is deleted, so the latest `max_keyframes / 2` at least are always
+there (2D keyframes of 1081 beams: ~2.8 kB each, 20,000 ~55 MB). The process holds
+8 bytes per keyframe (where it starts in its file).
 """
 
 from __future__ import annotations
 
+import logging
 import os
+import struct
 import tempfile
 import weakref
 from array import array
 from collections.abc import Iterator
+from pathlib import Path
+from typing import BinaryIO
+
+log = logging.getLogger(__name__)
+
+_LEN = struct.Struct("<I")
 
 
 class _Segment:
-    """Consecutive keyframes' payloads in one temporary file."""
+    """Consecutive keyframes' payloads in one file."""
 
-    def __init__(self, first_seq: int) -> None:
+    def __init__(self, first_seq: int, file: BinaryIO, path: Path | None = None) -> None:
         self.first_seq = first_seq
-        self.starts = array("q", [0])  # byte offsets: payload i is starts[i]:starts[i + 1]
-        self._file = tempfile.TemporaryFile(prefix="collabslam-keyframes-")
-        self.close = weakref.finalize(self, self._file.close)
+        self.path = path
+        self.starts = array("q", [0])  # record i is starts[i]:starts[i + 1] (length first)
+        self._file = file
+        self._close = weakref.finalize(self, file.close)
+
+    @classmethod
+    def new(cls, first_seq: int, directory: Path | None) -> _Segment:
+        if directory is None:
+            return cls(first_seq, tempfile.TemporaryFile(prefix="collabslam-keyframes-"))
+        path = directory / f"keyframes-{first_seq:010d}.log"
+        return cls(first_seq, open(path, "w+b"), path)  # noqa: SIM115 (kept open)
+
+    @classmethod
+    def load(cls, path: Path) -> _Segment:
+        """A file written before (a restart): its records read up to a torn last one."""
+        seg = cls(int(path.stem.split("-")[1]), open(path, "r+b"), path)  # noqa: SIM115
+        data = path.read_bytes()
+        at = 0
+        while at + _LEN.size <= len(data):
+            end = at + _LEN.size + _LEN.unpack_from(data, at)[0]
+            if end > len(data):
+                break
+            seg.starts.append(end)
+            at = end
+        if at < len(data):
+            log.warning("%s: %d bytes of a keyframe cut short (killed while writing): "
+                        "dropped", path, len(data) - at)  # fmt: skip
+            seg._file.truncate(at)
+        seg._file.seek(at)
+        return seg
 
     def __len__(self) -> int:
         return len(self.starts) - 1
 
     def append(self, payload: bytes) -> None:
-        self._file.write(payload)
-        self.starts.append(self.starts[-1] + len(payload))
-
-    def payloads(self) -> Iterator[bytes]:
+        self._file.write(_LEN.pack(len(payload)) + payload)
         self._file.flush()
+        self.starts.append(self.starts[-1] + _LEN.size + len(payload))
+
+    def payloads(self, skip: int = 0) -> Iterator[bytes]:
         fd = self._file.fileno()
-        for a, b in zip(self.starts[:-1], self.starts[1:], strict=True):
+        for a, b in zip(self.starts[skip:-1], self.starts[skip + 1 :], strict=True):
             data = os.pread(fd, b - a, a)
             if len(data) != b - a:
                 raise OSError(f"keyframe history: {len(data)} of {b - a} bytes read back")
-            yield data
+            yield data[_LEN.size :]
+
+    def delete(self) -> None:
+        self._close()
+        if self.path is not None:
+            self.path.unlink(missing_ok=True)
 
 
 class KeyframeHistory:
-    def __init__(self, max_keyframes: int) -> None:
+    def __init__(self, max_keyframes: int, directory: str | Path | None = None) -> None:
+        """`directory`: keep the files there (and take up the ones already there)."""
         self.max_keyframes = max_keyframes
+        self.directory = None if directory is None else Path(directory)
         self._segments: list[_Segment] = []  # oldest first, at most two
         self.dropped = 0  # keyframes deleted with an older file
+        if self.directory is not None:
+            for path in sorted(self.directory.glob("keyframes-*.log")):
+                seg = _Segment.load(path)
+                if self._segments and seg.first_seq != self.next_seq:
+                    log.warning("%s does not follow on the files before it: those are "
+                                "dropped", path)  # fmt: skip
+                    self.clear()
+                self._segments.append(seg)
 
-    def add(self, seq: int, payload: bytes) -> None:
-        """Keep an acknowledged keyframe (seqs consecutive; a gap starts over)."""
-        if self.max_keyframes <= 0:
-            return
-        seg = self._segments[-1] if self._segments else None
-        if seg is not None and seq != seg.first_seq + len(seg):
-            self.clear()  # not the chain's next one: what was kept cannot precede it
-            seg = None
-        if seg is None or len(seg) >= max(1, self.max_keyframes // 2):
-            seg = _Segment(seq)
-            self._segments.append(seg)
-            if len(self._segments) > 2:
-                old = self._segments.pop(0)
-                self.dropped += len(old)
-                old.close()
-        seg.append(payload)
+    @property
+    def next_seq(self) -> int | None:
+        """The seq after the newest kept (None: none is)."""
+        return self._segments[-1].first_seq + len(self._segments[-1]) if self._segments else None
 
     @property
     def first_seq(self) -> int | None:
         """The oldest keyframe kept (None: none is)."""
         return self._segments[0].first_seq if self._segments else None
 
+    def add(self, seq: int, payload: bytes) -> None:
+        """Keep a keyframe (seqs consecutive; a gap starts over)."""
+        if self.max_keyframes <= 0:
+            return
+        if self._segments and seq != self.next_seq:
+            self.clear()  # not the chain's next one: what was kept cannot precede it
+        seg = self._segments[-1] if self._segments else None
+        if seg is None or len(seg) >= max(1, self.max_keyframes // 2):
+            seg = _Segment.new(seq, self.directory)
+            self._segments.append(seg)
+            if len(self._segments) > 2:
+                old = self._segments.pop(0)
+                self.dropped += len(old)
+                old.delete()
+        seg.append(payload)
+
     def __len__(self) -> int:
         return sum(len(s) for s in self._segments)
 
-    def payloads(self) -> Iterator[bytes]:
-        """Every payload kept, oldest first, read back from disk."""
+    def payloads(self, start_seq: int | None = None) -> Iterator[bytes]:
+        """The payloads kept from `start_seq` on (all: None), oldest first, read back."""
         for seg in list(self._segments):
-            yield from seg.payloads()
+            skip = 0 if start_seq is None else min(max(0, start_seq - seg.first_seq), len(seg))
+            yield from seg.payloads(skip)
 
     def clear(self) -> None:
         """Forget (and delete) every keyframe kept."""
         for seg in self._segments:
-            seg.close()
+            seg.delete()
         self._segments = []

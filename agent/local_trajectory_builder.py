@@ -88,6 +88,21 @@ class LocalTrajectoryBuilder:
         self.gated_matches = 0  # matches that turned too far from the prediction
         self.distance_m = 0.0
 
+    def resume(self, stamp: float, pose: np.ndarray, odometry: np.ndarray | None) -> None:
+        """Go on from an agent before this one (agent/resume.py): its last keyframe at
+        `stamp` was at `pose` [x, y, z, yaw], the odometry source then at `odometry`
+        [x, y, yaw] (None: none); the next scans are predicted from there by the odometry
+        since (one far off, the source's frame reset too, is dropped as a jump)."""
+        self.pose = np.asarray(pose, dtype=np.float64).copy()
+        self.last_stamp = stamp
+        self.extrapolator.add_pose(stamp, self.pose[[0, 1, 3]])
+        if odometry is not None:
+            self.extrapolator.add_odometry(stamp, np.asarray(odometry, dtype=np.float64))
+
+    def odometry_at(self, stamp: float) -> np.ndarray | None:
+        """The odometry source's pose [x, y, yaw] at `stamp` (None: no odometry)."""
+        return self.extrapolator.odometry_at(stamp)
+
     # --- other sensors ------------------------------------------------------------------
     def add_odometry(self, stamp: float, pose_xyyaw: np.ndarray) -> None:
         self.extrapolator.add_odometry(stamp, pose_xyyaw)

@@ -34,6 +34,7 @@ from agent.local_trajectory_builder import LocalSlamResult, LocalTrajectoryBuild
 from agent.odometry_tracker import OdometryTracker
 from agent.path_follower import PathFollower
 from agent.pose_smoother import IDENTITY7, PoseSmoother, pose7_compose
+from agent.resume import STATE_FILE, ResumePoint, load, save
 from agent.safety_guard import SafetyGuard, neighbours_in_body
 from agent.sensor_sources import SensorSource
 from agent.uplink import KeyframeUplink
@@ -93,7 +94,16 @@ class AgentNode:
         )
         self.selector = KeyframeSelector(a)
         self.heap = HeapTrimmer()
-        self.uplink = KeyframeUplink(a, robot_id, bus)
+        self.state_dir = Path(a.state_dir) if a.state_dir else None  # agent/resume.py
+        resume = load(self.state_dir, a.resume_within_s) if self.state_dir else None
+        self.resumed = resume
+        self.uplink = KeyframeUplink(a, robot_id, bus, resume)
+        if resume is not None and resume.pose_odom is not None:  # go on from its last
+            last = np.array(resume.pose_odom)  # keyframe, by the odometry since
+            self.frontend.resume(resume.stamp, last, resume.odometry)
+            self.selector.last_pose = last
+        if resume is not None and resume.T_map_odom is not None:
+            T_map_odom = np.array(resume.T_map_odom)  # not the start pose: on the way
         self.outbox = self.uplink.outbox
         self.follower = PathFollower.from_config(a)
         self.guard = SafetyGuard(
@@ -118,7 +128,7 @@ class AgentNode:
         self.tour_map = np.asarray(tour_map, dtype=np.float64).reshape(-1, 2)
         self._corr_lock = threading.Lock()
         self.T_map_odom = np.zeros(4) if T_map_odom is None else np.asarray(T_map_odom, float)
-        self.epoch = -1
+        self.epoch = -1 if resume is None else resume.epoch
         # an epoch far past the last is held until the next follows it (one of 2^63 had
         # every later correction ignored)
         self._epoch_jump = JumpGate(MAX_EPOCH_JUMP)
@@ -316,6 +326,18 @@ class AgentNode:
         )
         if not sent:  # refused (an altimeter's 1e9 m once): the next spans from the last sent
             self.selector.last_pose = last
+        elif self.state_dir is not None:
+            self._save_state(scan.stamp, pose)
+
+    def _save_state(self, stamp: float, pose: np.ndarray) -> None:
+        """Where this agent is, for one restarted on its state folder (agent/resume.py)."""
+        with self._corr_lock:
+            epoch, T = self.epoch, self.T_map_odom.tolist() if self._on_map else None
+        odom = self.frontend.odometry_at(stamp)
+        up = self.uplink
+        point = ResumePoint(up.chain, up.next_seq, up.outbox.acked_seq, epoch, T, stamp,
+                            pose.tolist(), None if odom is None else odom.tolist())  # fmt: skip
+        save(self.state_dir, point)
 
     def _publish_control_pose(self, stamp: float, pose_odom: np.ndarray) -> None:
         """One control tick at sensor time `stamp`: the smoothed and raw T_map_base."""
@@ -419,6 +441,13 @@ class AgentNode:
     def drain(self, timeout_s: float) -> bool:
         """Resend until every keyframe is acknowledged or the timeout passes."""
         return self.uplink.drain(timeout_s)
+
+    def forget_state(self) -> None:
+        """Delete the state folder's state and keyframes: an agent stopped (not dead)
+        with all acknowledged is not taken up by the next one (another mission's)."""
+        if self.state_dir is not None:
+            self.outbox.history.clear()
+            (self.state_dir / STATE_FILE).unlink(missing_ok=True)
 
     def stats(self) -> dict[str, Any]:
         return {

@@ -32,6 +32,18 @@ class OdometryTracker:
         self._last_odom: np.ndarray | None = None
         self._last_odom_stamp = -math.inf
 
+    def resume(self, stamp: float, pose: np.ndarray, odometry: np.ndarray | None) -> None:
+        """Go on from an agent before this one (`LocalTrajectoryBuilder.resume`)."""
+        self.pose = np.asarray(pose, dtype=np.float64).copy()
+        self.last_stamp = stamp
+        if odometry is not None:
+            self._last_odom = np.asarray(odometry, dtype=np.float64)
+            self._last_odom_stamp = stamp
+
+    def odometry_at(self, stamp: float) -> np.ndarray | None:
+        """The latest odometry pose [x, y, yaw] (None: none yet)."""
+        return None if self._last_odom is None else self._last_odom.copy()
+
     def add_odometry(self, stamp: float, pose_xyyaw: np.ndarray) -> None:
         if stamp < self._last_odom_stamp:
             log.error(

@@ -17,9 +17,10 @@ once: after an outage the outbox drains, in order, at the pace of the acks. An a
 beyond the batch means the base station had the rest queued (busy, not cut off):
 nothing more is resent until the acks stall again.
 
-Acknowledged keyframes go on to a `KeyframeHistory` on disk (if given), for a base
-station that has lost them: `new_chain` then queues history and pending together,
-oldest first, renumbered as a new keyframe chain.
+Every keyframe queued is also kept in a `KeyframeHistory` on disk (if given), for a
+base station that has lost the acknowledged ones (`new_chain` then queues what is kept,
+oldest first, renumbered as a new keyframe chain), and for the agent restarted on its
+state folder (`restore`).
 
 Bound policy: the outbox holds at most `max_len` keyframes. It warns once when
 it passes `warn_fraction` of that; when full, `has_room()` is False and the
@@ -30,6 +31,7 @@ is ever dropped.
 
 from __future__ import annotations
 
+import itertools
 import logging
 import threading
 import time
@@ -106,6 +108,7 @@ class Outbox:
             if self._pending and seq != next(reversed(self._pending)) + 1:
                 raise ValueError(f"outbox expects consecutive seqs, got {seq}")
             self._pending[seq] = payload
+            self.history.add(seq, payload)
             self._sent_at[seq] = self._clock()
             self.added_seq = max(self.added_seq, seq)
             n = len(self._pending)
@@ -136,9 +139,8 @@ class Outbox:
             if sent_at is not None:
                 self._sample_delay(self._clock() - sent_at)
             while self._pending and next(iter(self._pending)) <= acked_seq:
-                seq, payload = self._pending.popitem(last=False)
+                seq, _ = self._pending.popitem(last=False)
                 self._sent_at.pop(seq, None)
-                self.history.add(seq, payload)
                 released += 1
             self._last_progress = self._clock()
             self._backoff = 1
@@ -176,14 +178,19 @@ class Outbox:
         chain's next seq). For a base station that has none of them (~4 us a keyframe:
         the payloads are relabelled, not decoded)."""
         with self._lock:
-            lost = self.acked_seq + 1 - len(self.history)  # acknowledged, not kept
-            payloads = [*self.history.payloads(), *self._pending.values()]
+            pending = next(iter(self._pending), self.added_seq + 1)  # the first unacked
+            first = self.history.first_seq
+            n = 0 if first is None or first > pending else pending - first
+            kept = list(itertools.islice(self.history.payloads(), n))  # acknowledged
+            lost = pending - n  # acknowledged, not kept
+            payloads = [*kept, *self._pending.values()]
             self.history.clear()
             self._pending.clear()
             self._sent_at.clear()
             for i, p in enumerate(payloads):
-                first = {"delta": IDENTITY7} if i == 0 else {}
-                self._pending[i] = relabel(p, Keyframe, seq=i, chain=chain, **first)
+                start = {"delta": IDENTITY7} if i == 0 else {}
+                self._pending[i] = relabel(p, Keyframe, seq=i, chain=chain, **start)
+                self.history.add(i, self._pending[i])
             self.acked_seq, self.added_seq, self._resent_upto = -1, len(payloads) - 1, -1
             self._backoff, self._resend_now = 1, True
             self._srtt, self._rttvar = None, 0.0
@@ -193,6 +200,20 @@ class Outbox:
                     "sending the %d kept as keyframe chain %d (%d acknowledged before were "
                     "not kept)", len(payloads), chain, lost)  # fmt: skip
         return len(payloads)
+
+    def restore(self, acked_seq: int, next_seq: int) -> None:
+        """After a restart: keyframes up to `acked_seq` were acknowledged, the ones after
+        it up to `next_seq` - 1 are taken from the history (on disk) to be sent again."""
+        with self._lock:
+            self.acked_seq, self.added_seq = acked_seq, next_seq - 1
+            first = self.history.first_seq
+            start = acked_seq + 1 if first is None else max(acked_seq + 1, first)
+            for seq, p in zip(range(start, next_seq), self.history.payloads(start), strict=False):
+                self._pending[seq] = p
+            self._resend_now = True
+        if len(self._pending) < next_seq - acked_seq - 1:
+            log.error("keyframes %d..%d were not kept: the base station will wait for them",
+                      acked_seq + 1, next_seq - 1)  # fmt: skip
 
     @property
     def timeout_s(self) -> float:

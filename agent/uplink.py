@@ -16,6 +16,7 @@ from typing import Any
 
 from agent.keyframe_history import KeyframeHistory
 from agent.outbox import Outbox
+from agent.resume import ResumePoint
 from common.bus import Bus
 from common.config import AgentConfig
 from common.errors import ProtocolError
@@ -25,16 +26,23 @@ log = logging.getLogger(__name__)
 
 
 class KeyframeUplink:
-    def __init__(self, a: AgentConfig, robot_id: str, bus: Bus) -> None:
+    def __init__(
+        self, a: AgentConfig, robot_id: str, bus: Bus, resume: ResumePoint | None = None
+    ) -> None:
+        """`resume`: where an agent before this one stopped (its keyframes in
+        `a.state_dir`): the ones it had not got acknowledged are sent again."""
         self.robot_id = robot_id
         self.bus = bus
         self.key = bus.keys.robot(robot_id, "keyframe")
         self.outbox = Outbox(
             a.outbox_max, a.outbox_warn_fraction, a.resend_timeout_s, a.resend_batch,
-            history=KeyframeHistory(a.keyframe_history),
+            history=KeyframeHistory(a.keyframe_history, a.state_dir or None),
         )  # fmt: skip
         self.next_seq = 0  # of this chain
         self.chain = 0  # Keyframe.chain
+        if resume is not None:
+            self.chain, self.next_seq = resume.chain, resume.next_seq
+            self.outbox.restore(resume.acked_seq, resume.next_seq)
         self.refused = 0  # failed the checks the base station makes: not sent
         self._chain_lost = threading.Event()
 

@@ -100,7 +100,8 @@ def cmd_agent(args: argparse.Namespace) -> int:
         node.start()
         log.info("agent %s running", args.robot_id)
         node.run(source, stop, cfg.agent.replay_max_unacked if args.replay else None)
-        node.drain(cfg.agent.drain_timeout_s)
+        if node.drain(cfg.agent.drain_timeout_s):
+            node.forget_state()  # stopped, all acknowledged: the next start is afresh
         if args.out:
             node.write_outputs(Path(args.out))
     return 0

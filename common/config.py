@@ -106,6 +106,11 @@ class AgentConfig:
     # acknowledged keyframes kept on disk (agent/keyframe_history.py) for a base station
     # that has lost them (a new laptop): the latest half at least; 0: none
     keyframe_history: int = 20000
+    # with a folder: the agent's state and keyframes kept there, so that an agent
+    # restarted mid-mission goes on where it was (agent/resume.py); a state older than
+    # resume_within_s is another mission's, deleted
+    state_dir: str = ""
+    resume_within_s: float = 60.0  # s (systemd restarts a dead agent after 2 s)
     resend_timeout_s: float = 1.0  # s wall without ack before resending from the oldest
     resend_batch: int = 50  # keyframes resent per timeout
     waypoint_tolerance_m: float = 0.3  # m

@@ -47,9 +47,9 @@ def test_outbox_sends_history_and_pending_as_a_new_chain() -> None:
     for seq in range(8):
         box.add(seq, encode(_kf(seq)))
     assert box.ack(4) == 5
-    assert len(box.history) == 5 and len(box) == 3  # acknowledged ones go to disk
+    assert len(box.history) == 8 and len(box) == 3  # every keyframe cut is on disk
     assert box.new_chain(1) == 8
-    assert (box.acked_seq, box.added_seq, len(box), len(box.history)) == (-1, 7, 8, 0)
+    assert (box.acked_seq, box.added_seq, len(box), len(box.history)) == (-1, 7, 8, 8)
     sent = [decode(p, Keyframe) for p in box.due_for_resend()]  # at once, not on a timer
     assert [k.seq for k in sent] == list(range(8)) and {k.chain for k in sent} == {1}
     assert [k.stamp for k in sent] == [_kf(s).stamp for s in range(8)]  # the same ones
@@ -57,6 +57,19 @@ def test_outbox_sends_history_and_pending_as_a_new_chain() -> None:
     np.testing.assert_array_equal(sent[3].delta, _kf(3).delta)
     box.add(8, encode(_kf(8, chain=1)))  # the next keyframe cut follows on
     assert box.ack(8) == 9 and len(box.history) == 9
+    assert [decode(p, Keyframe).chain for p in box.history.payloads()] == [1] * 9
+
+
+def test_a_new_chain_starts_at_the_oldest_keyframe_kept(caplog) -> None:
+    box = Outbox(100, 0.8, 1.0, 50, history=KeyframeHistory(4))  # keeps the latest 2-4
+    for seq in range(8):
+        box.add(seq, encode(_kf(seq)))
+    box.ack(4)
+    with caplog.at_level(logging.WARNING):
+        assert box.new_chain(1) == 4  # seqs 4 (acknowledged) to 7
+    assert "(4 acknowledged before were not kept)" in caplog.text
+    sent = [decode(p, Keyframe) for p in box.due_for_resend()]
+    assert [k.stamp for k in sent] == [_kf(s).stamp for s in range(4, 8)]
 
 
 def test_store_follows_a_new_chain_only_while_it_has_nothing(caplog) -> None:

@@ -1,0 +1,108 @@
+"""An agent's state on disk, for an agent restarted in the middle of a mission (a
+crash, systemd restarting it).
+
+With `agent.state_dir` set, the agent writes there, at each keyframe, where it is
+(`state.json`, replaced in one step): its keyframe chain and next seq, the last seq
+acknowledged, the last keyframe's stamp, `T_odom_base` and the odometry source's pose
+then, and the latest correction (epoch, `T_map_odom`); every keyframe it cuts goes to
+the same folder (agent/keyframe_history.py). An agent started on that folder takes
+them up: the keyframes not acknowledged are sent again, its local pose goes on from
+the last keyframe by the odometry since (an autopilot's odometry runs on through the
+restart), and its next keyframe spans the gap, so the base station's trajectory of
+the robot goes on in the same frame. Before, a restarted agent began again at seq 0
+in a new frame: the base station now refuses that as another agent's
+(basestation/keyframe_store.py), and had linked it into the old trajectory.
+
+A state older than `agent.resume_within_s` is another mission's: it is deleted, with
+its keyframes, and the agent starts afresh.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+import os
+import time
+from dataclasses import asdict, dataclass, fields
+from pathlib import Path
+
+log = logging.getLogger(__name__)
+
+STATE_FILE = "state.json"
+
+
+@dataclass
+class ResumePoint:
+    chain: int = 0
+    next_seq: int = 0
+    acked_seq: int = -1
+    epoch: int = -1
+    T_map_odom: list[float] | None = None  # [x, y, z, yaw]
+    stamp: float | None = None  # the last keyframe's ...
+    pose_odom: list[float] | None = None  # ... T_odom_base [x, y, z, yaw]
+    odometry: list[float] | None = None  # ... and the odometry source's [x, y, yaw]
+    saved_unix: float = 0.0
+
+    def check(self) -> None:
+        """ValueError if a field is not what this program writes."""
+        ints = {"chain": 0, "next_seq": 0, "acked_seq": -1, "epoch": -1}
+        for name, low in ints.items():
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, int) or not low <= v < 2**62:
+                raise ValueError(f"{name}: {v!r}")
+        if not self.acked_seq < self.next_seq or (self.next_seq and self.pose_odom is None):
+            raise ValueError(f"acked_seq {self.acked_seq}, next_seq {self.next_seq}")
+        for name, n in (("T_map_odom", 4), ("pose_odom", 4), ("odometry", 3)):
+            v = getattr(self, name)
+            if v is not None and (len(v) != n or not all(_finite(x) for x in v)):
+                raise ValueError(f"{name}: {v!r}")
+        if not all(_finite(v) for v in (self.stamp or 0.0, self.saved_unix)):
+            raise ValueError("stamp / saved_unix")
+
+
+def _finite(v: object) -> bool:
+    return isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
+
+
+def save(directory: Path, point: ResumePoint) -> None:
+    """Write `point` (now) in one step: a reader finds the old state or the new one."""
+    point.saved_unix = time.time()
+    tmp = directory / (STATE_FILE + ".tmp")
+    tmp.write_text(json.dumps(asdict(point)))
+    os.replace(tmp, directory / STATE_FILE)
+
+
+def load(directory: Path, max_age_s: float) -> ResumePoint | None:
+    """The state of an agent that ran here less than `max_age_s` ago, else None (an
+    older one, or one this program cannot read, is deleted with its keyframes)."""
+    directory.mkdir(parents=True, exist_ok=True)
+    path = directory / STATE_FILE
+    if not path.exists():
+        return _start_afresh(directory, None)
+    try:
+        raw = json.loads(path.read_text())
+        names = {f.name for f in fields(ResumePoint)}
+        if not isinstance(raw, dict) or set(raw) != names:
+            raise ValueError(f"fields {sorted(raw) if isinstance(raw, dict) else raw!r}")
+        point = ResumePoint(**raw)
+        point.check()
+    except (OSError, ValueError, TypeError) as exc:
+        log.error("%s cannot be read (%s): starting afresh", path, exc)
+        return _start_afresh(directory, None)
+    age = time.time() - point.saved_unix
+    if not 0.0 <= age <= max_age_s:
+        return _start_afresh(directory, f"saved {age:.0f} s ago (> agent.resume_within_s)")
+    log.warning("resuming from %s (saved %.1f s ago): keyframe chain %d at seq %d, %d not "
+                "acknowledged", path, age, point.chain, point.next_seq,
+                point.next_seq - point.acked_seq - 1)  # fmt: skip
+    return point
+
+
+def _start_afresh(directory: Path, why: str | None) -> None:
+    old = [*directory.glob("keyframes-*.log"), *directory.glob(STATE_FILE + "*")]
+    if old and why:
+        log.warning("%s: another mission's state, %s: deleted", directory, why)
+    for p in old:
+        p.unlink(missing_ok=True)
+    return None

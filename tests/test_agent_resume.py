@@ -1,0 +1,77 @@
+"""An agent's state folder (`agent.state_dir`): its keyframes and where it was, read
+back by an agent restarted on it (end to end: tests/test_agent_restart.py)."""
+
+from __future__ import annotations
+
+import json
+import logging
+import time
+from pathlib import Path
+
+import numpy as np
+
+from agent.keyframe_history import KeyframeHistory
+from agent.local_trajectory_builder import LocalTrajectoryBuilder
+from agent.outbox import Outbox
+from agent.resume import STATE_FILE, ResumePoint, load, save
+from common.config import Config
+
+
+def test_keyframes_on_disk_are_read_back_up_to_a_torn_one(tmp_path: Path, caplog) -> None:
+    h = KeyframeHistory(6, tmp_path)  # files of 3
+    for seq in range(8):
+        h.add(seq, b"kf%d" % seq)
+    assert sorted(p.name for p in tmp_path.iterdir()) == [
+        "keyframes-0000000003.log",
+        "keyframes-0000000006.log",
+    ]
+    newest = tmp_path / "keyframes-0000000006.log"
+    newest.write_bytes(newest.read_bytes() + b"\x10\x00\x00\x00kf8")  # killed mid-write
+    with caplog.at_level(logging.WARNING):
+        again = KeyframeHistory(6, tmp_path)
+    assert "cut short" in caplog.text
+    assert (again.first_seq, again.next_seq) == (3, 8)
+    assert list(again.payloads()) == [b"kf%d" % s for s in range(3, 8)]
+    assert list(again.payloads(start_seq=6)) == [b"kf6", b"kf7"]
+    again.add(8, b"kf8")  # goes on after the torn record, not behind it
+    assert list(KeyframeHistory(6, tmp_path).payloads(7)) == [b"kf7", b"kf8"]
+
+
+def test_outbox_restored_from_disk_sends_what_was_not_acknowledged(tmp_path: Path) -> None:
+    box = Outbox(100, 0.8, 1.0, 50, history=KeyframeHistory(100, tmp_path))
+    for seq in range(6):
+        box.add(seq, b"kf%d" % seq)
+    box.ack(3)
+    again = Outbox(100, 0.8, 1.0, 50, history=KeyframeHistory(100, tmp_path))
+    again.restore(acked_seq=3, next_seq=6)
+    assert (again.acked_seq, again.added_seq, len(again)) == (3, 5, 2)
+    assert again.due_for_resend() == [b"kf4", b"kf5"]  # at once
+    again.add(6, b"kf6")
+    assert again.ack(6) == 3
+
+
+def test_state_is_taken_up_only_when_recent_and_whole(tmp_path: Path, caplog) -> None:
+    point = ResumePoint(0, 12, 9, 4, [1.0, 2.0, 0.0, 0.5], 30.0, [3, 4, 1, 0.1], [5, 6, 0.2])
+    save(tmp_path, point)
+    (tmp_path / "keyframes-0000000000.log").write_bytes(b"")
+    got = load(tmp_path, max_age_s=60.0)
+    assert got is not None and (got.next_seq, got.acked_seq, got.epoch) == (12, 9, 4)
+    raw = json.loads((tmp_path / STATE_FILE).read_text())
+    raw["saved_unix"] = time.time() - 3600.0  # another mission's
+    (tmp_path / STATE_FILE).write_text(json.dumps(raw))
+    with caplog.at_level(logging.WARNING):
+        assert load(tmp_path, max_age_s=60.0) is None
+    assert "another mission's state" in caplog.text and not list(tmp_path.iterdir())
+    for bad in ('{"chain": 0}', "[1, 2", json.dumps({**raw, "next_seq": -3})):
+        (tmp_path / STATE_FILE).write_text(bad)
+        assert load(tmp_path, max_age_s=1e9) is None  # logged, deleted, afresh
+        assert not (tmp_path / STATE_FILE).exists()
+
+
+def test_local_slam_goes_on_from_the_last_keyframe_by_the_odometry_since() -> None:
+    cfg = Config().agent
+    ltb = LocalTrajectoryBuilder(cfg.local_slam, cfg.local_keyframe_period_s)
+    ltb.resume(10.0, np.array([3.0, 1.0, 1.0, np.pi / 2]), np.array([7.0, 0.0, 0.0]))
+    ltb.add_odometry(11.0, np.array([8.0, 0.0, 0.0]))  # 1 m ahead in the source's frame
+    np.testing.assert_allclose(ltb.extrapolator.predict(11.0), [3.0, 2.0, np.pi / 2])
+    np.testing.assert_allclose(ltb.odometry_at(11.0), [8.0, 0.0, 0.0])

@@ -126,6 +126,9 @@ class AgentNode:
         self._on_map = T_map_odom is not None  # its map pose is known (start or correction)
         self._news_ages: deque[float] = deque(maxlen=20000)  # s, the relay's answer at use
         self.tour_map = np.asarray(tour_map, dtype=np.float64).reshape(-1, 2)
+        if resume is not None and resume.path is not None:  # the way it was flying
+            self.tour_map = np.array(resume.path, dtype=np.float64).reshape(-1, 2)
+            self.follower.index = resume.path_index
         self._corr_lock = threading.Lock()
         self.T_map_odom = np.zeros(4) if T_map_odom is None else np.asarray(T_map_odom, float)
         self.epoch = -1 if resume is None else resume.epoch
@@ -333,10 +336,12 @@ class AgentNode:
         """Where this agent is, for one restarted on its state folder (agent/resume.py)."""
         with self._corr_lock:
             epoch, T = self.epoch, self.T_map_odom.tolist() if self._on_map else None
+            path = self.tour_map.tolist()
         odom = self.frontend.odometry_at(stamp)
         up = self.uplink
         point = ResumePoint(up.chain, up.next_seq, up.outbox.acked_seq, epoch, T, stamp,
-                            pose.tolist(), None if odom is None else odom.tolist())  # fmt: skip
+                            pose.tolist(), None if odom is None else odom.tolist(), path,
+                            self.follower.index)  # fmt: skip
         save(self.state_dir, point)
 
     def _publish_control_pose(self, stamp: float, pose_odom: np.ndarray) -> None:

@@ -4,8 +4,9 @@ crash, systemd restarting it).
 With `agent.state_dir` set, the agent writes there, at each keyframe, where it is
 (`state.json`, replaced in one step): its keyframe chain and next seq, the last seq
 acknowledged, the last keyframe's stamp, `T_odom_base` and the odometry source's pose
-then, and the latest correction (epoch, `T_map_odom`); every keyframe it cuts goes to
-the same folder (agent/keyframe_history.py). An agent started on that folder takes
+then, the latest correction (epoch, `T_map_odom`) and the path it flies (the waypoint
+it was flying to: from the tour's first, it had flown into walls); every keyframe it
+cuts goes to the same folder (agent/keyframe_history.py). An agent started on it takes
 them up: the keyframes not acknowledged are sent again, its local pose goes on from
 the last keyframe by the odometry since (an autopilot's odometry runs on through the
 restart), and its next keyframe spans the gap, so the base station's trajectory of
@@ -42,11 +43,13 @@ class ResumePoint:
     stamp: float | None = None  # the last keyframe's ...
     pose_odom: list[float] | None = None  # ... T_odom_base [x, y, z, yaw]
     odometry: list[float] | None = None  # ... and the odometry source's [x, y, yaw]
+    path: list[list[float]] | None = None  # the tour or path flown, map [x, y] ...
+    path_index: int = 0  # ... and the waypoint it was flying to
     saved_unix: float = 0.0
 
     def check(self) -> None:
         """ValueError if a field is not what this program writes."""
-        ints = {"chain": 0, "next_seq": 0, "acked_seq": -1, "epoch": -1}
+        ints = {"chain": 0, "next_seq": 0, "acked_seq": -1, "epoch": -1, "path_index": 0}
         for name, low in ints.items():
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, int) or not low <= v < 2**62:
@@ -59,6 +62,9 @@ class ResumePoint:
                 raise ValueError(f"{name}: {v!r}")
         if not all(_finite(v) for v in (self.stamp or 0.0, self.saved_unix)):
             raise ValueError("stamp / saved_unix")
+        path = self.path or []
+        if not all(isinstance(p, list) and len(p) == 2 and all(map(_finite, p)) for p in path):
+            raise ValueError("path: expected [[x, y], ...]")
 
 
 def _finite(v: object) -> bool:

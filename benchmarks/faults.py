@@ -16,7 +16,11 @@ starts:
     `fault_injection.Replayer` in this process;
 (d) after the last restart, this process puts `malformed` bad payloads
     (`fault_injection.bad_payloads`: garbage, truncated, wrong version,
-    oversized, NaN, wrong type, robot mismatch, unknown robot).
+    oversized, NaN, wrong type, robot mismatch, unknown robot);
+(e) the agents of the first `agent_kills` robots are SIGKILLed (10 s after the clock
+    starts, 8 s apart: the first while its link is cut, keyframes unacknowledged) and
+    restarted 1 s later on their state folders (`agent.state_dir`, as the systemd unit
+    does): each must go on in the same trajectory (`agent_restarts`).
 
 The mission ends (SIGINT to the simulator) `settle_s` after the last fault; the
 undisturbed run then flies the same scenario for the same sim time, so ground
@@ -71,6 +75,7 @@ class _Mission:
         }
         self.base: Child | None = None
         self.restarts = 0
+        self.agent_restarts = 0
         self.crashes: list[str] = []
 
     def spawn_base(self) -> None:
@@ -131,6 +136,7 @@ def run_faulted(
     dup_fraction: float,
     malformed: int,
     settle_s: float,
+    agent_kills: int = 1,
 ) -> dict[str, Any]:
     out.mkdir(parents=True, exist_ok=True)
     m = _Mission(cfg, out, world, n_robots)
@@ -149,19 +155,14 @@ def run_faulted(
         )
         replayer = Replayer(tap, push, dup_fraction, lambda r: m.relays[r].is_cut, cfg.sim.seed)
         sim = g.spawn("sim", ["sim", *m.common, "--listen", m.sim_ep, "--max-sim-time", "100000"])
-        agents = [
-            g.spawn(
-                r.robot_id,
-                agent_command(
-                    m.common,
-                    r.robot_id,
-                    m.sim_ep,
-                    m.relays[r.robot_id].endpoint,
-                    endpoint(tap_port),
-                ),
-            )  # fmt: skip
-            for r in m.scenario.robots
-        ]
+
+        def agent_args(rid: str) -> list[str]:
+            eps = (m.sim_ep, m.relays[rid].endpoint, endpoint(tap_port))
+            state = f"agent.state_dir={out / 'state' / rid}"
+            return [*agent_command(m.common, rid, *eps), "--set", state]
+
+        ids = m.scenario.robot_ids
+        agents = [g.spawn(rid, agent_args(rid)) for rid in ids]
         sim_log = out / "logs" / "sim.log"
         deadline = time.monotonic() + 120
         while not _log_has(sim_log, "starting the"):
@@ -176,6 +177,8 @@ def run_faulted(
         for i, r in enumerate(m.scenario.robots):
             events.append((6.0 + 8.0 * i, "cut", r.robot_id))
             events.append((6.0 + 8.0 * i + cut_s, "restore", r.robot_id))
+        for i, rid in enumerate(ids[:agent_kills]):
+            events.append((10.0 + 8.0 * i, "agent_kill", rid))
         last = max(t for t, _, _ in events)
         events.append((max(last, 8.0 + (restarts - 1) * restart_period_s + 6.0), "inject", ""))
         events.sort()
@@ -188,6 +191,13 @@ def run_faulted(
                 m.kill_base()
                 time.sleep(2.0)
                 m.spawn_base()
+            elif what == "agent_kill":  # a crash: no drain, no outputs; systemd restarts it
+                a = agents[ids.index(who)]
+                os.kill(a.proc.pid, signal.SIGKILL)
+                a.proc.wait()
+                time.sleep(1.0)
+                agents[ids.index(who)] = g.spawn(f"{who}-restarted", agent_args(who))
+                m.agent_restarts += 1
             elif what == "cut":
                 m.relays[who].cut()
             elif what == "restore":
@@ -236,6 +246,7 @@ def run_faulted(
             "stored_contiguous": sorted(seqs) == list(range(len(seqs))),
             "duplicates_received": base.get("robots", {}).get(r["id"], {}).get("duplicates", 0),
             "keyframes_resent": r["keyframes_resent"],
+            "another_source": base.get("robots", {}).get(r["id"], {}).get("another_source"),
             "ate_rmse_m": r["ate_rmse_m"],
         }
         lost += max(0, r["keyframes_sent"] - in_graph)
@@ -247,6 +258,7 @@ def run_faulted(
         "keyframes_lost": lost,
         "duplicates_in_graph": dup_graph,
         "base_restarts": m.restarts,
+        "agent_restarts": m.agent_restarts,
         "base_recoveries": max(0, (base.get("persistence") or {}).get("starts", 1) - 1),
         "malformed_injected": injected,
         "malformed_rejected": rejected,
@@ -277,6 +289,7 @@ def run(
     dup_fraction: float = 0.1,
     malformed: int = 10000,
     settle_s: float = 10.0,
+    agent_kills: int = 1,
 ) -> dict[str, Any]:
     """The faulted mission, then the undisturbed one for the same sim time."""
     cfg.exploration.enabled = False  # scripted tours: robots fly on while the base is down
@@ -290,7 +303,7 @@ def run(
     world_yaml = resolve_world(world)
     faulted = run_faulted(
         cfg, out / "faulted", world_yaml, robots, restarts, restart_period_s, cut_s,
-        dup_fraction, malformed, settle_s,
+        dup_fraction, malformed, settle_s, agent_kills,
     )  # fmt: skip
     sim_time = float(faulted["sim_time_s"] or 60.0)
     cfg.zenoh.gossip_scouting = True
@@ -324,5 +337,6 @@ def run(
             "cut_s": cut_s,
             "dup_fraction": dup_fraction,
             "malformed": malformed,
+            "agent_kills": agent_kills,
         },  # fmt: skip
     }

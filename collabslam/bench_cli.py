@@ -218,6 +218,7 @@ def add_bench_parsers(sub: argparse._SubParsersAction[argparse.ArgumentParser]) 
             "cut_s": a.cut,
             "dup_fraction": a.dup_fraction,
             "malformed": a.malformed,
+            "agent_kills": a.agent_kills,
         },
     )
     b.add_argument("--world", default="bshape")
@@ -227,6 +228,7 @@ def add_bench_parsers(sub: argparse._SubParsersAction[argparse.ArgumentParser]) 
     b.add_argument("--cut", type=float, default=30.0, help="s each agent's link is cut")
     b.add_argument("--dup-fraction", type=float, default=0.1, help="keyframes re-put")
     b.add_argument("--malformed", type=int, default=10000, help="bad messages injected")
+    b.add_argument("--agent-kills", type=int, default=1, help="agents SIGKILLed + restarted")
 
 
 def cmd_bench(args: argparse.Namespace) -> int:

@@ -51,11 +51,13 @@ def test_outbox_restored_from_disk_sends_what_was_not_acknowledged(tmp_path: Pat
 
 
 def test_state_is_taken_up_only_when_recent_and_whole(tmp_path: Path, caplog) -> None:
-    point = ResumePoint(0, 12, 9, 4, [1.0, 2.0, 0.0, 0.5], 30.0, [3, 4, 1, 0.1], [5, 6, 0.2])
+    point = ResumePoint(0, 12, 9, 4, [1.0, 2.0, 0.0, 0.5], 30.0, [3, 4, 1, 0.1], [5, 6, 0.2],
+                        [[0.0, 1.0], [2.0, 3.0]], 1)  # fmt: skip
     save(tmp_path, point)
     (tmp_path / "keyframes-0000000000.log").write_bytes(b"")
     got = load(tmp_path, max_age_s=60.0)
     assert got is not None and (got.next_seq, got.acked_seq, got.epoch) == (12, 9, 4)
+    assert got.path == [[0.0, 1.0], [2.0, 3.0]] and got.path_index == 1
     raw = json.loads((tmp_path / STATE_FILE).read_text())
     raw["saved_unix"] = time.time() - 3600.0  # another mission's
     (tmp_path / STATE_FILE).write_text(json.dumps(raw))

@@ -13,9 +13,10 @@ Payloads are appended, each after its length, to files of up to `max_keyframes /
 keyframes each, named by their first seq: unnamed temporary files (deleted by the
 operating system when the process ends), or files in `directory`, flushed to the
 operating system at each keyframe (a killed process loses none). When a third file
-starts the oldest is deleted, so the latest `max_keyframes / 2` at least are always
-there (2D keyframes of 1081 beams: ~2.8 kB each, 20,000 ~55 MB). The process holds
-8 bytes per keyframe (where it starts in its file).
+starts the oldest is deleted (unless it holds keyframes not acknowledged yet), so the
+latest `max_keyframes / 2` at least are always there (2D keyframes of 1081 beams:
+~2.8 kB each, 20,000 ~55 MB). The process holds 8 bytes per keyframe (where it starts
+in its file).
 """
 
 from __future__ import annotations
@@ -119,17 +120,29 @@ class KeyframeHistory:
         """The oldest keyframe kept (None: none is)."""
         return self._segments[0].first_seq if self._segments else None
 
-    def add(self, seq: int, payload: bytes) -> None:
-        """Keep a keyframe (seqs consecutive; a gap starts over)."""
+    def add(self, seq: int, payload: bytes, keep_from: int | None = None) -> None:
+        """Keep a keyframe (seqs consecutive; a gap starts over). An older file is
+        deleted only if it holds nothing from `keep_from` on (the unacknowledged ones,
+        which a restarted agent must send again, are kept however many). A disk error
+        is logged and turns the history off: the agent flies on."""
         if self.max_keyframes <= 0:
             return
+        try:
+            self._add(seq, payload, seq if keep_from is None else keep_from)
+        except OSError as exc:
+            log.error("keyframe history off (%s): a base station that loses its "
+                      "database, or this agent restarted, cannot get them", exc)  # fmt: skip
+            self.max_keyframes = 0
+            self.clear()
+
+    def _add(self, seq: int, payload: bytes, keep_from: int) -> None:
         if self._segments and seq != self.next_seq:
             self.clear()  # not the chain's next one: what was kept cannot precede it
         seg = self._segments[-1] if self._segments else None
         if seg is None or len(seg) >= max(1, self.max_keyframes // 2):
             seg = _Segment.new(seq, self.directory)
             self._segments.append(seg)
-            if len(self._segments) > 2:
+            while len(self._segments) > 2 and self._segments[1].first_seq <= keep_from:
                 old = self._segments.pop(0)
                 self.dropped += len(old)
                 old.delete()
@@ -147,5 +160,8 @@ class KeyframeHistory:
     def clear(self) -> None:
         """Forget (and delete) every keyframe kept."""
         for seg in self._segments:
-            seg.delete()
+            try:
+                seg.delete()
+            except OSError as exc:
+                log.error("keyframe history: %s", exc)
         self._segments = []

@@ -16,7 +16,6 @@ raw correction to place map-frame paths in `odom` (seed 002 eq. 4).
 
 from __future__ import annotations
 
-import dataclasses
 import json
 import logging
 import threading
@@ -98,10 +97,6 @@ class AgentNode:
         resume = load(self.state_dir, a.resume_within_s) if self.state_dir else None
         self.resumed = resume
         self.uplink = KeyframeUplink(a, robot_id, bus, resume)
-        if resume is not None and resume.pose_odom is not None:  # go on from its last
-            last = np.array(resume.pose_odom)  # keyframe, by the odometry since
-            self.frontend.resume(resume.stamp, last, resume.odometry)
-            self.selector.last_pose = last
         if resume is not None and resume.T_map_odom is not None:
             T_map_odom = np.array(resume.T_map_odom)  # not the start pose: on the way
         self.outbox = self.uplink.outbox
@@ -126,12 +121,9 @@ class AgentNode:
         self._on_map = T_map_odom is not None  # its map pose is known (start or correction)
         self._news_ages: deque[float] = deque(maxlen=20000)  # s, the relay's answer at use
         self.tour_map = np.asarray(tour_map, dtype=np.float64).reshape(-1, 2)
-        if resume is not None and resume.path is not None:  # the way it was flying
-            self.tour_map = np.array(resume.path, dtype=np.float64).reshape(-1, 2)
-            self.follower.index = resume.path_index
         self._corr_lock = threading.Lock()
         self.T_map_odom = np.zeros(4) if T_map_odom is None else np.asarray(T_map_odom, float)
-        self.epoch = -1 if resume is None else resume.epoch
+        self.epoch = -1
         # an epoch far past the last is held until the next follows it (one of 2^63 had
         # every later correction ignored)
         self._epoch_jump = JumpGate(MAX_EPOCH_JUMP)
@@ -146,7 +138,6 @@ class AgentNode:
         self.exploring = cfg.exploration.enabled
         self.mission_over = False
         self.clock = BackStepRepair()  # sensor stamps, across a step back of their clock
-        self.clock_dropped = 0  # sensor messages stamped before the latest (not a step)
         self.last_scan_stamp: float | None = None
         self.last_state_stamp = -np.inf
         self.scans = 0
@@ -154,6 +145,22 @@ class AgentNode:
         self.base_links = {"joins": 0, "losses": 0}  # base-station liveliness events
         self._base_up = threading.Event()
         self._bases: set[str] = set()  # base-station tokens up (one, unless misconfigured)
+        if resume is not None:
+            self._take_up(resume)
+
+    def _take_up(self, r: ResumePoint) -> None:
+        """Go on where an agent before this one was (agent/resume.py): local SLAM from
+        its last pose by the odometry since, its next keyframe from its last one, the
+        same sensor clock offset, correction epoch and path (at the same waypoint)."""
+        if r.pose_odom is not None and r.stamp is not None:
+            self.frontend.resume(r.stamp, np.array(r.pose_odom), r.odometry)
+            self.clock.offset, self.clock.latest = r.clock_offset, r.stamp
+        last = self.uplink.last_pose if self.uplink.last_pose is not None else r.keyframe_pose
+        self.selector.last_pose = None if last is None else np.array(last, dtype=np.float64)
+        self.epoch = r.epoch
+        if r.path is not None:
+            self.tour_map = np.array(r.path, dtype=np.float64).reshape(-1, 2)
+            self.follower.index = r.path_index
 
     # --- wiring -------------------------------------------------------------------------
     def start(self) -> None:
@@ -162,7 +169,7 @@ class AgentNode:
         The sensor source must be created before this (its subscriptions count too).
         """
         rid = self.robot_id
-        self.bus.subscribe(self.keys.robot(rid, "ack"), KeyframeAck, self.uplink.on_ack)
+        self.bus.subscribe(self.keys.robot(rid, "ack"), KeyframeAck, self._on_ack)
         self.bus.subscribe(self.keys.robot(rid, "correction"), PoseCorrection, self._on_correction)
         self.bus.subscribe(self.keys.robot(rid, "path"), PathMsg, self._on_path)
         self.bus.subscribe(self.keys.robot(rid, "neighbours"), Neighbours, self._on_neighbours)
@@ -189,6 +196,10 @@ class AgentNode:
                       "token lingers for Zenoh's lease, 10 s)", len(self._bases),
                       ", ".join(sorted(self._bases)))  # fmt: skip
         self.uplink.on_base_alive(name, alive, again=self.base_links["joins"] > 1)
+
+    def _on_ack(self, msg: KeyframeAck, key: str) -> None:
+        if msg.acked_seq >= 0 or len(self._bases) < 2:  # -1 from one of two: no new chain
+            self.uplink.on_ack(msg)
 
     def _on_correction(self, msg: PoseCorrection, key: str) -> None:
         with self._corr_lock:
@@ -249,7 +260,7 @@ class AgentNode:
 
     def handle(self, msg: Any) -> None:
         if isinstance(msg, (Odometry, Imu, Altimeter, LaserScan)) and not (
-            msg := self._sensor_time(msg)
+            msg := self.clock.take(msg)
         ):
             return
         if isinstance(msg, Odometry):
@@ -263,24 +274,6 @@ class AgentNode:
             self.on_scan(msg)
         elif isinstance(msg, ClockSync):  # a lock-step simulator's, before its next tick
             self.downlink.on_clock(msg.stamp)
-
-    def _sensor_time(self, msg: Any) -> Any:
-        """The message on the agent's timeline (None: dropped): after a backward step of
-        the sensor clock its stamps are moved on by the step (`BackStepRepair`)."""
-        steps = self.clock.steps
-        stamp = self.clock(msg.stamp)
-        if stamp is None:
-            if self.clock_dropped % 400 == 0:  # ~10 s of scans at 40 Hz between two lines
-                log.error("sensor stamp %.3f is %.3f s before the latest: dropped (%d so far)",
-                          msg.stamp, self.clock.latest - msg.stamp - self.clock.offset,
-                          self.clock_dropped + 1)  # fmt: skip
-            self.clock_dropped += 1
-            return None
-        if self.clock.steps > steps:
-            log.error("the sensor clock stepped back: stamps are moved on by %.3f s from t=%.3f "
-                      "(set the drone's clock by slewing, not steps: chrony's makestep at boot "
-                      "only)", self.clock.offset, msg.stamp)  # fmt: skip
-        return msg if stamp == msg.stamp else dataclasses.replace(msg, stamp=stamp)
 
     def on_scan(self, scan: LaserScan) -> None:
         if self.last_scan_stamp is not None and scan.stamp == self.last_scan_stamp:
@@ -310,6 +303,7 @@ class AgentNode:
             self._take_path()  # the state's status reflects a path that just came
             self.publish_state(scan.stamp)
             self.downlink.state_sent(scan.stamp)
+            self._save_state(scan.stamp)  # hovering, it cuts no keyframes: still fresh
         self._command(scan.stamp)
 
     def _send_keyframe(self, scan: LaserScan, result: LocalSlamResult) -> None:
@@ -329,19 +323,22 @@ class AgentNode:
         )
         if not sent:  # refused (an altimeter's 1e9 m once): the next spans from the last sent
             self.selector.last_pose = last
-        elif self.state_dir is not None:
-            self._save_state(scan.stamp, pose)
+        else:
+            self._save_state(scan.stamp)
 
-    def _save_state(self, stamp: float, pose: np.ndarray) -> None:
-        """Where this agent is, for one restarted on its state folder (agent/resume.py)."""
+    def _save_state(self, stamp: float) -> None:
+        """Where this agent is (at each keyframe and state, and at a new chain), for one
+        restarted on its state folder (agent/resume.py)."""
+        if self.state_dir is None or self.selector.last_pose is None:
+            return
         with self._corr_lock:
             epoch, T = self.epoch, self.T_map_odom.tolist() if self._on_map else None
             path = self.tour_map.tolist()
         odom = self.frontend.odometry_at(stamp)
-        up = self.uplink
+        up, kf = self.uplink, self.selector.last_pose.tolist()
         point = ResumePoint(up.chain, up.next_seq, up.outbox.acked_seq, epoch, T, stamp,
-                            pose.tolist(), None if odom is None else odom.tolist(), path,
-                            self.follower.index)  # fmt: skip
+                            self.frontend.pose.tolist(), None if odom is None else odom.tolist(),
+                            path, self.follower.index, kf, self.clock.offset)  # fmt: skip
         save(self.state_dir, point)
 
     def _publish_control_pose(self, stamp: float, pose_odom: np.ndarray) -> None:
@@ -413,6 +410,8 @@ class AgentNode:
         if self.uplink.resend():  # a new chain, for a base station with a new database
             with self._corr_lock:
                 self.epoch = -1  # which numbers its corrections from 0 again
+            if self.last_scan_stamp is not None:
+                self._save_state(self.last_scan_stamp)
 
     def status(self) -> str:
         if self.scans == 0:
@@ -436,6 +435,7 @@ class AgentNode:
                 correction_epoch=epoch,
                 keyframes_sent=self.uplink.next_seq,
                 keyframes_acked=self.outbox.acked_seq + 1,
+                chain=self.uplink.chain,
                 outbox_len=len(self.outbox),
                 pose_odom=pose4_to_pose7(pose),
                 pose_map=pose4_to_pose7(odom_to_map(T_map_odom, pose)),
@@ -464,7 +464,7 @@ class AgentNode:
             "scans": self.scans,
             "sensor_clock_steps": self.clock.steps,
             "sensor_clock_offset_s": self.clock.offset,
-            "sensor_messages_dropped": self.clock_dropped,
+            "sensor_messages_dropped": self.clock.dropped,
             "odom_distance_m": self.frontend.distance_m,
             "scans_rejected": self.frontend.rejected_scans,
             "matches_gated": self.frontend.gated_matches,

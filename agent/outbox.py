@@ -108,7 +108,7 @@ class Outbox:
             if self._pending and seq != next(reversed(self._pending)) + 1:
                 raise ValueError(f"outbox expects consecutive seqs, got {seq}")
             self._pending[seq] = payload
-            self.history.add(seq, payload)
+            self.history.add(seq, payload, keep_from=self.acked_seq + 1)
             self._sent_at[seq] = self._clock()
             self.added_seq = max(self.added_seq, seq)
             n = len(self._pending)

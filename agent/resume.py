@@ -1,12 +1,15 @@
 """An agent's state on disk, for an agent restarted in the middle of a mission (a
 crash, systemd restarting it).
 
-With `agent.state_dir` set, the agent writes there, at each keyframe, where it is
-(`state.json`, replaced in one step): its keyframe chain and next seq, the last seq
-acknowledged, the last keyframe's stamp, `T_odom_base` and the odometry source's pose
-then, the latest correction (epoch, `T_map_odom`) and the path it flies (the waypoint
-it was flying to: from the tour's first, it had flown into walls); every keyframe it
-cuts goes to the same folder (agent/keyframe_history.py). An agent started on it takes
+With `agent.state_dir` set, the agent writes there, at each keyframe and each
+`RobotState` (so that it stays fresh while the drone hovers) and at a new keyframe
+chain, where it is (`state.json`, replaced in one step): its keyframe chain and next
+seq, the last seq acknowledged, the last keyframe's pose, the last scan's stamp,
+`T_odom_base` and the odometry source's pose then, the sensor clock's offset, the latest
+correction (epoch, `T_map_odom`) and the path it flies (the waypoint it was flying to:
+from the tour's first, it had flown into walls); every keyframe it cuts goes to the
+same folder first (agent/keyframe_history.py: a keyframe sent after the last save is
+found there on resuming, `KeyframeUplink._resume`). An agent started on it takes
 them up: the keyframes not acknowledged are sent again, its local pose goes on from
 the last keyframe by the odometry since (an autopilot's odometry runs on through the
 restart), and its next keyframe spans the gap, so the base station's trajectory of
@@ -40,11 +43,13 @@ class ResumePoint:
     acked_seq: int = -1
     epoch: int = -1
     T_map_odom: list[float] | None = None  # [x, y, z, yaw]
-    stamp: float | None = None  # the last keyframe's ...
+    stamp: float | None = None  # the last scan's (sensor clock, moved on by the offset) ...
     pose_odom: list[float] | None = None  # ... T_odom_base [x, y, z, yaw]
     odometry: list[float] | None = None  # ... and the odometry source's [x, y, yaw]
     path: list[list[float]] | None = None  # the tour or path flown, map [x, y] ...
     path_index: int = 0  # ... and the waypoint it was flying to
+    keyframe_pose: list[float] | None = None  # T_odom_base of the last keyframe sent
+    clock_offset: float = 0.0  # s, common.stamps.BackStepRepair's
     saved_unix: float = 0.0
 
     def check(self) -> None:
@@ -54,14 +59,14 @@ class ResumePoint:
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, int) or not low <= v < 2**62:
                 raise ValueError(f"{name}: {v!r}")
-        if not self.acked_seq < self.next_seq or (self.next_seq and self.pose_odom is None):
+        if not self.acked_seq < self.next_seq or (self.next_seq and self.keyframe_pose is None):
             raise ValueError(f"acked_seq {self.acked_seq}, next_seq {self.next_seq}")
-        for name, n in (("T_map_odom", 4), ("pose_odom", 4), ("odometry", 3)):
+        for name, n in (("T_map_odom", 4), ("pose_odom", 4), ("odometry", 3), ("keyframe_pose", 4)):
             v = getattr(self, name)
             if v is not None and (len(v) != n or not all(_finite(x) for x in v)):
                 raise ValueError(f"{name}: {v!r}")
-        if not all(_finite(v) for v in (self.stamp or 0.0, self.saved_unix)):
-            raise ValueError("stamp / saved_unix")
+        if not all(_finite(v) for v in (self.stamp or 0.0, self.saved_unix, self.clock_offset)):
+            raise ValueError("stamp / saved_unix / clock_offset")
         path = self.path or []
         if not all(isinstance(p, list) and len(p) == 2 and all(map(_finite, p)) for p in path):
             raise ValueError("path: expected [[x, y], ...]")
@@ -97,7 +102,7 @@ def load(directory: Path, max_age_s: float) -> ResumePoint | None:
         log.error("%s cannot be read (%s): starting afresh", path, exc)
         return _start_afresh(directory, None)
     age = time.time() - point.saved_unix
-    if not 0.0 <= age <= max_age_s:
+    if not abs(age) <= max_age_s:  # (< 0: the host's clock was set back meanwhile)
         return _start_afresh(directory, f"saved {age:.0f} s ago (> agent.resume_within_s)")
     log.warning("resuming from %s (saved %.1f s ago): keyframe chain %d at seq %d, %d not "
                 "acknowledged", path, age, point.chain, point.next_seq,

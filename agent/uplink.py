@@ -14,13 +14,16 @@ import threading
 import time
 from typing import Any
 
+import numpy as np
+
 from agent.keyframe_history import KeyframeHistory
 from agent.outbox import Outbox
 from agent.resume import ResumePoint
 from common.bus import Bus
 from common.config import AgentConfig
 from common.errors import ProtocolError
-from protocol import Keyframe, KeyframeAck, encode
+from common.geometry import pose7_to_pose4
+from protocol import Keyframe, KeyframeAck, decode, encode
 
 log = logging.getLogger(__name__)
 
@@ -40,11 +43,30 @@ class KeyframeUplink:
         )  # fmt: skip
         self.next_seq = 0  # of this chain
         self.chain = 0  # Keyframe.chain
-        if resume is not None:
-            self.chain, self.next_seq = resume.chain, resume.next_seq
-            self.outbox.restore(resume.acked_seq, resume.next_seq)
+        self.last_pose: np.ndarray | None = None  # T_odom_base of the last keyframe sent
         self.refused = 0  # failed the checks the base station makes: not sent
+        self._lost_chain = -1  # the chain an ack of -1 was about
         self._chain_lost = threading.Event()
+        if resume is not None:
+            self._resume(resume)
+
+    def _resume(self, resume: ResumePoint) -> None:
+        """Take up an agent's state; the history on disk may be a step ahead of it (a
+        keyframe sent, or a new chain started, just before the kill: the state is saved
+        after them): its last record then says where the agent was."""
+        chain, next_seq, acked = resume.chain, resume.next_seq, resume.acked_seq
+        h = self.outbox.history
+        if h.next_seq is not None:
+            last = decode(next(h.payloads(h.next_seq - 1)), Keyframe)
+            if (last.chain, last.seq + 1) > (chain, next_seq):
+                log.warning("keyframe %d of chain %d was sent after the state was saved: "
+                            "going on from it", last.seq, last.chain)  # fmt: skip
+                if last.chain != chain:
+                    acked = -1
+                chain, next_seq = last.chain, last.seq + 1
+                self.last_pose = pose7_to_pose4(last.pose_odom)
+        self.chain, self.next_seq = chain, next_seq
+        self.outbox.restore(acked, next_seq)
 
     def on_ack(self, msg: KeyframeAck, key: str = "") -> None:
         """(Zenoh thread) An ack of this chain; -1 after some were acknowledged: the base
@@ -52,6 +74,7 @@ class KeyframeUplink:
         if msg.chain != self.chain:  # about a chain this agent has left
             return
         if msg.acked_seq < 0 <= self.outbox.acked_seq:
+            self._lost_chain = msg.chain
             self._chain_lost.set()
         else:
             self.outbox.ack(msg.acked_seq)
@@ -81,15 +104,16 @@ class KeyframeUplink:
         payload = encode(kf)
         self.outbox.add(self.next_seq, payload)
         self.next_seq += 1
+        self.last_pose = pose7_to_pose4(kf.pose_odom)
         self.bus.put_raw(self.key, payload)
         return True
 
     def resend(self) -> bool:
         """Resend what is due (main thread); True if a new chain started first (the
         caller forgets the old base station's correction epochs)."""
-        new = self._chain_lost.is_set()
+        new = self._chain_lost.is_set() and self._lost_chain == self.chain  # not twice
+        self._chain_lost.clear()
         if new:
-            self._chain_lost.clear()
             self.chain += 1
             self.next_seq = self.outbox.new_chain(self.chain)
         batch = self.outbox.due_for_resend()

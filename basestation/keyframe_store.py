@@ -258,14 +258,15 @@ class KeyframeStore:
         ok = r.next_seq and not r.foreign
         return KeyframeAck(robot_id, r.next_seq - 1, r.chain) if ok else None
 
-    def none_of(self, robot_id: str) -> KeyframeAck | None:
-        """Ack -1 if none of `robot_id`'s keyframes is admitted (for an agent that says
-        some were acknowledged: by a base station whose database this one has not), else
-        None. Safe from any thread (it only reads)."""
+    def none_of(self, robot_id: str, chain: int) -> KeyframeAck | None:
+        """Ack -1 of `chain` if none of `robot_id`'s keyframes of it is admitted (for an
+        agent that says some of that chain were acknowledged: by a base station whose
+        database this one has not), else None (a state from before a chain this store
+        has taken up too). Safe from any thread (it only reads)."""
         r = self.robots.get(robot_id)
-        if r is None:
-            return KeyframeAck(robot_id, -1, 0)
-        return KeyframeAck(robot_id, -1, r.chain) if r.next_seq == 0 and not r.foreign else None
+        if r is not None and (r.foreign or r.next_seq > 0 or chain < r.chain):
+            return None
+        return KeyframeAck(robot_id, -1, chain)
 
 
 class KeyframeScans(Sequence[Scan2D]):

@@ -192,7 +192,7 @@ class BaseStationNode:
             self.states[msg.robot_id] = msg
             answer = self.neighbours.on_state(msg)
         self.bus.publish(self.keys.robot(msg.robot_id, "neighbours"), answer)
-        if msg.keyframes_acked > 0 and (none := self.slam.store.none_of(msg.robot_id)):
+        if msg.keyframes_acked > 0 and (none := self.slam.store.none_of(msg.robot_id, msg.chain)):
             self.bus.publish(self.keys.robot(msg.robot_id, "ack"), none)  # a new chain
 
     def _on_agent_alive(self, name: str, alive: bool) -> None:

@@ -3,7 +3,12 @@ period of 10 ticks measures 0.25 s, or 0.2499999999999999 s, or 0.25000000000000
 
 from __future__ import annotations
 
+import dataclasses
+import logging
 from dataclasses import dataclass, field
+from typing import Any
+
+log = logging.getLogger(__name__)
 
 # s: stamps this close count as equal
 STAMP_SLACK_S = 1e-6
@@ -69,6 +74,7 @@ class BackStepRepair:
     offset: float = 0.0  # s added to every stamp
     latest: float = -float("inf")  # the latest stamp passed (moved on)
     steps: int = 0
+    dropped: int = 0  # messages `take` dropped
     _back: tuple[float, ...] = ()  # raw stamps of a step not yet confirmed
     _ahead: JumpGate = field(default_factory=JumpGate)
 
@@ -92,3 +98,21 @@ class BackStepRepair:
         t = stamp + self.offset
         self.latest = t
         return t
+
+    def take(self, msg: Any) -> Any:
+        """A sensor message on the agent's timeline: its stamp moved on by the offset
+        (a copy if it changes), None if dropped; both logged."""
+        steps = self.steps
+        stamp = self(msg.stamp)
+        if stamp is None:
+            if self.dropped % 400 == 0:  # ~10 s of scans at 40 Hz between two lines
+                log.error("sensor stamp %.3f is %.3f s before the latest: dropped (%d so far)",
+                          msg.stamp, self.latest - msg.stamp - self.offset,
+                          self.dropped + 1)  # fmt: skip
+            self.dropped += 1
+            return None
+        if self.steps > steps:
+            log.error("the sensor clock stepped back: stamps are moved on by %.3f s from t=%.3f "
+                      "(set the drone's clock by slewing, not steps: chrony's makestep at boot "
+                      "only)", self.offset, msg.stamp)  # fmt: skip
+        return msg if stamp == msg.stamp else dataclasses.replace(msg, stamp=stamp)

@@ -352,6 +352,7 @@ class RobotState(Message):
     outbox_len: int
     pose_odom: np.ndarray = array_field("f8", (7,))
     pose_map: np.ndarray = array_field("f8", (7,))
+    chain: int = 0  # the keyframe chain keyframes_sent / keyframes_acked count in
 
     def validate(self) -> None:
         super().validate()

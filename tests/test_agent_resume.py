@@ -52,12 +52,13 @@ def test_outbox_restored_from_disk_sends_what_was_not_acknowledged(tmp_path: Pat
 
 def test_state_is_taken_up_only_when_recent_and_whole(tmp_path: Path, caplog) -> None:
     point = ResumePoint(0, 12, 9, 4, [1.0, 2.0, 0.0, 0.5], 30.0, [3, 4, 1, 0.1], [5, 6, 0.2],
-                        [[0.0, 1.0], [2.0, 3.0]], 1)  # fmt: skip
+                        [[0.0, 1.0], [2.0, 3.0]], 1, [2.9, 4, 1, 0.1], 0.5)  # fmt: skip
     save(tmp_path, point)
     (tmp_path / "keyframes-0000000000.log").write_bytes(b"")
     got = load(tmp_path, max_age_s=60.0)
     assert got is not None and (got.next_seq, got.acked_seq, got.epoch) == (12, 9, 4)
     assert got.path == [[0.0, 1.0], [2.0, 3.0]] and got.path_index == 1
+    assert got.keyframe_pose == [2.9, 4, 1, 0.1] and got.clock_offset == 0.5
     raw = json.loads((tmp_path / STATE_FILE).read_text())
     raw["saved_unix"] = time.time() - 3600.0  # another mission's
     (tmp_path / STATE_FILE).write_text(json.dumps(raw))
@@ -77,3 +78,78 @@ def test_local_slam_goes_on_from_the_last_keyframe_by_the_odometry_since() -> No
     ltb.add_odometry(11.0, np.array([8.0, 0.0, 0.0]))  # 1 m ahead in the source's frame
     np.testing.assert_allclose(ltb.extrapolator.predict(11.0), [3.0, 2.0, np.pi / 2])
     np.testing.assert_allclose(ltb.odometry_at(11.0), [8.0, 0.0, 0.0])
+
+
+def _kf_payload(seq: int, chain: int = 0) -> bytes:
+    from process_helpers import synthetic_keyframe
+
+    from protocol import Keyframe, encode
+
+    kf = synthetic_keyframe("r0", seq, np.array([0.5 * seq, 0.0, 0.0]), np.array([0.5, 0, 0]))
+    return encode(Keyframe(**{**kf.__dict__, "chain": chain}))
+
+
+def _uplink(cfg: Config, endpoint: str, state: Path, resume: ResumePoint):  # noqa: ANN202
+    from agent.uplink import KeyframeUplink
+    from common.bus import Bus
+    from common.config import ZenohConfig
+
+    cfg.agent.state_dir = str(state)
+    bus = Bus(ZenohConfig(listen=[endpoint]), cfg.fleet)
+    return bus, KeyframeUplink(cfg.agent, "r0", bus, resume)
+
+
+def test_a_keyframe_sent_after_the_last_save_is_gone_on_from(
+    cfg: Config, endpoint: str, tmp_path: Path
+) -> None:
+    """Killed between sending keyframe 5 and saving the state (which says 5 is next):
+    the restarted agent had sent another keyframe 5 (two sources to the base station)
+    and emptied its history; it goes on from the history's last record now."""
+    h = KeyframeHistory(100, tmp_path)
+    for seq in range(6):
+        h.add(seq, _kf_payload(seq))
+    point = ResumePoint(0, 5, 2, keyframe_pose=[2.0, 0.0, 1.0, 0.0])
+    bus, up = _uplink(cfg, endpoint, tmp_path, point)
+    with bus:
+        assert (up.chain, up.next_seq, up.outbox.acked_seq, len(up.outbox)) == (0, 6, 2, 3)
+        np.testing.assert_allclose(up.last_pose, [2.5, 0.0, 1.0, 0.0])  # keyframe 5's
+        assert len(up.outbox.history) == 6
+
+
+def test_a_new_chain_started_after_the_last_save_is_gone_on_with(
+    cfg: Config, endpoint: str, tmp_path: Path
+) -> None:
+    h = KeyframeHistory(100, tmp_path)
+    for seq in range(4):
+        h.add(seq, _kf_payload(seq, chain=1))  # relabelled, then killed before the save
+    bus, up = _uplink(cfg, endpoint, tmp_path, ResumePoint(0, 40, 30, keyframe_pose=[0] * 4))
+    with bus:
+        assert (up.chain, up.next_seq, up.outbox.acked_seq, len(up.outbox)) == (1, 4, -1, 4)
+
+
+def test_one_lost_chain_starts_one_new_chain(cfg: Config, endpoint: str, tmp_path: Path) -> None:
+    from protocol import KeyframeAck
+
+    bus, up = _uplink(cfg, endpoint, tmp_path, ResumePoint())
+    with bus:
+        for seq in range(3):
+            up.outbox.add(seq, _kf_payload(seq))
+        up.on_ack(KeyframeAck("r0", 1, 0))
+        up.on_ack(KeyframeAck("r0", -1, 0))  # a new base station has none of them ...
+        up.on_ack(KeyframeAck("r0", -1, 0))  # ... said twice
+        assert up.resend() and (up.chain, up.next_seq) == (1, 3)
+        up.on_ack(KeyframeAck("r0", -1, 0))  # late, about chain 0: ignored
+        assert not up.resend() and up.chain == 1
+
+
+def test_a_disk_error_turns_the_history_off(tmp_path: Path, caplog) -> None:
+    h = KeyframeHistory(4, tmp_path / "gone")
+    (tmp_path / "gone").mkdir()
+    h.add(0, b"kf0")
+    h.add(1, b"kf1")
+    (tmp_path / "gone" / "keyframes-0000000000.log").unlink()
+    (tmp_path / "gone").rmdir()  # the next file cannot be made
+    with caplog.at_level(logging.ERROR):
+        h.add(2, b"kf2")  # no exception: the agent flies on
+        h.add(3, b"kf3")
+    assert "keyframe history off" in caplog.text and len(h) == 0

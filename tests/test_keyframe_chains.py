@@ -64,7 +64,8 @@ def test_a_new_chain_starts_at_the_oldest_keyframe_kept(caplog) -> None:
     box = Outbox(100, 0.8, 1.0, 50, history=KeyframeHistory(4))  # keeps the latest 2-4
     for seq in range(8):
         box.add(seq, encode(_kf(seq)))
-    box.ack(4)
+        if seq <= 4:
+            box.ack(seq)
     with caplog.at_level(logging.WARNING):
         assert box.new_chain(1) == 4  # seqs 4 (acknowledged) to 7
     assert "(4 acknowledged before were not kept)" in caplog.text
@@ -72,9 +73,22 @@ def test_a_new_chain_starts_at_the_oldest_keyframe_kept(caplog) -> None:
     assert [k.stamp for k in sent] == [_kf(s).stamp for s in range(4, 8)]
 
 
+def test_history_keeps_every_keyframe_not_acknowledged() -> None:
+    """A restarted agent must send them again: the history's bound (latest 2-4 here)
+    does not cut into them (before, 20,000 unacknowledged but 10,000 kept)."""
+    box = Outbox(100, 0.8, 1.0, 50, history=KeyframeHistory(4))
+    for seq in range(9):
+        box.add(seq, encode(_kf(seq)))
+    assert (box.history.first_seq, len(box.history)) == (0, 9)
+    box.ack(6)
+    box.add(9, encode(_kf(9)))
+    box.add(10, encode(_kf(10)))  # a new file: the ones before 6 may go now
+    assert box.history.first_seq == 6 and box.history.dropped == 6
+
+
 def test_store_follows_a_new_chain_only_while_it_has_nothing(caplog) -> None:
     st = KeyframeStore()
-    none = st.none_of("r0")  # an agent that says some were acknowledged is told -1
+    none = st.none_of("r0", 0)  # an agent that says some were acknowledged is told -1
     assert (none.robot_id, none.acked_seq, none.chain) == ("r0", -1, 0)
     for seq in (300, 301):  # the old chain's, resent after the outage: held
         assert st.admit(_kf(seq)) == []
@@ -84,10 +98,12 @@ def test_store_follows_a_new_chain_only_while_it_has_nothing(caplog) -> None:
         assert "starts keyframe chain 1" in caplog.text
     r = st.robot("r0")
     assert r.chain == 1 and list(r.held) == [1]  # the old chain's are dropped
+    assert st.none_of("r0", 0) is None  # a state from before the switch
+    assert st.none_of("r0", 1).chain == 1 and st.none_of("r9", 2).chain == 2  # (lost twice)
     assert [k.seq for k in st.admit(_kf(0, chain=1))] == [0, 1]
     assert st.admit(_kf(302)) == [] and r.stale_chain == 1  # in flight before the switch
     ack = st.ack("r0")
-    assert (ack.acked_seq, ack.chain) == (1, 1) and st.none_of("r0") is None
+    assert (ack.acked_seq, ack.chain) == (1, 1) and st.none_of("r0", 0) is None
     with caplog.at_level(logging.ERROR):  # a second base station told the agent "none"
         assert st.admit(_kf(0, chain=2)) == []
     assert r.chain_conflicts == 1 and "another base station" in caplog.text

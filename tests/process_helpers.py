@@ -3,9 +3,11 @@ processes with a SQLite record."""
 
 from __future__ import annotations
 
+import signal
 import sqlite3
 import time
 from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -67,3 +69,65 @@ def wait_for(
         group.check(running)
         assert time.monotonic() < deadline, f"timed out waiting for {what}"
         time.sleep(0.1)
+
+
+@dataclass
+class TourMission:
+    """A scripted-tour mission on bshape (no exploration: the drones fly on while a
+    base station is down), its files written, for tests that run its processes."""
+
+    out: Path
+    world: Path
+    robots: list[str]
+    common: list[str]  # --config / --scenario / --out
+    base_ep: str
+    sim_ep: str
+
+    def agent(self, robot_id: str, *extra: str) -> list[str]:
+        from collabslam.launcher import agent_command
+
+        return [*agent_command(self.common, robot_id, self.sim_ep, self.base_ep), *extra]
+
+    def base(self, db: Path) -> list[str]:
+        return ["basestation", *self.common, "--listen", self.base_ep, "--db", str(db)]
+
+    def sim(self) -> list[str]:
+        return ["sim", *self.common, "--listen", self.sim_ep, "--connect", self.base_ep]
+
+
+def tour_mission(tmp_path: Path, n_robots: int = 2) -> TourMission:
+    from collabslam.launcher import make_scenario
+    from collabslam.supervisor import free_port
+    from common.bus import endpoint
+    from common.config import dump_config, load_config
+    from common.scenario import write_scenario
+    from simulation.world import resolve_world
+
+    out = tmp_path / "run"
+    cfg = load_config(
+        overrides={
+            "basestation.map_update_period_s": 0.5,
+            "basestation.drain_timeout_s": 5.0,  # pending verifications: not needed here
+            "sim.tour_length_m": 400.0,
+            "exploration.enabled": False,
+        }
+    )
+    world = resolve_world("bshape")
+    scenario = make_scenario(cfg, world, n_robots)
+    write_scenario(out / "scenario.json", scenario)
+    dump_config(cfg, out / "config.toml")
+    common = ["--config", str(out / "config.toml"), "--scenario", str(out / "scenario.json")]
+    common += ["--out", str(out)]
+    eps = endpoint(free_port()), endpoint(free_port())
+    return TourMission(out, world, scenario.robot_ids, common, *eps)
+
+
+def end_mission(g: ProcessGroup, sim: Child, agents: list[Child], base: Child) -> None:
+    """The simulator stops, then the agents (they drain), then the base station."""
+    sim.proc.send_signal(signal.SIGINT)
+    g.wait([sim], 30)
+    for a in agents:
+        a.proc.send_signal(signal.SIGINT)
+    g.wait(agents, 60)
+    base.proc.send_signal(signal.SIGINT)
+    g.wait([base], 120)

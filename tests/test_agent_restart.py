@@ -16,50 +16,27 @@ import time
 from pathlib import Path
 
 import pytest
-from process_helpers import stored_keyframes, wait_for
+from process_helpers import end_mission, stored_keyframes, tour_mission, wait_for
 
-from collabslam.launcher import agent_command, make_scenario
 from collabslam.summary import build_summary
-from collabslam.supervisor import ProcessGroup, free_port
-from common.bus import endpoint
-from common.config import dump_config, load_config
-from common.scenario import write_scenario
+from collabslam.supervisor import ProcessGroup
 from protocol import Keyframe, decode
-from simulation.world import resolve_world
 
 pytestmark = pytest.mark.e2e
 
 
 def test_a_restarted_agent_goes_on_where_it_was(tmp_path: Path) -> None:
-    out = tmp_path / "run"
-    cfg = load_config(
-        overrides={
-            "basestation.map_update_period_s": 0.5,
-            "basestation.drain_timeout_s": 5.0,
-            "sim.tour_length_m": 400.0,
-            "exploration.enabled": False,
-        }
-    )
-    world = resolve_world("bshape")
-    scenario = make_scenario(cfg, world, 2)
-    write_scenario(out / "scenario.json", scenario)
-    dump_config(cfg, out / "config.toml")
-    db = out / "base.db"
-    common = ["--config", str(out / "config.toml"), "--scenario", str(out / "scenario.json")]
-    common += ["--out", str(out)]
-    base_ep, sim_ep = endpoint(free_port()), endpoint(free_port())
-    robots = [r.robot_id for r in scenario.robots]
+    m = tour_mission(tmp_path)
+    out, robots, db = m.out, m.robots, m.out / "base.db"
 
     def agent_args(rid: str) -> list[str]:
-        state = f'agent.state_dir="{out / "state" / rid}"'
-        return [*agent_command(common, rid, sim_ep, base_ep), "--set", state]
+        return m.agent(rid, "--set", f'agent.state_dir="{out / "state" / rid}"')
 
     g = ProcessGroup(out)
     t0 = time.monotonic()
     try:
-        base_args = ["basestation", *common, "--listen", base_ep, "--db", str(db)]
-        base = g.spawn("basestation", base_args)
-        sim = g.spawn("sim", ["sim", *common, "--listen", sim_ep, "--connect", base_ep])
+        base = g.spawn("basestation", m.base(db))
+        sim = g.spawn("sim", m.sim())
         agents = {r: g.spawn(r, agent_args(r)) for r in robots}
         wait_for(lambda: all(stored_keyframes(db, r) >= 30 for r in robots), 60,
                  "keyframes of every robot", g, [sim, *agents.values()])  # fmt: skip
@@ -70,13 +47,7 @@ def test_a_restarted_agent_goes_on_where_it_was(tmp_path: Path) -> None:
         agents["r0"] = g.spawn("r0-restarted", agent_args("r0"))
         wait_for(lambda: stored_keyframes(db, "r0") >= before + 40, 60,
                  "keyframes of the restarted agent", g, [sim, *agents.values()])  # fmt: skip
-        sim.proc.send_signal(signal.SIGINT)
-        g.wait([sim], 30)
-        for a in agents.values():
-            a.proc.send_signal(signal.SIGINT)
-        g.wait(list(agents.values()), 60)
-        base.proc.send_signal(signal.SIGINT)
-        g.wait([base], 120)
+        end_mission(g, sim, list(agents.values()), base)
     finally:
         g.terminate_all()
     wall = time.monotonic() - t0
@@ -97,6 +68,6 @@ def test_a_restarted_agent_goes_on_where_it_was(tmp_path: Path) -> None:
     log = (out / "logs" / "r0-restarted.log").read_text()
     assert "resuming from" in log
     assert not (out / "state" / "r0" / "state.json").exists()  # stopped: forgotten
-    summary = build_summary(out, world, robots, wall)
+    summary = build_summary(out, m.world, robots, wall)
     assert summary["map_accuracy"] >= 0.95
     assert all(r["ate_rmse_m"] < 0.5 for r in summary["robots"])

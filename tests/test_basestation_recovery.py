@@ -17,50 +17,24 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from process_helpers import stored_keyframes, wait_for
+from process_helpers import end_mission, stored_keyframes, tour_mission, wait_for
 
-from collabslam.launcher import agent_command, make_scenario
 from collabslam.summary import build_summary
-from collabslam.supervisor import ProcessGroup, free_port
-from common.bus import endpoint
-from common.config import dump_config, load_config
-from common.scenario import write_scenario
+from collabslam.supervisor import ProcessGroup
 from protocol import Keyframe, decode
-from simulation.world import resolve_world
 
 pytestmark = pytest.mark.e2e
 
 
 def test_basestation_killed_and_restarted_loses_nothing(tmp_path: Path) -> None:
-    out = tmp_path / "run"
-    cfg = load_config(
-        overrides={
-            "basestation.map_update_period_s": 0.5,
-            "basestation.drain_timeout_s": 5.0,  # pending verifications: not needed here
-            "sim.tour_length_m": 400.0,
-            "exploration.enabled": False,  # tours: the drones fly on while it is down
-        }
-    )
-    world = resolve_world("bshape")
-    scenario = make_scenario(cfg, world, 2)
-    write_scenario(out / "scenario.json", scenario)
-    dump_config(cfg, out / "config.toml")
-    db = out / "base.db"
-    common = ["--config", str(out / "config.toml"), "--scenario", str(out / "scenario.json")]
-    common += ["--out", str(out)]
-    base_ep, sim_ep = endpoint(free_port()), endpoint(free_port())
-    base_args = ["basestation", *common, "--listen", base_ep, "--db", str(db)]
+    m = tour_mission(tmp_path)
+    out, robots, db = m.out, m.robots, m.out / "base.db"
     g = ProcessGroup(out)
     t0 = time.monotonic()
     try:
-        base = g.spawn("basestation", base_args)
-        sim_args = ["sim", *common, "--listen", sim_ep, "--connect", base_ep]
-        sim = g.spawn("sim", [*sim_args, "--max-sim-time", "600"])
-        agents = [
-            g.spawn(r.robot_id, agent_command(common, r.robot_id, sim_ep, base_ep))
-            for r in scenario.robots
-        ]
-        robots = [r.robot_id for r in scenario.robots]
+        base = g.spawn("basestation", m.base(db))
+        sim = g.spawn("sim", [*m.sim(), "--max-sim-time", "600"])
+        agents = [g.spawn(r, m.agent(r)) for r in robots]
         for kill in range(2):  # killed and restarted once, then run on a little
             # every robot's link must be up before the kill (its loss is checked below)
             before = {r: stored_keyframes(db, r) for r in robots}
@@ -76,14 +50,8 @@ def test_basestation_killed_and_restarted_loses_nothing(tmp_path: Path) -> None:
             os.kill(base.proc.pid, signal.SIGKILL)
             base.proc.wait()
             time.sleep(2.0)  # the drones fly on without it
-            base = g.spawn(f"basestation{kill + 2}", base_args)
-        sim.proc.send_signal(signal.SIGINT)  # end of the mission
-        g.wait([sim], 30)
-        for a in agents:
-            a.proc.send_signal(signal.SIGINT)
-        g.wait(agents, 60)
-        base.proc.send_signal(signal.SIGINT)
-        g.wait([base], 120)
+            base = g.spawn(f"basestation{kill + 2}", m.base(db))
+        end_mission(g, sim, agents, base)
     finally:
         g.terminate_all()
     wall = time.monotonic() - t0
@@ -93,18 +61,18 @@ def test_basestation_killed_and_restarted_loses_nothing(tmp_path: Path) -> None:
     assert stats["persistence"]["recovered"]["keyframes"] >= 20  # what it waited for
     with sqlite3.connect(db) as con:
         seqs = dict(con.execute("SELECT robot_id, group_concat(seq) FROM keyframes GROUP BY 1"))
-    for r in scenario.robots:
-        agent = json.loads((out / "agents" / f"{r.robot_id}.json").read_text())
+    for r in robots:
+        agent = json.loads((out / "agents" / f"{r}.json").read_text())
         sent = agent["keyframes_sent"]
         assert sent > 60
-        assert stats["robots"][r.robot_id]["keyframes_in_graph"] == sent == agent["keyframes_acked"]
+        assert stats["robots"][r]["keyframes_in_graph"] == sent == agent["keyframes_acked"]
         # stored once each, nothing missing: seqs 0..sent-1
-        assert sorted(int(s) for s in seqs[r.robot_id].split(",")) == list(range(sent))
+        assert sorted(int(s) for s in seqs[r].split(",")) == list(range(sent))
         assert agent["base_station_links"]["losses"] >= 1
-        log = (out / "logs" / f"{r.robot_id}.log").read_text()
+        log = (out / "logs" / f"{r}.log").read_text()
         held = [int(n) for n in re.findall(r"is back: resending (\d+) keyframes", log)]
         assert held and max(held) > 0, "the outbox held nothing while the base was gone"
-    summary = build_summary(out, world, scenario.robot_ids, wall)
+    summary = build_summary(out, m.world, robots, wall)
     assert summary["map_accuracy"] >= 0.95
     assert all(r["ate_rmse_m"] < 0.5 for r in summary["robots"])
 
@@ -122,47 +90,26 @@ def test_a_base_station_with_a_new_database_gets_the_whole_mission(tmp_path: Pat
     of the robots' keyframes. It had waited for seq 0, dropped by the agents once the
     first acked it, and mapped nothing of them; now each agent sends what it kept (its
     acknowledged keyframes are on disk) as keyframe chain 1, from its first keyframe."""
-    out = tmp_path / "run"
-    cfg = load_config(
-        overrides={
-            "basestation.map_update_period_s": 0.5,
-            "basestation.drain_timeout_s": 5.0,
-            "sim.tour_length_m": 400.0,
-            "exploration.enabled": False,
-        }
-    )
-    world = resolve_world("bshape")
-    scenario = make_scenario(cfg, world, 2)
-    write_scenario(out / "scenario.json", scenario)
-    dump_config(cfg, out / "config.toml")
+    m = tour_mission(tmp_path)
+    out, robots = m.out, m.robots
     lost, new = out / "lost.db", out / "new.db"
-    common = ["--config", str(out / "config.toml"), "--scenario", str(out / "scenario.json")]
-    common += ["--out", str(out)]
-    base_ep, sim_ep = endpoint(free_port()), endpoint(free_port())
-    base_args = ["basestation", *common, "--listen", base_ep]
-    robots = [r.robot_id for r in scenario.robots]
     g = ProcessGroup(out)
     t0 = time.monotonic()
     try:
-        base = g.spawn("basestation", [*base_args, "--db", str(lost)])
-        sim = g.spawn("sim", ["sim", *common, "--listen", sim_ep, "--connect", base_ep])
-        agents = [g.spawn(r, agent_command(common, r, sim_ep, base_ep)) for r in robots]
+        base = g.spawn("basestation", m.base(lost))
+        sim = g.spawn("sim", m.sim())
+        agents = [g.spawn(r, m.agent(r)) for r in robots]
         wait_for(lambda: all(stored_keyframes(lost, r) >= 30 for r in robots), 60,
                  "keyframes of every robot", g, [sim, *agents])  # fmt: skip
-        os.kill(base.proc.pid, signal.SIGKILL)
+        time.sleep(1.0)  # their acks too (stored, then acked: a loaded machine once
+        os.kill(base.proc.pid, signal.SIGKILL)  # killed it between: nothing acked, chain 0)
         base.proc.wait()
         before = {r: stored_keyframes(lost, r) for r in robots}
         time.sleep(2.0)  # the drones fly on without it
-        base = g.spawn("basestation2", [*base_args, "--db", str(new)])
+        base = g.spawn("basestation2", m.base(new))
         wait_for(lambda: all(stored_keyframes(new, r) >= before[r] + 10 for r in robots), 60,
                  "the mission so far in the new database", g, [sim, *agents])  # fmt: skip
-        sim.proc.send_signal(signal.SIGINT)
-        g.wait([sim], 30)
-        for a in agents:
-            a.proc.send_signal(signal.SIGINT)
-        g.wait(agents, 60)
-        base.proc.send_signal(signal.SIGINT)
-        g.wait([base], 120)
+        end_mission(g, sim, agents, base)
     finally:
         g.terminate_all()
     wall = time.monotonic() - t0
@@ -181,6 +128,6 @@ def test_a_base_station_with_a_new_database_gets_the_whole_mission(tmp_path: Pat
         np.testing.assert_array_equal(first.pose_odom, was.pose_odom)
         log = (out / "logs" / f"{r}.log").read_text()
         assert re.search(r"sending the \d+ kept as keyframe chain 1 \(0 acknowledged", log)
-    summary = build_summary(out, world, robots, wall)
+    summary = build_summary(out, m.world, robots, wall)
     assert summary["map_accuracy"] >= 0.95
     assert all(x["ate_rmse_m"] < 0.5 for x in summary["robots"])

@@ -153,3 +153,19 @@ def test_a_clock_stamped_far_ahead_is_held_back() -> None:
     gate.on_mark(DownlinkMark("r0", 70.2, paths=0, epoch=-1))
     gate.wait()
     assert gate.timeouts == 0
+
+
+def test_marks_count_from_an_agents_join() -> None:
+    """An agent restarted mid-mission (agent.state_dir) had been told, at every step,
+    of the paths sent to the one before it: it waited 10 s for each (0.14x real time)."""
+    clock = LockstepClock(active=True, timeout_s=60.0)
+    for _ in range(9):
+        clock.sent_path("r1")
+    clock.sent_correction("r1", 23)
+    m = clock.mark("r1", 11.0)
+    assert (m.paths, m.epoch) == (9, 23)
+    clock.joined("r1")  # its token is back: a new process
+    m = clock.mark("r1", 11.0)
+    assert (m.paths, m.epoch) == (0, -1)
+    clock.sent_path("r1")
+    assert clock.mark("r1", 12.0).paths == 1

@@ -73,8 +73,7 @@ def wait_for(
 
 @dataclass
 class TourMission:
-    """A scripted-tour mission on bshape (no exploration: the drones fly on while a
-    base station is down), its files written, for tests that run its processes."""
+    """A mission's files written (`tour_mission`), for tests that run its processes."""
 
     out: Path
     world: Path
@@ -95,7 +94,12 @@ class TourMission:
         return ["sim", *self.common, "--listen", self.sim_ep, "--connect", self.base_ep]
 
 
-def tour_mission(tmp_path: Path, n_robots: int = 2) -> TourMission:
+def tour_mission(
+    tmp_path: Path, n_robots: int = 2, world_name: str = "bshape", explore: bool = False
+) -> TourMission:
+    """Scripted tours (no exploration: the drones fly on while a base station is down),
+    or with `explore` an exploring team (lock-step: the base station needs
+    `--lockstep`)."""
     from collabslam.launcher import make_scenario
     from collabslam.supervisor import free_port
     from common.bus import endpoint
@@ -104,15 +108,15 @@ def tour_mission(tmp_path: Path, n_robots: int = 2) -> TourMission:
     from simulation.world import resolve_world
 
     out = tmp_path / "run"
+    tours = {"sim.tour_length_m": 400.0, "exploration.enabled": False}
     cfg = load_config(
         overrides={
             "basestation.map_update_period_s": 0.5,
             "basestation.drain_timeout_s": 5.0,  # pending verifications: not needed here
-            "sim.tour_length_m": 400.0,
-            "exploration.enabled": False,
+            **({} if explore else tours),
         }
     )
-    world = resolve_world("bshape")
+    world = resolve_world(world_name)
     scenario = make_scenario(cfg, world, n_robots)
     write_scenario(out / "scenario.json", scenario)
     dump_config(cfg, out / "config.toml")

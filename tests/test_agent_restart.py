@@ -71,3 +71,38 @@ def test_a_restarted_agent_goes_on_where_it_was(tmp_path: Path) -> None:
     summary = build_summary(out, m.world, robots, wall)
     assert summary["map_accuracy"] >= 0.95
     assert all(r["ate_rmse_m"] < 0.5 for r in summary["robots"])
+
+
+def test_a_restarted_agent_explores_on(tmp_path: Path) -> None:
+    """The same in an exploring team (lock-step: each step, an agent waits for what the
+    base station sent it): the mission ends with the map explored and the restarted
+    agent never waits for paths sent to the agent before it (it had, 10 s a step)."""
+    m = tour_mission(tmp_path, 3, "rooms15", explore=True)
+    out, db = m.out, m.out / "base.db"
+
+    def agent_args(rid: str) -> list[str]:
+        return m.agent(rid, "--set", f'agent.state_dir="{out / "state" / rid}"')
+
+    g = ProcessGroup(out)
+    t0 = time.monotonic()
+    try:
+        base = g.spawn("basestation", [*m.base(db), "--lockstep"])
+        sim = g.spawn("sim", [*m.sim(), "--max-sim-time", "200"])
+        agents = {r: g.spawn(r, agent_args(r)) for r in m.robots}
+        wait_for(lambda: stored_keyframes(db, "r1") >= 25, 60, "keyframes of r1", g,
+                 [sim, *agents.values()])  # fmt: skip
+        os.kill(agents["r1"].proc.pid, signal.SIGKILL)
+        agents["r1"].proc.wait()
+        time.sleep(1.0)
+        agents["r1"] = g.spawn("r1-restarted", agent_args("r1"))
+        g.wait([sim], 240)  # to the end of the exploration
+        end_mission(g, sim, list(agents.values()), base)
+    finally:
+        g.terminate_all()
+    summary = build_summary(out, m.world, m.robots, time.monotonic() - t0)
+    assert summary["sim_end_reason"] == "robots_done"
+    assert summary["map_coverage"] >= 0.95 and summary["min_robot_separation_m"] >= 1.0
+    agent = json.loads((out / "agents" / "r1.json").read_text())
+    assert agent["lockstep_downlink_timeouts"] == 0
+    r1 = next(r for r in summary["robots"] if r["id"] == "r1")
+    assert r1["keyframes_in_graph"] == r1["keyframes_sent"] > 25 and r1["ate_rmse_m"] < 0.5

@@ -49,8 +49,8 @@ def test_a_child_gets_sigterm_when_its_supervisor_is_killed(tmp_path: Path) -> N
     sup.wait(10)
     sup.stdout.close()
     deadline = time.monotonic() + 10.0
-    while not mark.exists() and time.monotonic() < deadline:
-        time.sleep(0.05)
+    while not (mark.exists() and mark.read_text()) and time.monotonic() < deadline:
+        time.sleep(0.05)  # (made, then written: read between, it had been empty)
     try:
         assert mark.read_text().startswith("SIGHUP")  # told to stop, as by a first Ctrl-C
     finally:

@@ -24,8 +24,12 @@ log = logging.getLogger(__name__)
 
 
 class DownlinkGate:
-    def __init__(self, timeout_s: float) -> None:
+    def __init__(self, timeout_s: float, resumed: bool = False) -> None:
+        """`resumed`: this agent goes on from one before it (agent/resume.py): the first
+        mark's counts include what was sent to that one, which this one never gets (it
+        had waited `timeout_s` at every step for it: a mission at 0.14x real time)."""
         self.timeout_s = timeout_s  # s wall, then go on (and stop waiting for neighbours)
+        self._resumed = resumed
         self._due = -1.0  # the latest clock the base station answered, by the simulator
         self._clock = 0.0  # the latest such clock (not reset: `_clock_jump` compares to it)
         self._clock_jump = JumpGate()  # one at 1e9 s had every tick wait `timeout_s`
@@ -41,6 +45,12 @@ class DownlinkGate:
     # --- Zenoh threads ------------------------------------------------------------------
     def on_mark(self, mark: DownlinkMark) -> None:
         with self._cond:
+            if self._resumed:  # counted from the first: what came before is not for us
+                self._resumed = False
+                self._paths, self._epoch = (
+                    max(self._paths, mark.paths),
+                    max(self._epoch, mark.epoch),
+                )
             if self._mark is None or mark.stamp >= self._mark.stamp:
                 self._mark = mark
             self._cond.notify_all()

@@ -116,7 +116,7 @@ class AgentNode:
         )
         # the base station's relays, the latest and the one before (see `_command`)
         self._neighbours: list[Neighbours] = []
-        self.downlink = DownlinkGate(cfg.sim.sync_wait_s)  # lock-step: ticks wait for it
+        self.downlink = DownlinkGate(cfg.sim.sync_wait_s, resumed=resume is not None)
         self._twist: tuple[float, np.ndarray] | None = None  # odometry's (stamp, vx vy)
         self._on_map = T_map_odom is not None  # its map pose is known (start or correction)
         self._news_ages: deque[float] = deque(maxlen=20000)  # s, the relay's answer at use
@@ -157,7 +157,7 @@ class AgentNode:
             self.clock.offset, self.clock.latest = r.clock_offset, r.stamp
         last = self.uplink.last_pose if self.uplink.last_pose is not None else r.keyframe_pose
         self.selector.last_pose = None if last is None else np.array(last, dtype=np.float64)
-        self.epoch = r.epoch
+        self.epoch = r.epoch if self.uplink.chain == r.chain else -1  # (a new base station)
         if r.path is not None:
             self.tour_map = np.array(r.path, dtype=np.float64).reshape(-1, 2)
             self.follower.index = r.path_index
@@ -331,14 +331,16 @@ class AgentNode:
         restarted on its state folder (agent/resume.py)."""
         if self.state_dir is None or self.selector.last_pose is None:
             return
+        if not self.outbox.history.max_keyframes:  # off (a disk error): nothing to resume
+            return (self.state_dir / STATE_FILE).unlink(missing_ok=True)
         with self._corr_lock:
             epoch, T = self.epoch, self.T_map_odom.tolist() if self._on_map else None
-            path = self.tour_map.tolist()
+            path, index = self.tour_map.tolist(), 0 if self._new_path else self.follower.index
         odom = self.frontend.odometry_at(stamp)
         up, kf = self.uplink, self.selector.last_pose.tolist()
         point = ResumePoint(up.chain, up.next_seq, up.outbox.acked_seq, epoch, T, stamp,
                             self.frontend.pose.tolist(), None if odom is None else odom.tolist(),
-                            path, self.follower.index, kf, self.clock.offset)  # fmt: skip
+                            path, index, kf, self.clock.offset)  # fmt: skip
         save(self.state_dir, point)
 
     def _publish_control_pose(self, stamp: float, pose_odom: np.ndarray) -> None:

@@ -190,7 +190,7 @@ class Outbox:
             for i, p in enumerate(payloads):
                 start = {"delta": IDENTITY7} if i == 0 else {}
                 self._pending[i] = relabel(p, Keyframe, seq=i, chain=chain, **start)
-                self.history.add(i, self._pending[i])
+                self.history.add(i, self._pending[i], keep_from=0)  # none is acknowledged
             self.acked_seq, self.added_seq, self._resent_upto = -1, len(payloads) - 1, -1
             self._backoff, self._resend_now = 1, True
             self._srtt, self._rttvar = None, 0.0

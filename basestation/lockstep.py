@@ -142,13 +142,6 @@ class LockstepClock:
     def sent_correction(self, robot: str, epoch: int) -> None:
         self._epochs[robot] = epoch
 
-    def joined(self, robot: str) -> None:
-        """(Zenoh thread) `robot`'s agent came (back): count from here what it can have
-        got. A restarted agent had waited 10 s at every step for the paths sent to the
-        one before it, never to come (a mission ran at 0.14x real time)."""
-        self._paths[robot] = 0
-        self._epochs.pop(robot, None)
-
     def mark(self, robot: str, stamp: float) -> DownlinkMark:
         return DownlinkMark(robot, stamp, self._paths.get(robot, 0), self._epochs.get(robot, -1))
 

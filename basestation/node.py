@@ -207,7 +207,6 @@ class BaseStationNode:
                 self.neighbours.forget(name)
                 self._lost.append(name)
         if alive:
-            self.clock.joined(name)
             log.info("agent %s joined", name)
         else:
             log.warning("agent %s lost (liveliness token gone): its goal is released", name)

@@ -84,6 +84,7 @@ def test_history_keeps_every_keyframe_not_acknowledged() -> None:
     box.add(9, encode(_kf(9)))
     box.add(10, encode(_kf(10)))  # a new file: the ones before 6 may go now
     assert box.history.first_seq == 6 and box.history.dropped == 6
+    assert box.new_chain(1) == 5 and len(box.history) == 5  # none acknowledged: all kept
 
 
 def test_store_follows_a_new_chain_only_while_it_has_nothing(caplog) -> None:

@@ -155,17 +155,22 @@ def test_a_clock_stamped_far_ahead_is_held_back() -> None:
     assert gate.timeouts == 0
 
 
-def test_marks_count_from_an_agents_join() -> None:
-    """An agent restarted mid-mission (agent.state_dir) had been told, at every step,
-    of the paths sent to the one before it: it waited 10 s for each (0.14x real time)."""
-    clock = LockstepClock(active=True, timeout_s=60.0)
-    for _ in range(9):
-        clock.sent_path("r1")
-    clock.sent_correction("r1", 23)
-    m = clock.mark("r1", 11.0)
-    assert (m.paths, m.epoch) == (9, 23)
-    clock.joined("r1")  # its token is back: a new process
-    m = clock.mark("r1", 11.0)
-    assert (m.paths, m.epoch) == (0, -1)
-    clock.sent_path("r1")
-    assert clock.mark("r1", 12.0).paths == 1
+def test_a_resumed_agent_does_not_wait_for_what_went_to_the_one_before() -> None:
+    """An agent restarted mid-mission (agent.state_dir): the base station's marks count
+    the paths sent to the agent before it, which this one never gets. It had waited
+    10 s at every step (a mission at 0.14x real time)."""
+    from agent.downlink_gate import DownlinkGate
+    from protocol import DownlinkMark
+
+    for resumed, timeouts in ((True, 0), (False, 1)):
+        gate = DownlinkGate(0.2, resumed=resumed)
+        gate.on_mark(DownlinkMark("r1", 11.0, 9, 23))  # 9 paths, epoch 23 sent before
+        gate.on_clock(11.0)
+        gate.wait()
+        assert gate.timeouts == timeouts
+        gate.on_mark(DownlinkMark("r1", 12.0, 10, 25))  # a new path and correction
+        gate.on_clock(12.0)
+        gate.on_path()
+        gate.on_correction(25)
+        gate.wait()
+        assert gate.timeouts == 2 * timeouts  # counted on from the first mark (or never in)

@@ -68,6 +68,7 @@ class Outbox:
         self._clock = clock
         self.max_backoff = max_backoff
         self.history = KeyframeHistory(0) if history is None else history
+        self.chain = 0  # of the keyframes queued (Keyframe.chain)
         self._backoff = 1
         self._pending: OrderedDict[int, bytes] = OrderedDict()
         self._lock = threading.Lock()
@@ -122,10 +123,14 @@ class Outbox:
                 "outbox is %d/%d full: the base station is not acknowledging", n, self.max_len
             )
 
-    def ack(self, acked_seq: int) -> int:
-        """Drop everything <= acked_seq; returns how many were released."""
+    def ack(self, acked_seq: int, chain: int | None = None) -> int:
+        """Drop everything <= acked_seq (of keyframe chain `chain`: an ack of another is
+        ignored, checked under the lock `new_chain` renumbers under); returns how many
+        were released."""
         released = 0
         with self._lock:
+            if chain is not None and chain != self.chain:
+                return 0
             if acked_seq > self.added_seq:  # nothing sent that far: it would release
                 self.bad_acks += 1  # keyframes the base station never had
                 if self.bad_acks == 1 or self.bad_acks % 100 == 0:
@@ -192,6 +197,7 @@ class Outbox:
                 self._pending[i] = relabel(p, Keyframe, seq=i, chain=chain, **start)
                 self.history.add(i, self._pending[i], keep_from=0)  # none is acknowledged
             self.acked_seq, self.added_seq, self._resent_upto = -1, len(payloads) - 1, -1
+            self.chain = chain
             self._backoff, self._resend_now = 1, True
             self._srtt, self._rttvar = None, 0.0
             self._last_progress = self._clock()

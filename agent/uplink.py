@@ -66,6 +66,7 @@ class KeyframeUplink:
                 chain, next_seq = last.chain, last.seq + 1
                 self.last_pose = pose7_to_pose4(last.pose_odom)
         self.chain, self.next_seq = chain, next_seq
+        self.outbox.chain = chain
         self.outbox.restore(acked, next_seq)
 
     def on_ack(self, msg: KeyframeAck, key: str = "") -> None:
@@ -77,7 +78,7 @@ class KeyframeUplink:
             self._lost_chain = msg.chain
             self._chain_lost.set()
         else:
-            self.outbox.ack(msg.acked_seq)
+            self.outbox.ack(msg.acked_seq, msg.chain)
 
     def on_base_alive(self, name: str, alive: bool, again: bool) -> None:
         """(Zenoh thread) Gone: the outbox keeps every keyframe. Back (`again`: not the

@@ -140,6 +140,8 @@ def test_one_lost_chain_starts_one_new_chain(cfg: Config, endpoint: str, tmp_pat
         assert up.resend() and (up.chain, up.next_seq) == (1, 3)
         up.on_ack(KeyframeAck("r0", -1, 0))  # late, about chain 0: ignored
         assert not up.resend() and up.chain == 1
+        assert up.outbox.ack(2, chain=0) == 0 and len(up.outbox) == 3  # nor its acks
+        assert up.outbox.ack(2, chain=1) == 3
 
 
 def test_a_disk_error_turns_the_history_off(tmp_path: Path, caplog) -> None:

@@ -43,7 +43,7 @@ class DownlinkGate:
         self._cond = threading.Condition()
 
     # --- Zenoh threads ------------------------------------------------------------------
-    def on_mark(self, mark: DownlinkMark) -> None:
+    def on_mark(self, mark: DownlinkMark, key: str = "") -> None:
         with self._cond:
             if self._resumed:  # counted from the first: what came before is not for us
                 self._resumed = False

@@ -16,7 +16,6 @@ raw correction to place map-frame paths in `odom` (seed 002 eq. 4).
 
 from __future__ import annotations
 
-import json
 import logging
 import threading
 import time
@@ -26,11 +25,12 @@ from typing import Any
 
 import numpy as np
 
-from agent.control_log import ControlRecorder, write_control_log
+from agent.control_log import ControlRecorder
 from agent.downlink_gate import DownlinkGate
 from agent.keyframe_selector import KeyframeSelector
 from agent.local_trajectory_builder import LocalSlamResult, LocalTrajectoryBuilder
 from agent.odometry_tracker import OdometryTracker
+from agent.outputs import write_agent_outputs
 from agent.path_follower import PathFollower
 from agent.pose_smoother import IDENTITY7, PoseSmoother, pose7_compose
 from agent.resume import STATE_FILE, ResumePoint, load, save
@@ -45,7 +45,6 @@ from common.memory import HeapTrimmer
 from common.metrics import percentiles
 from common.row_spool import RowSpool
 from common.stamps import MAX_EPOCH_JUMP, STAMP_SLACK_S, BackStepRepair, JumpGate, due
-from common.trajectory_io import Trajectory, write_tum
 from protocol import (
     Altimeter,
     ClockSync,
@@ -66,6 +65,8 @@ log = logging.getLogger(__name__)
 
 # The odometry's twist steers the guard's braking while it is at most this old (s).
 TWIST_MAX_AGE_S = 0.25
+# m: a fresh agent this far from its odometry's origin was restarted in flight
+IN_FLIGHT_M = 1.0
 
 
 class AgentNode:
@@ -94,8 +95,7 @@ class AgentNode:
         self.selector = KeyframeSelector(a)
         self.heap = HeapTrimmer()
         self.state_dir = Path(a.state_dir) if a.state_dir else None  # agent/resume.py
-        resume = load(self.state_dir, a.resume_within_s) if self.state_dir else None
-        self.resumed = resume
+        self.resumed = resume = load(self.state_dir, a.resume_within_s) if self.state_dir else None
         self.uplink = KeyframeUplink(a, robot_id, bus, resume)
         if resume is not None and resume.T_map_odom is not None:
             T_map_odom = np.array(resume.T_map_odom)  # not the start pose: on the way
@@ -162,18 +162,36 @@ class AgentNode:
             self.tour_map = np.array(r.path, dtype=np.float64).reshape(-1, 2)
             self.follower.index = r.path_index
 
+    def _start_in_flight(self, stamp: float) -> None:
+        """A fresh agent (no state to resume) away from its odometry's origin, restarted in
+        flight: its local pose starts at the odometry's (the frame the agent before it began
+        in at the start pose: T_map_odom holds), its tour at the waypoint nearest the drone
+        (from the first, it had flown into a wall). It maps as a new segment of the robot."""
+        odom = self.frontend.odometry_at(stamp)
+        if odom is None or np.hypot(odom[0], odom[1]) <= IN_FLIGHT_M:
+            return
+        pose = np.array([*odom[:2], self.frontend.pose[2], odom[2]])
+        self.frontend.resume(stamp - 1e-6, pose, None)  # (the odometry is in already)
+        here = odom_to_map(self.T_map_odom, pose)[:2]
+        gaps = np.hypot(*(self.tour_map - here).T)
+        self.follower.index = int(np.argmin(gaps)) if len(gaps) else 0
+        log.warning("started %.1f m from the odometry's origin (restarted in flight, no state): "
+                    "goes on in its frame at (%.1f, %.1f), tour waypoint %d",
+                    np.hypot(*odom[:2]), *here, self.follower.index)  # fmt: skip
+
     # --- wiring -------------------------------------------------------------------------
     def start(self) -> None:
         """Declare subscriptions, then the liveliness token (so the token implies routes).
 
         The sensor source must be created before this (its subscriptions count too).
         """
-        rid = self.robot_id
-        self.bus.subscribe(self.keys.robot(rid, "ack"), KeyframeAck, self._on_ack)
-        self.bus.subscribe(self.keys.robot(rid, "correction"), PoseCorrection, self._on_correction)
-        self.bus.subscribe(self.keys.robot(rid, "path"), PathMsg, self._on_path)
-        self.bus.subscribe(self.keys.robot(rid, "neighbours"), Neighbours, self._on_neighbours)
-        self.bus.subscribe(self.keys.robot(rid, "clock"), DownlinkMark, self._on_mark)
+        rid, mine = self.robot_id, self.uplink.mine  # what is sent to this agent's session
+        for topic, kind, on in (
+            ("ack", KeyframeAck, self._on_ack), ("correction", PoseCorrection, self._on_correction),
+            ("path", PathMsg, self._on_path), ("neighbours", Neighbours, self._on_neighbours),
+            ("clock", DownlinkMark, self.downlink.on_mark),
+        ):  # fmt: skip
+            self.bus.subscribe(self.keys.robot(rid, topic), kind, mine(on))
         self.bus.watch_alive("basestation", self._on_base_alive)
         if self.cfg.base_sync_period_s() > 0.0:  # lock-step: its first messages count too
             self._await_base(self.cfg.sim.sync_wait_s)
@@ -224,9 +242,6 @@ class AgentNode:
             if not self._neighbours or msg.stamp >= self._neighbours[-1].stamp:
                 self._neighbours = [*self._neighbours[-1:], msg]
         self.downlink.on_neighbours(msg.stamp)
-
-    def _on_mark(self, msg: DownlinkMark, key: str) -> None:
-        self.downlink.on_mark(msg)
 
     def _on_path(self, msg: PathMsg, key: str) -> None:
         """A new path from the base station (exploration); empty: stop here."""
@@ -280,6 +295,8 @@ class AgentNode:
             self._command(scan.stamp)  # a re-sent lock-step tick: answer again
             return
         self.downlink.wait()  # lock-step: the base station's paths and answers for it
+        if self.scans == 0 and self.resumed is None:
+            self._start_in_flight(scan.stamp)
         ranges = np.asarray(scan.ranges, dtype=np.float64)
         self.guard.update(scan.angle_min + scan.angle_increment * np.arange(len(ranges)), ranges)
         result = self.frontend.add_scan(scan)
@@ -340,7 +357,7 @@ class AgentNode:
         up, kf = self.uplink, self.selector.last_pose.tolist()
         point = ResumePoint(up.chain, up.next_seq, up.outbox.acked_seq, epoch, T, stamp,
                             self.frontend.pose.tolist(), None if odom is None else odom.tolist(),
-                            path, index, kf, self.clock.offset)  # fmt: skip
+                            path, index, kf, self.clock.offset, up.session)  # fmt: skip
         save(self.state_dir, point)
 
     def _publish_control_pose(self, stamp: float, pose_odom: np.ndarray) -> None:
@@ -438,6 +455,7 @@ class AgentNode:
                 keyframes_sent=self.uplink.next_seq,
                 keyframes_acked=self.outbox.acked_seq + 1,
                 chain=self.uplink.chain,
+                session=self.uplink.session,
                 outbox_len=len(self.outbox),
                 pose_odom=pose4_to_pose7(pose),
                 pose_map=pose4_to_pose7(odom_to_map(T_map_odom, pose)),
@@ -464,16 +482,12 @@ class AgentNode:
             "lockstep_downlink_waits": self.downlink.waits,
             "lockstep_downlink_timeouts": self.downlink.timeouts,
             "scans": self.scans,
-            "sensor_clock_steps": self.clock.steps,
-            "sensor_clock_offset_s": self.clock.offset,
-            "sensor_messages_dropped": self.clock.dropped,
+            **self.clock.stats(),
             "odom_distance_m": self.frontend.distance_m,
             "scans_rejected": self.frontend.rejected_scans,
             "matches_gated": self.frontend.gated_matches,
             "odometry_rejected": self.frontend.rejected_odometry,
-            "guard_limited_ticks": self.guard.limited_ticks,
-            "guard_predicted_ticks": self.guard.predicted_ticks,
-            "guard_neighbour_ticks": self.guard.neighbour_ticks,
+            **self.guard.stats(),
             # sim time since the state the neighbours' relay answered (the latest ticks)
             **percentiles("neighbour_news_age_s", self._news_ages),
             "correction_epoch": self.epoch,
@@ -482,19 +496,5 @@ class AgentNode:
         }
 
     def write_outputs(self, out_dir: str | Path) -> None:
-        """agents/<id>.json (statistics) and local_trajectories/<id>.tum (every scan's
-        T_odom_base, the agent's own frame) and control_poses/<id>.csv (every control tick:
-        T_odom_base, raw and applied T_map_odom)."""
-        out = Path(out_dir)
-        (out / "agents").mkdir(parents=True, exist_ok=True)
-        (out / "agents" / f"{self.robot_id}.json").write_text(json.dumps(self.stats(), indent=1))
-        if len(self.local_trajectory):
-            rows = self.local_trajectory.rows()
-            write_tum(
-                out / "local_trajectories" / f"{self.robot_id}.tum",
-                Trajectory.from_pose4(rows[:, 0], rows[:, 1:]),
-            )
-        if len(self.control_log):
-            write_control_log(
-                out / "control_poses" / f"{self.robot_id}.csv", self.control_log.log()
-            )
+        write_agent_outputs(Path(out_dir), self.robot_id, self.stats(), self.local_trajectory,
+                            self.control_log)  # fmt: skip

@@ -50,11 +50,13 @@ class ResumePoint:
     path_index: int = 0  # ... and the waypoint it was flying to
     keyframe_pose: list[float] | None = None  # T_odom_base of the last keyframe sent
     clock_offset: float = 0.0  # s, common.stamps.BackStepRepair's
+    session: int = 0  # the agent's run (protocol MAX_SESSION): the resumed one goes on in it
     saved_unix: float = 0.0
 
     def check(self) -> None:
         """ValueError if a field is not what this program writes."""
-        ints = {"chain": 0, "next_seq": 0, "acked_seq": -1, "epoch": -1, "path_index": 0}
+        ints = {"chain": 0, "next_seq": 0, "acked_seq": -1, "epoch": -1, "path_index": 0,
+                "session": 0}  # fmt: skip
         for name, low in ints.items():
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, int) or not low <= v < 2**62:

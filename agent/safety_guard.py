@@ -91,6 +91,13 @@ class SafetyGuard:
         self.blocked = False
         self.limited_ticks = 0
 
+    def stats(self) -> dict[str, int]:
+        return {
+            "guard_limited_ticks": self.limited_ticks,
+            "guard_predicted_ticks": self.predicted_ticks,
+            "guard_neighbour_ticks": self.neighbour_ticks,
+        }
+
     def update(self, angles: NDArray[np.float64], ranges: NDArray[np.float64]) -> None:
         """Take the latest scan (beam angles, rad; ranges, m; NaN/inf = no return)."""
         r = np.asarray(ranges, dtype=np.float64)

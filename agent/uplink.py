@@ -10,8 +10,10 @@ the agent's main thread, which alone numbers keyframes (`next_seq`).
 from __future__ import annotations
 
 import logging
+import secrets
 import threading
 import time
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -47,6 +49,9 @@ class KeyframeUplink:
         self.refused = 0  # failed the checks the base station makes: not sent
         self._lost_chain = -1  # the chain an ack of -1 was about
         self._chain_lost = threading.Event()
+        # this agent's run (protocol MAX_SESSION): a resumed agent goes on in its session
+        self.session = secrets.randbits(32) or 1 if resume is None else resume.session
+        self.other_sessions = 0  # messages for another run of this robot, dropped
         if resume is not None:
             self._resume(resume)
 
@@ -68,6 +73,23 @@ class KeyframeUplink:
         self.chain, self.next_seq = chain, next_seq
         self.outbox.chain = chain
         self.outbox.restore(acked, next_seq)
+
+    def mine(self, callback: Callable[[Any, str], None]) -> Callable[[Any, str], None]:
+        """`callback` for the messages sent to this agent's session (or to none: 0); those
+        the base station sends another run of this robot (a second drone with its id, or
+        the run before this one's restart) are counted and dropped."""
+
+        def on(msg: Any, key: str) -> None:
+            if msg.session in (0, self.session):
+                return callback(msg, key)
+            if not self.other_sessions:
+                log.warning("%s for session %d of %s (this one is %d): dropped (for the "
+                            "run before this one's restart, or a second drone with this id)",
+                            type(msg).__name__, msg.session, self.robot_id,
+                            self.session)  # fmt: skip
+            self.other_sessions += 1
+
+        return on
 
     def on_ack(self, msg: KeyframeAck, key: str = "") -> None:
         """(Zenoh thread) An ack of this chain; -1 after some were acknowledged: the base
@@ -95,7 +117,8 @@ class KeyframeUplink:
         """Number, queue and send a keyframe of `fields` (all but robot_id, chain, seq);
         False if it fails the base station's checks (not sent, no seq taken: one it
         refused had held back every later keyframe of its robot, for good)."""
-        kf = Keyframe(robot_id=self.robot_id, chain=self.chain, seq=self.next_seq, **fields)
+        kf = Keyframe(robot_id=self.robot_id, chain=self.chain, seq=self.next_seq,
+                      session=self.session, **fields)  # fmt: skip
         try:
             kf.validate()
         except ProtocolError as exc:
@@ -144,4 +167,6 @@ class KeyframeUplink:
             "keyframes_deferred": self.outbox.deferred,
             "keyframes_refused": self.refused,
             "keyframe_chain": self.chain,
+            "session": self.session,
+            "other_session_drops": self.other_sessions,
         }

@@ -2,11 +2,19 @@
 
 from __future__ import annotations
 
+import time
+from collections.abc import Iterable
+from typing import Any
+
+import numpy as np
+
 from basestation.exploration import ExplorationManager
 from basestation.frontiers import FrontierDetector
 from basestation.goal_assigner import AssignmentWeights, GoalAssigner
-from basestation.path_planner import PathPlanner
+from basestation.path_planner import PathPlanner, densify
 from common.config import Config
+from common.metrics import percentiles
+from protocol import Path as PathMsg
 
 # s: the wall-time cap of one plan in a simulation, where plans stop at their check budget
 # only (a cap that cut a mission's first plans, while its kernels loaded on a loaded
@@ -41,3 +49,32 @@ COST_FIELDS = (
     "own_cap_m", "tours", "w_gain", "gain_full_m2", "gain_near_m", "gain_radius_m", "handover_m",
     "lag_s", "handover_unknown",
 )  # fmt: skip
+
+
+def explorer_stats(
+    explorer: ExplorationManager | None, paths_sent: int, step_ms: Iterable[float]
+) -> dict[str, Any] | None:
+    """The base station's `exploration` statistics (None: it does not explore)."""
+    if explorer is None:
+        return None
+    return {
+        "done": explorer.done,
+        "frontiers": len(explorer.frontiers),
+        "paths_sent": paths_sent,
+        "unreachable": explorer.unreachable,
+        "planner_searches": explorer.planner.plans,
+        "planner_grid_fallbacks": explorer.planner.fallbacks,
+        "planner_detours_shortened": explorer.planner.detours_shortened,
+        "detours_refused": explorer.detours_refused,
+        **percentiles("step_ms", step_ms),
+    }
+
+
+def path_message(
+    robot_id: str, path_id: int, path: np.ndarray | None, z: float, epoch: int
+) -> PathMsg:
+    """The Path of an exploration step's `path` (map [x, y] points, every 0.25 m at
+    altitude `z`; None: hold where it is)."""
+    p = np.zeros((0, 2)) if path is None else densify(path, 0.25)
+    wp = np.column_stack([p, np.full(len(p), z), np.zeros(len(p))]).astype(np.float32)
+    return PathMsg(robot_id, path_id, time.time(), "map", epoch, wp)

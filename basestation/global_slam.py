@@ -1,23 +1,22 @@
 """The base station's global SLAM: keyframes -> pose graph, constraints, estimates.
 
-Owns the per-robot keyframe store, the iSAM2 pose graph, the constraint
-builder (candidate search + verification worker) and the loop-closure manager
-(PCM + robust factors). The node around it only moves messages.
+Owns the per-robot keyframe store, the iSAM2 pose graph, the constraint builder
+(candidate search + verification worker) and the loop-closure manager (PCM + robust
+factors). The node around it only moves messages.
 
-Anchoring: a robot with a known start pose is tied to the map there. Without
-any known start, ``basestation.map_frame_robot`` (or else the first robot to send
-a keyframe) defines the map frame (its odom frame at its first keyframe). Every
-other robot's chain floats in its own frame until verified inter-robot
-constraints join it to the map; until then it gets no correction and is left out
-of the map.
+Anchoring: a robot with a known start pose is tied to the map there. Without any known
+start, ``basestation.map_frame_robot`` (or else the first robot to send a keyframe)
+defines the map frame (its odom frame at its first keyframe). Every other robot's chain
+(and a robot's later segments, basestation/robot_segments.py) floats in its own frame
+until verified inter-robot constraints join it to the map; until then it gets no
+correction and is left out of the map.
 
-GPS (``basestation.gps.enabled``): ``map`` is the ENU frame the fixes are
-converted to (in simulation also the world frame). A robot with a known start
-uses its fixes as GPS factors (``PoseGraph.add_gps_fix``). A robot with only a
-known *heading* (the autopilot's at takeoff, ``start_headings``) starts on the
-virtual ENU-origin trajectory of seed 000 §III-C: its first node gets a loose
-prior at its latest fix with that heading, and the fixes anchor it. Other robots
-ignore their fixes and float as without GPS.
+GPS (``basestation.gps.enabled``): ``map`` is the ENU frame the fixes are converted to
+(in simulation also the world frame). A robot with a known start uses its fixes as GPS
+factors (``PoseGraph.add_gps_fix``). One with only a known *heading* (the autopilot's at
+takeoff, ``start_headings``) starts on the virtual ENU-origin trajectory of seed 000
+§III-C: its first node gets a loose prior at its latest fix with that heading, and the
+fixes anchor it. Other robots ignore their fixes and float as without GPS.
 """
 
 from __future__ import annotations
@@ -46,6 +45,7 @@ from basestation.loop_closure_manager import LoopClosureManager
 from basestation.node_keys import NodeKeys
 from basestation.persistence import Batch, Recovered, StoredConstraint
 from basestation.pose_graph import PoseGraph
+from basestation.robot_segments import SEGMENT_START_SIGMAS, segment_start
 from basestation.scan_archive import ScanArchive, ScanReader
 from basestation.slam_stats import slam_stats
 from basestation.update_series import UpdateSeries
@@ -61,6 +61,7 @@ from protocol.messages import Scan2D
 log = logging.getLogger(__name__)
 
 NodeKey = tuple[str, int]
+Query = Callable[[], tuple[list[np.ndarray], list[np.ndarray], int]]  # a node's, cached
 
 
 class GlobalSlam:
@@ -189,7 +190,10 @@ class GlobalSlam:
         if kf.seq == 0:  # a known start is T_map_odom: a chain can start on the way
             odom, start = pose7_to_pose4(kf.pose_odom)[[0, 1, 3]], self.known_starts.get(rid)
             start, start_sigmas = None if start is None else se2_compose(start, odom), None
-            if start is None and rid in self.start_headings and rid in self._last_fix:
+            T = segment_start(rid, self.graph.robots(), self.T_map_odom) if start is None else None
+            if T is not None:  # (a later run of a robot's agent)
+                start, start_sigmas = se2_compose(T, odom), SEGMENT_START_SIGMAS
+            elif start is None and rid in self.start_headings and rid in self._last_fix:
                 g = self.cfg.basestation.gps  # virtual ENU-origin trajectory (seed 000 §III-C)
                 start = np.array([*self._last_fix[rid], self.start_headings[rid] + odom[2]])
                 start_sigmas = (g.start_sigma_xy_m, g.start_sigma_xy_m, g.start_sigma_yaw_rad)
@@ -313,9 +317,8 @@ class GlobalSlam:
                     other = m.robot_a if m.robot_b == key[0] else m.robot_b
                     self._submit_candidates(key, hyp, [*comp_of[other], key[0]], query, "inter")
             if not self.graph.is_anchored(key[0]):
-                if key[1] % self.cc.global_search_every == 0 and self.graph.is_anchored(
-                    frames[0][0]
-                ):
+                on_map = self.graph.is_anchored(frames[0][0])
+                if key[1] % self.cc.global_search_every == 0 and on_map:
                     self._submit_global(key, poses, frames[0])
             elif len(frames) > 1 and self.whole_map.floating_due():
                 for floating in frames[1:]:  # where a robot not on the map flew before
@@ -366,13 +369,9 @@ class GlobalSlam:
         )  # fmt: skip
 
     def _submit_candidates(
-        self,
-        key: NodeKey,
-        poses: dict[str, np.ndarray],
-        robots: list[str],
-        query: Callable[[], tuple[list[np.ndarray], list[np.ndarray], int]],
+        self, key: NodeKey, poses: dict[str, np.ndarray], robots: list[str], query: Query,
         only: str | None = None,
-    ) -> None:
+    ) -> None:  # fmt: skip
         """Robots not searched: too soon after the last candidate with them, or their kind's
         queue is full (the verifier is behind: a job is not worth building). Inter-robot
         candidates between stretches the two robots are tied at already are not verified."""

@@ -55,6 +55,7 @@ class RobotKeyframes:
     chain: int = 0  # the agent's keyframe chain admitted (Keyframe.chain)
     stale_chain: int = 0  # keyframes of an older chain, dropped
     chain_conflicts: int = 0  # keyframes of a newer chain after some were admitted
+    session: int = 0  # the agent run its keyframes are from (basestation/robot_segments.py)
 
     def chain_covariance(self, i: ArrayLike, j: ArrayLike) -> np.ndarray:
         """Approximate (n, 3, 3) covariances of nodes j relative to nodes i (index arrays)
@@ -200,6 +201,8 @@ class KeyframeStore:
                     k.seq,
                     k.stamp,
                 )
+            if not len(r.stamps):
+                r.session = k.session
             r.stamps.append([k.stamp])
             r.poses_odom.append(pose7_to_pose4(k.pose_odom))
             c = k.delta_cov
@@ -236,10 +239,12 @@ class KeyframeStore:
 
     @staticmethod
     def _foreign(r: RobotKeyframes, what: str) -> None:
-        """Another source sends as this robot (its agent restarted, a second drone with
-        its id, or its agent gone over to another base station): no more of its keyframes
-        are admitted, acknowledged or answered with corrections. Mixing them had joined
-        two odometry frames in one trajectory."""
+        """Another source sends as this robot in its session (an agent that does not
+        tell its session restarted, or one whose state folder was copied; an agent gone
+        over to another base station): no more of its keyframes are admitted,
+        acknowledged or answered with corrections. Mixing them had joined two odometry
+        frames in one trajectory. (A run of the agent in another session is another
+        segment of the robot: basestation/robot_segments.py.)"""
         r.id_conflicts += 1
         r.foreign, r.held = True, {}
         log.error("robot %s: %s: another agent sends as %s (restarted, or two with this "

@@ -15,6 +15,7 @@ In a lock-step simulation with exploration everything happens when its clock ask
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import logging
 import queue
@@ -26,7 +27,7 @@ from typing import Any
 
 import numpy as np
 
-from basestation.exploration_setup import make_explorer
+from basestation.exploration_setup import explorer_stats, make_explorer, path_message
 from basestation.global_slam import GlobalSlam
 from basestation.gnss_intake import GnssIntake
 from basestation.inbox import KeyframeInbox
@@ -35,14 +36,14 @@ from basestation.map_builder import MapBuilder
 from basestation.map_history import MapHistory
 from basestation.map_outputs import write_map_outputs
 from basestation.neighbour_relay import NeighbourRelay
-from basestation.path_planner import densify
 from basestation.persistence import EPOCH_BLOCK, Batch, open_database
+from basestation.robot_segments import RobotSegments, robot_of
 from common.bus import Bus
 from common.config import Config
 from common.errors import CollabSlamError
 from common.geometry import pose4_to_pose7, pose7_to_pose4
 from common.memory import HeapTrimmer
-from common.metrics import TIMINGS_KEPT, percentiles
+from common.metrics import TIMINGS_KEPT
 from common.scenario import Scenario
 from common.world_files import world_wgs84_origin
 from protocol import (
@@ -106,7 +107,8 @@ class BaseStationNode:
         self._explore_ms: deque[float] = deque(maxlen=TIMINGS_KEPT)  # wall time of the steps
         self.inbox = KeyframeInbox()  # bounded (see basestation/inbox.py)
         self.gnss_inbox: queue.Queue[GnssFix] = queue.Queue()  # basestation.gps.enabled
-        self.states: dict[str, RobotState] = {}
+        self.states: dict[str, RobotState] = {}  # by segment (robot_segments.py)
+        self.segments = RobotSegments()  # each run of a robot's agent: a robot of the graph
         self.neighbours = NeighbourRelay(strictly_earlier=lockstep)
         self.epoch = 0
         self.unknown_robot_drops = self.intake_pauses = 0
@@ -135,6 +137,7 @@ class BaseStationNode:
         if rec.empty:
             return
         self.slam.restore(rec)
+        self.segments.restore({rid: r.session for rid, r in self.slam.store.robots.items()})
         if self.explorer is not None:
             for rid, payload in rec.paths.items():
                 wp = decode(payload, PathMsg, max_bytes=len(payload) + 1).waypoints
@@ -161,9 +164,7 @@ class BaseStationNode:
     # --- wiring -------------------------------------------------------------------------
     def start(self) -> None:
         self.recover()
-        self.bus.subscribe(
-            self.keys.all_robots("keyframe"), Keyframe, lambda m, k: self.inbox.put(m)
-        )
+        self.bus.subscribe(self.keys.all_robots("keyframe"), Keyframe, self._on_keyframe)
         self.bus.subscribe(self.keys.all_robots("state"), RobotState, self._on_state)
         if self.clock.active:
             self.bus.subscribe(self.keys.clock("sim"), ClockSync, self.clock.on_request)
@@ -184,16 +185,40 @@ class BaseStationNode:
         self.gnss_inbox.put(msg)
         self.clock.on_fix()
 
+    def _on_keyframe(self, msg: Keyframe, key: str) -> None:
+        if not self._unknown(msg.robot_id, "keyframe"):
+            self.inbox.put(self._to_segment(msg))
+
     def _on_state(self, msg: RobotState, key: str) -> None:
         """(Zenoh thread) keep it; answer with where the others are (neighbour guard)."""
         if self._unknown(msg.robot_id, "state"):
             return
+        msg = self._to_segment(msg)
         with self._lock:
             self.states[msg.robot_id] = msg
             answer = self.neighbours.on_state(msg)
-        self.bus.publish(self.keys.robot(msg.robot_id, "neighbours"), answer)
+        self._send("neighbours", answer)
         if msg.keyframes_acked > 0 and (none := self.slam.store.none_of(msg.robot_id, msg.chain)):
-            self.bus.publish(self.keys.robot(msg.robot_id, "ack"), none)  # a new chain
+            self._send("ack", none)  # a new chain
+
+    def _to_segment(self, msg: Any) -> Any:
+        """`msg` of an agent, as its run's segment's (robot_segments.py); a new run makes
+        the robot's segment before it past: its state is forgotten, its goal released."""
+        segment, past = self.segments.segment(msg.robot_id, msg.session)
+        if past is not None:
+            self._forget(past)
+        return msg if segment == msg.robot_id else dataclasses.replace(msg, robot_id=segment)
+
+    def _forget(self, segment: str) -> None:
+        with self._lock:
+            self.states.pop(segment, None)
+            self.neighbours.forget(segment)
+            self._lost.append(segment)
+
+    def _send(self, topic: str, msg: Any) -> None:
+        """Publish `msg` of a segment (its robot_id) to that run of its robot's agent."""
+        msg = self.segments.address(msg)
+        self.bus.publish(self.keys.robot(msg.robot_id, topic), msg)
 
     def _on_agent_alive(self, name: str, alive: bool) -> None:
         """Liveliness (Zenoh thread): a lost agent's state is forgotten and its goal
@@ -202,10 +227,8 @@ class BaseStationNode:
             ev = self.links.setdefault(name, {"joins": 0, "losses": 0})
             ev["joins" if alive else "losses"] += 1
             (self._alive.add if alive else self._alive.discard)(name)
-            if not alive:
-                self.states.pop(name, None)
-                self.neighbours.forget(name)
-                self._lost.append(name)
+        if not alive:
+            self._forget(self.segments.current(name))
         if alive:
             log.info("agent %s joined", name)
         else:
@@ -281,13 +304,14 @@ class BaseStationNode:
         if self.explorer is not None:
             self.explore()
         self.syncs += 1
-        for rid in sorted(robots):  # what each robot gets by this answer
-            self.bus.publish(self.keys.robot(rid, "clock"), self.clock.mark(rid, stamp))
+        for rid in sorted(robots):  # what each robot's current run gets by this answer
+            self._send("clock", self.clock.mark(self.segments.current(rid), stamp))
         self.bus.publish(self.keys.clock("basestation"), ClockSync("basestation", stamp))
         return admitted
 
     def _received(self, rid: str) -> tuple[int, float]:
         """(keyframes of `rid` received, its latest state's stamp), for the clock."""
+        rid = self.segments.current(rid)
         r = self.slam.store.robots.get(rid)
         seq = max(self.inbox.highest_seq(rid), -1 if r is None else r.next_seq - 1)
         state = self.states.get(rid)  # one dict read: atomic
@@ -307,7 +331,7 @@ class BaseStationNode:
         if grid is None or self.explorer is None:
             return
         with self._lock:
-            states, alive = dict(self.states), set(self._alive)
+            states, alive = dict(self.states), set(map(self.segments.current, self._alive))
         graph = self.slam.graph
         poses: dict[str, np.ndarray] = {}
         for rid in graph.robots():
@@ -327,24 +351,15 @@ class BaseStationNode:
         for rid, path in paths.items():
             self._path_id += 1
             over = path is None and self.explorer.done  # path_id 0: the mission is over
-            p = np.zeros((0, 2)) if path is None else densify(path, 0.25)
-            log.info(
-                "t=%.1f s: path %d for %s from (%.1f, %.1f): %s",
-                self.clock.answered,
-                self._path_id,
-                rid,
-                *poses[rid][:2],
-                "hold"
-                if path is None
-                else f"{len(path)} points to ({path[-1, 0]:.1f}, {path[-1, 1]:.1f})",
-            )
-            wp = np.column_stack([p, np.full(len(p), z), np.zeros(len(p))]).astype(np.float32)
-            msg = PathMsg(rid, 0 if over else self._path_id, time.time(), "map", self.epoch, wp)
-            out.append((rid, encode(msg)))
+            what = "hold" if path is None else f"{len(path)} points to {path[-1].round(1)}"
+            log.info("t=%.1f s: path %d for %s from (%.1f, %.1f): %s", self.clock.answered,
+                     self._path_id, rid, *poses[rid][:2], what)  # fmt: skip
+            msg = path_message(rid, 0 if over else self._path_id, path, z, self.epoch)
+            out.append((rid, encode(self.segments.address(msg))))
             batch.paths.append((rid, self._path_id, out[-1][1]))
         self._persist(batch)
         for rid, payload in out:
-            self.bus.put_raw(self.keys.robot(rid, "path"), payload)
+            self.bus.put_raw(self.keys.robot(robot_of(rid), "path"), payload)
             self.clock.sent_path(rid)
 
     def _take_fixes(self) -> None:
@@ -356,6 +371,7 @@ class BaseStationNode:
                 return
             if self._unknown(fix.robot_id, "GNSS fix"):
                 continue
+            fix = dataclasses.replace(fix, robot_id=self.segments.current(fix.robot_id))
             for f, xy in self.gnss.take(fix):
                 self.slam.add_gps_fix(f.robot_id, f.stamp, xy, f.sigmas_enu)
 
@@ -377,11 +393,8 @@ class BaseStationNode:
     def process(self, batch: list[Keyframe]) -> int:
         touched: set[str] = set()
         admitted = 0
-        for kf in batch:
-            rid = kf.robot_id
-            if self._unknown(rid, "keyframe"):
-                continue
-            touched.add(rid)
+        for kf in batch:  # of known robots (`_on_keyframe`)
+            touched.add(kf.robot_id)
             admitted += self.slam.admit(kf)
         if admitted:
             self._optimized()  # persists the batch before any ack below
@@ -391,7 +404,7 @@ class BaseStationNode:
 
     def _ack(self, rid: str) -> None:
         if (ack := self.slam.store.ack(rid)) is not None:
-            self.bus.publish(self.keys.robot(rid, "ack"), ack)
+            self._send("ack", ack)
 
     def _optimized(self) -> None:
         self._persist()
@@ -410,10 +423,8 @@ class BaseStationNode:
             T = self.slam.T_map_odom(rid)
             if T is None or self.slam.store.robot(rid).foreign:  # another agent's frame
                 continue
-            self.bus.publish(
-                self.keys.robot(rid, "correction"),
-                PoseCorrection(rid, self.epoch, stamp, pose4_to_pose7([T[0], T[1], 0.0, T[2]])),
-            )
+            T7 = pose4_to_pose7([T[0], T[1], 0.0, T[2]])
+            self._send("correction", PoseCorrection(rid, self.epoch, stamp, T7))
             self.clock.sent_correction(rid, self.epoch)
 
     def refresh_map(self) -> None:
@@ -460,19 +471,8 @@ class BaseStationNode:
             "correction_epoch": self.epoch,
             "links": {k: dict(v) for k, v in self.links.items()},
             "persistence": self.db.stats() and {**self.db.stats(), "recovered": self.recovered},
-            "exploration": None
-            if self.explorer is None
-            else {
-                "done": self.explorer.done,
-                "frontiers": len(self.explorer.frontiers),
-                "paths_sent": self._path_id,
-                "unreachable": self.explorer.unreachable,
-                "planner_searches": self.explorer.planner.plans,
-                "planner_grid_fallbacks": self.explorer.planner.fallbacks,
-                "planner_detours_shortened": self.explorer.planner.detours_shortened,
-                "detours_refused": self.explorer.detours_refused,
-                **percentiles("step_ms", self._explore_ms),
-            },
+            "exploration": explorer_stats(self.explorer, self._path_id, self._explore_ms),
+            "robot_segments": self.segments.stats(),  # robots with more than one
             "clock_syncs": self.syncs,
             "map_rerenders": self.map.rerenders,  # tiles redrawn
             "map_rerendered_cells": self.map.rerendered_cells,

@@ -4,7 +4,8 @@ What is written, one transaction per processed batch, *before* the batch is
 acknowledged or published:
 
 - every keyframe admitted to the pose graph, as its encoded protocol bytes
-  (`protocol.codec`), keyed by (robot_id, seq), in admission order;
+  (`protocol.codec`, as its agent sent it), keyed by (robot segment, seq) (a run of
+  the robot's agent: basestation/robot_segments.py), in admission order;
 - every verified match handed to the loop-closure manager (robot pair, node
   indices, T_a_b, covariance, kind) and whether it is in the graph now (PCM may
   take it out again later: that removal is written too);
@@ -25,13 +26,14 @@ from __future__ import annotations
 import logging
 import sqlite3
 from collections.abc import Iterator
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from basestation.pcm import LoopMeasurement
+from basestation.robot_segments import as_sent
 from basestation.scan_archive import ScanReader
 from common.errors import PersistenceError
 from protocol import Keyframe, decode, encode
@@ -110,14 +112,15 @@ class StoredKeyframes:
         last = -1
         while True:
             rows = self._db.execute(
-                "SELECT rowid, batch, payload FROM keyframes WHERE rowid > ? "
+                "SELECT rowid, robot_id, batch, payload FROM keyframes WHERE rowid > ? "
                 "ORDER BY rowid LIMIT ?",
                 (last, READ_PAGE),
             ).fetchall()
             if not rows:
                 return
-            for _, b, payload in rows:
-                yield int(b), decode(payload, Keyframe, max_bytes=len(payload) + 1)
+            for _, segment, b, payload in rows:  # as its robot's segment (robot_segments.py)
+                kf = decode(payload, Keyframe, max_bytes=len(payload) + 1)
+                yield int(b), kf if kf.robot_id == segment else replace(kf, robot_id=segment)
             last = rows[-1][0]
 
 
@@ -186,7 +189,7 @@ class KeyframeDatabase:
             with self._transaction():
                 self._db.executemany(
                     "INSERT INTO keyframes VALUES (?, ?, ?, ?)",
-                    [(k.robot_id, k.seq, b, encode(k)) for k in batch.keyframes],
+                    [(k.robot_id, k.seq, b, encode(as_sent(k))) for k in batch.keyframes],
                 )
                 self._db.executemany(
                     "INSERT INTO constraints VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, 0)",

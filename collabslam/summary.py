@@ -7,7 +7,10 @@ import logging
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from basestation.map_history import read_map_history
+from basestation.robot_segments import robot_of
 from common.errors import CollabSlamError
 from common.map_io import read_map
 from common.metrics import (
@@ -20,7 +23,7 @@ from common.metrics import (
     time_to_coverage,
 )
 from common.scenario import read_scenario
-from common.trajectory_io import read_tum
+from common.trajectory_io import Trajectory, read_tum
 
 log = logging.getLogger(__name__)
 
@@ -37,12 +40,13 @@ def build_summary(
     robots = []
     for rid in robot_ids:
         agent = _load(out / "agents" / f"{rid}.json")
-        in_graph = base.get("robots", {}).get(rid, {}).get("keyframes_in_graph", 0)
+        segments = {s: r for s, r in base.get("robots", {}).items() if robot_of(s) == rid}
+        in_graph = sum(r.get("keyframes_in_graph", 0) for r in segments.values())
         ate = None
-        est_path, gt_path = out / "trajectories" / f"{rid}.tum", out / "ground_truth" / f"{rid}.tum"
-        if est_path.is_file() and gt_path.is_file():
+        est, gt_path = _segments_trajectory(out, rid), out / "ground_truth" / f"{rid}.tum"
+        if est is not None and gt_path.is_file():
             try:
-                ate = ate_rmse(read_tum(est_path), read_tum(gt_path))
+                ate = ate_rmse(est, read_tum(gt_path))
             except CollabSlamError as exc:
                 log.warning("no ATE for %s: %s", rid, exc)
         sim_r = sim.get("robots", {}).get(rid, {})
@@ -77,6 +81,22 @@ def build_summary(
         **_coverage_over_time(out, world_yaml, sim.get("sim_time_s")),
         "rejected_messages": base.get("rejected_messages", {}),
     }
+
+
+_POSE_FIELDS = ("positions", "quats_xyzw")
+
+
+def _segments_trajectory(out: Path, rid: str) -> Trajectory | None:
+    """The robot's trajectory in `map`: its segments' (one per run of its agent,
+    basestation/robot_segments.py) in time order; None if none was written."""
+    paths = [out / "trajectories" / f"{rid}.tum", *(out / "trajectories").glob(f"{rid}~*.tum")]
+    parts = [read_tum(p) for p in paths if p.is_file()]
+    if not parts:
+        return None
+    stamps = np.concatenate([t.stamps for t in parts])
+    order = np.argsort(stamps, kind="stable")
+    cat = [np.concatenate([getattr(t, f) for t in parts])[order] for f in _POSE_FIELDS]
+    return Trajectory(stamps[order], *cat)
 
 
 def _coverage_over_time(out: Path, world_yaml: Path, sim_end_s: float | None) -> dict[str, Any]:

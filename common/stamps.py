@@ -99,6 +99,13 @@ class BackStepRepair:
         self.latest = t
         return t
 
+    def stats(self) -> dict[str, Any]:
+        return {
+            "sensor_clock_steps": self.steps,
+            "sensor_clock_offset_s": self.offset,
+            "sensor_messages_dropped": self.dropped,
+        }
+
     def take(self, msg: Any) -> Any:
         """A sensor message on the agent's timeline: its stamp moved on by the offset
         (a copy if it changes), None if dropped; both logged."""

@@ -24,6 +24,12 @@ ROBOT_ID_RE = re.compile(r"^[A-Za-z0-9_-]{1,32}$")
 KEYFRAME_MAX_STEP_M = 1000.0  # m
 KEYFRAME_VAR_RANGE = (1e-10, 100.0)  # m^2 or rad^2, each diagonal entry of delta_cov
 MAX_CHAIN = 2**31 - 1  # keyframe chains (an agent starts one per base station that lost its)
+# Agent runs: `session` on the messages to and from an agent is drawn at random when it
+# starts afresh and kept when it resumes (agent/resume.py); 0 from an agent that does not
+# tell. The base station maps each (robot_id, session) to one trajectory segment of the
+# robot (basestation/robot_segments.py); an agent takes what is sent to it with its own
+# session or 0.
+MAX_SESSION = 2**32 - 1
 GNSS_ALTITUDE_RANGE_M = (-1000.0, 100_000.0)  # m above the ellipsoid
 ROBOT_STATUSES = ("starting", "waiting", "flying", "blocked", "hovering", "done", "landed")
 
@@ -54,6 +60,9 @@ class Message:
 
     def validate(self) -> None:
         _check_robot_id(self.robot_id)
+        session = getattr(self, "session", 0)
+        if not 0 <= session <= MAX_SESSION:
+            raise ProtocolError(f"session must be in 0..{MAX_SESSION}, got {session}")
 
 
 # --- simulator / driver sensor messages -------------------------------------------------
@@ -242,6 +251,7 @@ class Keyframe(Message):
     scan2d: Scan2D | None = None
     cloud3d: Cloud3D | None = None
     chain: int = 0
+    session: int = 0  # the agent's run (MAX_SESSION)
 
     def validate(self) -> None:
         super().validate()
@@ -286,6 +296,7 @@ class KeyframeAck(Message):
     robot_id: str
     acked_seq: int
     chain: int = 0
+    session: int = 0
 
 
 @message
@@ -296,6 +307,7 @@ class PoseCorrection(Message):
     epoch: int
     stamp: float
     T_map_odom: np.ndarray = array_field("f8", (7,))
+    session: int = 0
 
     def validate(self) -> None:
         super().validate()
@@ -332,6 +344,7 @@ class Path(Message):
     frame: str
     epoch: int
     waypoints: np.ndarray = array_field("f4", (None, 4))
+    session: int = 0
 
     def validate(self) -> None:
         super().validate()
@@ -353,6 +366,7 @@ class RobotState(Message):
     pose_odom: np.ndarray = array_field("f8", (7,))
     pose_map: np.ndarray = array_field("f8", (7,))
     chain: int = 0  # the keyframe chain keyframes_sent / keyframes_acked count in
+    session: int = 0
 
     def validate(self) -> None:
         super().validate()
@@ -372,6 +386,7 @@ class Neighbours(Message):
     stamps: np.ndarray = array_field("f8", (None,))
     xy: np.ndarray = array_field("f8", (None, 2))
     velocity: np.ndarray = array_field("f8", (None, 2))
+    session: int = 0
 
     def validate(self) -> None:
         super().validate()
@@ -389,6 +404,7 @@ class DownlinkMark(Message):
     stamp: float
     paths: int
     epoch: int
+    session: int = 0
 
 
 @message

@@ -73,15 +73,20 @@ def test_a_restarted_agent_goes_on_where_it_was(tmp_path: Path) -> None:
     assert all(r["ate_rmse_m"] < 0.5 for r in summary["robots"])
 
 
-def test_a_restarted_agent_explores_on(tmp_path: Path) -> None:
+@pytest.mark.parametrize("with_state", [True, False], ids=["resumed", "afresh"])
+def test_a_restarted_agent_explores_on(tmp_path: Path, with_state: bool) -> None:
     """The same in an exploring team (lock-step: each step, an agent waits for what the
     base station sent it): the mission ends with the map explored and the restarted
-    agent never waits for paths sent to the agent before it (it had, 10 s a step)."""
+    agent never waits for paths sent to the agent before it (it had, 10 s a step).
+    Restarted afresh (no state folder), it explores on as segment r1~2, started in r1's
+    frame (from one place, a hovering drone's matches could not join it to the map:
+    it had hovered to the end, without a path)."""
     m = tour_mission(tmp_path, 3, "rooms15", explore=True)
     out, db = m.out, m.out / "base.db"
 
     def agent_args(rid: str) -> list[str]:
-        return m.agent(rid, "--set", f'agent.state_dir="{out / "state" / rid}"')
+        state = ["--set", f'agent.state_dir="{out / "state" / rid}"'] if with_state else []
+        return m.agent(rid, *state)
 
     g = ProcessGroup(out)
     t0 = time.monotonic()
@@ -93,6 +98,7 @@ def test_a_restarted_agent_explores_on(tmp_path: Path) -> None:
                  [sim, *agents.values()])  # fmt: skip
         os.kill(agents["r1"].proc.pid, signal.SIGKILL)
         agents["r1"].proc.wait()
+        before = stored_keyframes(db, "r1")
         time.sleep(1.0)
         agents["r1"] = g.spawn("r1-restarted", agent_args("r1"))
         g.wait([sim], 240)  # to the end of the exploration
@@ -104,5 +110,55 @@ def test_a_restarted_agent_explores_on(tmp_path: Path) -> None:
     assert summary["map_coverage"] >= 0.95 and summary["min_robot_separation_m"] >= 1.0
     agent = json.loads((out / "agents" / "r1.json").read_text())
     assert agent["lockstep_downlink_timeouts"] == 0
-    r1 = next(r for r in summary["robots"] if r["id"] == "r1")
-    assert r1["keyframes_in_graph"] == r1["keyframes_sent"] > 25 and r1["ate_rmse_m"] < 0.5
+    r1 = next(r for r in summary["robots"] if r["id"] == "r1")  # all its segments
+    segments = json.loads((out / "basestation.json").read_text())["robot_segments"]
+    if with_state:
+        assert r1["keyframes_in_graph"] == r1["keyframes_sent"] > 25 and not segments
+    else:
+        assert r1["keyframes_in_graph"] == before + r1["keyframes_sent"]
+        assert segments["r1"]["r1~2"] == agent["session"] and r1["keyframes_sent"] > 20
+    assert r1["ate_rmse_m"] < 0.5
+
+
+def test_an_agent_restarted_afresh_maps_on_as_a_new_segment(tmp_path: Path) -> None:
+    """Restarted with no state to take up (no state folder here; or one older than
+    `agent.resume_within_s`) the agent starts again at seq 0 in a session of its own: the
+    base station maps it as segment r0~2, matched onto the map, and it flies on from where
+    it is, in its odometry's frame. Before, its keyframes were refused as another
+    source's, and nothing more of r0 was mapped."""
+    m = tour_mission(tmp_path)
+    out, robots, db = m.out, m.robots, m.out / "base.db"
+    g = ProcessGroup(out)
+    t0 = time.monotonic()
+    try:
+        base = g.spawn("basestation", m.base(db))
+        sim = g.spawn("sim", m.sim())
+        agents = {r: g.spawn(r, m.agent(r)) for r in robots}
+        wait_for(lambda: all(stored_keyframes(db, r) >= 30 for r in robots), 60,
+                 "keyframes of every robot", g, [sim, *agents.values()])  # fmt: skip
+        os.kill(agents["r0"].proc.pid, signal.SIGKILL)
+        agents["r0"].proc.wait()
+        time.sleep(1.0)
+        agents["r0"] = g.spawn("r0-restarted", m.agent("r0"))
+        wait_for(lambda: stored_keyframes(db, "r0~2") >= 150, 60,
+                 "keyframes of the restarted agent", g, [sim, *agents.values()])  # fmt: skip
+        end_mission(g, sim, list(agents.values()), base)
+    finally:
+        g.terminate_all()
+    wall = time.monotonic() - t0
+
+    base_stats = json.loads((out / "basestation.json").read_text())
+    first, second = base_stats["robots"]["r0"], base_stats["robots"]["r0~2"]
+    agent = json.loads((out / "agents" / "r0.json").read_text())  # the restarted one's
+    assert not first["another_source"] and not second["another_source"]
+    assert second["keyframes_in_graph"] == agent["keyframes_sent"] == agent["keyframes_acked"]
+    assert base_stats["robot_segments"]["r0"]["r0~2"] == agent["session"]
+    assert (out / "trajectories" / "r0~2.tum").is_file()  # on the map
+    log = (out / "logs" / "r0-restarted.log").read_text()
+    assert "restarted in flight" in log and agent["correction_epoch"] > 0
+    assert agent["guard_limited_ticks"] < 0.2 * agent["scans"]  # flew on, not into a wall
+    summary = build_summary(out, m.world, robots, wall)
+    assert summary["map_accuracy"] >= 0.95
+    r0 = next(r for r in summary["robots"] if r["id"] == "r0")  # both segments
+    assert r0["keyframes_in_graph"] == first["keyframes_in_graph"] + agent["keyframes_sent"]
+    assert all(r["ate_rmse_m"] < 0.5 for r in summary["robots"])

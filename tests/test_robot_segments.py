@@ -1,0 +1,101 @@
+"""A robot's trajectory segments: each run of its agent (`session`) is a robot of the
+pose graph of its own (`r0`, `r0~2`, ...), its keyframes admitted and acknowledged to
+that run, kept across a base-station restart. Before, a second run's keyframes were
+refused for good (their seqs clashed with the first run's). End to end with real
+processes: tests/test_agent_restart.py."""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+
+import numpy as np
+from process_helpers import poll_until, synthetic_keyframe
+
+from agent.uplink import KeyframeUplink
+from basestation.node import BaseStationNode
+from basestation.robot_segments import RobotSegments, as_sent, robot_of
+from common.bus import Bus
+from common.config import Config, ZenohConfig
+from protocol import Keyframe, KeyframeAck, PoseCorrection, RobotState, encode
+
+
+def _kf(seq: int, session: int, t0: float = 0.0) -> Keyframe:
+    kf = synthetic_keyframe("r0", seq, np.array([0.5 * seq, 0.0, 0.0]), np.array([0.5, 0, 0]))
+    return dataclasses.replace(kf, stamp=t0 + kf.stamp, session=session)
+
+
+def test_each_run_of_an_agent_is_a_segment_of_its_robot() -> None:
+    seg = RobotSegments()
+    assert seg.segment("r0", 11) == ("r0", None)
+    assert seg.segment("r1", 12) == ("r1", None)
+    assert seg.segment("r0", 11) == ("r0", None)  # the same run
+    assert seg.segment("r0", 22) == ("r0~2", "r0")  # a new run: r0 is past
+    assert seg.segment("r0", 11) == ("r0", None)  # the old run still sends: still its own
+    assert seg.current("r0") == "r0~2" and seg.current("r1") == "r1"
+    assert seg.current("r7") == "r7"  # not heard from yet
+    ack = seg.address(KeyframeAck("r0~2", 4))
+    assert (ack.robot_id, ack.session, ack.acked_seq) == ("r0", 22, 4)
+    assert seg.address(KeyframeAck("r0", 4)).session == 11
+    assert robot_of("r0~2") == robot_of("r0") == "r0"
+    kf = _kf(0, 22)
+    assert encode(as_sent(dataclasses.replace(kf, robot_id="r0~2"))) == encode(kf)
+    assert as_sent(kf) is kf
+    assert seg.stats() == {"r0": {"r0": 11, "r0~2": 22}}
+    again = RobotSegments()  # a base station restarted on its database
+    again.restore({"r0": 11, "r1": 12, "r0~2": 22})
+    assert again.segment("r0", 22) == ("r0~2", None) and again.current("r0") == "r0~2"
+    assert again.segment("r0", 33) == ("r0~3", "r0~2")
+
+
+def test_an_agent_takes_what_is_sent_to_its_session(cfg: Config) -> None:
+    got: list[int] = []
+    with Bus(ZenohConfig(), cfg.fleet) as bus:
+        up = KeyframeUplink(cfg.agent, "r0", bus)
+        on = up.mine(lambda m, k: got.append(m.session))
+        for session in (up.session, 0, up.session ^ 1):
+            on(PoseCorrection("r0", 1, 0.0, np.array([0, 0, 0, 0, 0, 0, 1.0]), session), "")
+    assert 0 < up.session < 2**32 and got == [up.session, 0]
+    assert up.stats()["other_session_drops"] == 1
+
+
+def test_base_station_maps_a_second_run_and_keeps_it(
+    cfg: Config, endpoint: str, tmp_path: Path
+) -> None:
+    """A robot's agent restarted afresh sends seq 0 again in a new session: mapped as
+    r0~2 and acknowledged to that session (before: refused as another source, and
+    nothing more of the robot mapped); a restart of the base station keeps both."""
+    cfg.zenoh.listen = [endpoint]
+    cfg.basestation.db_path = str(tmp_path / "base.db")
+    acks: list[KeyframeAck] = []
+    with Bus(cfg.zenoh, cfg.fleet) as bus:
+        node = BaseStationNode(cfg, bus, None)
+        node.start()
+        with Bus(ZenohConfig(connect=[endpoint]), cfg.fleet) as agent:
+            agent.subscribe(agent.keys.robot("r0", "ack"), KeyframeAck, lambda m, k: acks.append(m))
+            agent.declare_alive("agent", "r0")  # after the subscription: it implies its route
+            assert poll_until(lambda: node.links.get("r0", {}).get("joins") == 1)
+            for session, t0 in ((11, 0.0), (22, 100.0)):  # the second run, later
+                state = RobotState("r0", t0, "flying", -1, 0, 0, 0, _kf(0, 0).pose_odom,
+                                   _kf(0, 0).pose_odom, session=session)  # fmt: skip
+                node._on_state(state, "")
+                for seq in range(5):
+                    node.inbox.put(node._to_segment(_kf(seq, session, t0)))
+                node.step()
+
+                def acked(s: int = session) -> bool:
+                    return any(a.session == s and a.acked_seq == 4 for a in acks)
+
+                assert poll_until(acked), acks
+            store = node.slam.store
+            assert [store.acked_seq(r) for r in ("r0", "r0~2")] == [4, 4]
+            assert not store.robot("r0").foreign and not store.robot("r0~2").foreign
+            assert set(node.states) == {"r0~2"}  # the first run's state forgotten
+            assert node.stats()["robot_segments"] == {"r0": {"r0": 11, "r0~2": 22}}
+        node.drain(2.0)
+    with Bus(cfg.zenoh, cfg.fleet) as bus:  # restarted on its database
+        again = BaseStationNode(cfg, bus, None)
+        again.recover()
+        assert again.recovered["in_graph"] == {"r0": 5, "r0~2": 5}
+        assert again.segments.segment("r0", 22) == ("r0~2", None)
+        again.drain(1.0)

@@ -13,9 +13,9 @@ found there on resuming, `KeyframeUplink._resume`). An agent started on it takes
 them up: the keyframes not acknowledged are sent again, its local pose goes on from
 the last keyframe by the odometry since (an autopilot's odometry runs on through the
 restart), and its next keyframe spans the gap, so the base station's trajectory of
-the robot goes on in the same frame. Before, a restarted agent began again at seq 0
-in a new frame: the base station now refuses that as another agent's
-(basestation/keyframe_store.py), and had linked it into the old trajectory.
+the robot goes on in the same frame. An agent with no state to take up begins again
+at seq 0 in a session of its own: the base station maps it as a new segment of the
+robot (basestation/robot_segments.py); it had linked it into the old trajectory.
 
 A state older than `agent.resume_within_s` is another mission's: it is deleted, with
 its keyframes, and the agent starts afresh.

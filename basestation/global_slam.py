@@ -45,7 +45,7 @@ from basestation.loop_closure_manager import LoopClosureManager
 from basestation.node_keys import NodeKeys
 from basestation.persistence import Batch, Recovered, StoredConstraint
 from basestation.pose_graph import PoseGraph
-from basestation.robot_segments import SEGMENT_START_SIGMAS, segment_start
+from basestation.robot_segments import SEGMENT_START_SIGMAS, robot_of, segment_start
 from basestation.scan_archive import ScanArchive, ScanReader
 from basestation.slam_stats import slam_stats
 from basestation.update_series import UpdateSeries
@@ -191,8 +191,10 @@ class GlobalSlam:
             odom, start = pose7_to_pose4(kf.pose_odom)[[0, 1, 3]], self.known_starts.get(rid)
             start, start_sigmas = None if start is None else se2_compose(start, odom), None
             T = segment_start(rid, self.graph.robots(), self.T_map_odom) if start is None else None
-            if T is not None:  # (a later run of a robot's agent)
+            if T is not None:  # (a later run of a robot's agent: GNSS fixes as its first's)
                 start, start_sigmas = se2_compose(T, odom), SEGMENT_START_SIGMAS
+                if robot_of(rid) in self._georeferenced:
+                    self._georeferenced.add(rid)
             elif start is None and rid in self.start_headings and rid in self._last_fix:
                 g = self.cfg.basestation.gps  # virtual ENU-origin trajectory (seed 000 §III-C)
                 start = np.array([*self._last_fix[rid], self.start_headings[rid] + odom[2]])
@@ -392,13 +394,9 @@ class GlobalSlam:
                 self._submit_match(kind, key, target, poses, query())
 
     def _submit_match(
-        self,
-        kind: str,
-        key: NodeKey,
-        target: NodeKey,
-        poses: dict[str, np.ndarray],
+        self, kind: str, key: NodeKey, target: NodeKey, poses: dict[str, np.ndarray],
         query: tuple[list[np.ndarray], list[np.ndarray], int],
-    ) -> None:
+    ) -> None:  # fmt: skip
         """Queue the verification of node ``key`` (``query``: its scan and neighbours, as
         `_query` gives them) against ``target`` and its `target_neighbours`."""
         k = self.cc.target_neighbours

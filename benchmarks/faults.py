@@ -20,7 +20,11 @@ starts:
 (e) the agents of the first `agent_kills` robots are SIGKILLed (10 s after the clock
     starts, 8 s apart: the first while its link is cut, keyframes unacknowledged) and
     restarted 1 s later on their state folders (`agent.state_dir`, as the systemd unit
-    does): each must go on in the same trajectory (`agent_restarts`).
+    does): each must go on in the same trajectory (`agent_restarts`);
+(f) the agents of the next `fresh_kills` robots are SIGKILLed 4 s after their link cut
+    ends, their state folders deleted, and restarted afresh 1 s later: each maps on as
+    a new segment of its robot (basestation/robot_segments.py). What the killed run had
+    sent (`next_seq` of its last state) and not got into the graph counts as lost.
 
 The mission ends (SIGINT to the simulator) `settle_s` after the last fault; the
 undisturbed run then flies the same scenario for the same sim time, so ground
@@ -37,12 +41,14 @@ from __future__ import annotations
 import json
 import logging
 import os
+import shutil
 import signal
 import sqlite3
 import time
 from pathlib import Path
 from typing import Any
 
+from basestation.robot_segments import robot_of
 from benchmarks.fault_injection import Replayer, bad_payloads
 from collabslam.launcher import Launcher, agent_command, make_scenario
 from collabslam.summary import build_summary
@@ -76,6 +82,7 @@ class _Mission:
         self.base: Child | None = None
         self.restarts = 0
         self.agent_restarts = 0
+        self.fresh_sent: dict[str, int] = {}  # robot -> keyframes its killed fresh run sent
         self.crashes: list[str] = []
 
     def spawn_base(self) -> None:
@@ -137,6 +144,7 @@ def run_faulted(
     malformed: int,
     settle_s: float,
     agent_kills: int = 1,
+    fresh_kills: int = 1,
 ) -> dict[str, Any]:
     out.mkdir(parents=True, exist_ok=True)
     m = _Mission(cfg, out, world, n_robots)
@@ -179,6 +187,8 @@ def run_faulted(
             events.append((6.0 + 8.0 * i + cut_s, "restore", r.robot_id))
         for i, rid in enumerate(ids[:agent_kills]):
             events.append((10.0 + 8.0 * i, "agent_kill", rid))
+        for i, rid in enumerate(ids[agent_kills : agent_kills + fresh_kills], agent_kills):
+            events.append((6.0 + 8.0 * i + cut_s + 4.0, "agent_fresh", rid))
         last = max(t for t, _, _ in events)
         events.append((max(last, 8.0 + (restarts - 1) * restart_period_s + 6.0), "inject", ""))
         events.sort()
@@ -191,13 +201,17 @@ def run_faulted(
                 m.kill_base()
                 time.sleep(2.0)
                 m.spawn_base()
-            elif what == "agent_kill":  # a crash: no drain, no outputs; systemd restarts it
+            elif what in ("agent_kill", "agent_fresh"):  # a crash: no drain, no outputs
                 a = agents[ids.index(who)]
                 os.kill(a.proc.pid, signal.SIGKILL)
                 a.proc.wait()
+                if what == "agent_fresh":  # what it had sent; then its state is gone
+                    state = json.loads((out / "state" / who / "state.json").read_text())
+                    m.fresh_sent[who] = int(state["next_seq"])
+                    shutil.rmtree(out / "state" / who)
                 time.sleep(1.0)
                 agents[ids.index(who)] = g.spawn(f"{who}-restarted", agent_args(who))
-                m.agent_restarts += 1
+                m.agent_restarts += what == "agent_kill"
             elif what == "cut":
                 m.relays[who].cut()
             elif what == "restore":
@@ -238,19 +252,25 @@ def run_faulted(
     stored = _stored(m.db) if m.db.is_file() else {}
     per_robot, lost, dup_graph = {}, 0, 0
     for r in summary["robots"]:
-        seqs = stored.get(r["id"], [])
+        segments = [s for s in stored if robot_of(s) == r["id"]]  # one per run of its agent
+        seqs = [s for seg in segments for s in stored[seg]]
         in_graph = r["keyframes_in_graph"]
+        r["keyframes_sent"] += m.fresh_sent.get(r["id"], 0)  # both runs' (segments')
         per_robot[r["id"]] = {
             "keyframes_sent": r["keyframes_sent"],
             "keyframes_in_graph": in_graph,
-            "stored_contiguous": sorted(seqs) == list(range(len(seqs))),
+            "segments": len(segments),
+            "stored_contiguous": all(
+                sorted(stored[seg]) == list(range(len(stored[seg]))) for seg in segments
+            ),
             "duplicates_received": base.get("robots", {}).get(r["id"], {}).get("duplicates", 0),
             "keyframes_resent": r["keyframes_resent"],
             "another_source": base.get("robots", {}).get(r["id"], {}).get("another_source"),
             "ate_rmse_m": r["ate_rmse_m"],
         }
         lost += max(0, r["keyframes_sent"] - in_graph)
-        dup_graph += max(0, in_graph - len(set(seqs))) + (len(seqs) - len(set(seqs)))
+        distinct = sum(len(set(stored[seg])) for seg in segments)
+        dup_graph += max(0, in_graph - distinct) + (len(seqs) - distinct)
     rejected = sum(base.get("rejected_messages", {}).values()) + base.get("unknown_robot_drops", 0)
     return {
         "keyframes_sent": sum(r["keyframes_sent"] for r in summary["robots"]),
@@ -259,6 +279,7 @@ def run_faulted(
         "duplicates_in_graph": dup_graph,
         "base_restarts": m.restarts,
         "agent_restarts": m.agent_restarts,
+        "agent_fresh_restarts": len(m.fresh_sent),
         "base_recoveries": max(0, (base.get("persistence") or {}).get("starts", 1) - 1),
         "malformed_injected": injected,
         "malformed_rejected": rejected,
@@ -290,6 +311,7 @@ def run(
     malformed: int = 10000,
     settle_s: float = 10.0,
     agent_kills: int = 1,
+    fresh_kills: int = 1,
 ) -> dict[str, Any]:
     """The faulted mission, then the undisturbed one for the same sim time."""
     cfg.exploration.enabled = False  # scripted tours: robots fly on while the base is down
@@ -303,7 +325,7 @@ def run(
     world_yaml = resolve_world(world)
     faulted = run_faulted(
         cfg, out / "faulted", world_yaml, robots, restarts, restart_period_s, cut_s,
-        dup_fraction, malformed, settle_s, agent_kills,
+        dup_fraction, malformed, settle_s, agent_kills, fresh_kills,
     )  # fmt: skip
     sim_time = float(faulted["sim_time_s"] or 60.0)
     cfg.zenoh.gossip_scouting = True
@@ -338,5 +360,6 @@ def run(
             "dup_fraction": dup_fraction,
             "malformed": malformed,
             "agent_kills": agent_kills,
+            "fresh_kills": fresh_kills,
         },  # fmt: skip
     }

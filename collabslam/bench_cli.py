@@ -219,6 +219,7 @@ def add_bench_parsers(sub: argparse._SubParsersAction[argparse.ArgumentParser]) 
             "dup_fraction": a.dup_fraction,
             "malformed": a.malformed,
             "agent_kills": a.agent_kills,
+            "fresh_kills": a.fresh_kills,
         },
     )
     b.add_argument("--world", default="bshape")
@@ -229,6 +230,9 @@ def add_bench_parsers(sub: argparse._SubParsersAction[argparse.ArgumentParser]) 
     b.add_argument("--dup-fraction", type=float, default=0.1, help="keyframes re-put")
     b.add_argument("--malformed", type=int, default=10000, help="bad messages injected")
     b.add_argument("--agent-kills", type=int, default=1, help="agents SIGKILLed + restarted")
+    b.add_argument(
+        "--fresh-kills", type=int, default=1, help="agents SIGKILLed + restarted without state"
+    )
 
 
 def cmd_bench(args: argparse.Namespace) -> int:

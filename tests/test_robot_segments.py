@@ -13,10 +13,11 @@ import numpy as np
 from process_helpers import poll_until, synthetic_keyframe
 
 from agent.uplink import KeyframeUplink
+from basestation.global_slam import GlobalSlam
 from basestation.node import BaseStationNode
 from basestation.robot_segments import RobotSegments, as_sent, robot_of
 from common.bus import Bus
-from common.config import Config, ZenohConfig
+from common.config import Config, ZenohConfig, load_config
 from protocol import Keyframe, KeyframeAck, PoseCorrection, RobotState, encode
 
 
@@ -99,3 +100,34 @@ def test_base_station_maps_a_second_run_and_keeps_it(
         assert again.recovered["in_graph"] == {"r0": 5, "r0~2": 5}
         assert again.segments.segment("r0", 22) == ("r0~2", None)
         again.drain(1.0)
+
+
+def test_a_later_segment_starts_where_the_one_before_left_off() -> None:
+    """r0~2's first node is placed by r0's T_map_odom (the restarted agent goes on in
+    the odometry's frame), loosely, and takes GNSS fixes as r0 does; before, it floated
+    and a hovering drone's matches from one place never joined it to the map."""
+    cfg = load_config(
+        overrides={
+            "basestation.gps.enabled": True,
+            "basestation.gps.batch_period_s": 0.0,
+            "basestation.constraints.enabled": False,
+        }
+    )
+    start = np.array([2.0, 1.0, 0.5])
+    slam = GlobalSlam(cfg, {"r0": start})
+    for seq in range(10):  # along x in its odom frame
+        slam.admit(_kf(seq, 11))
+    slam.optimize()
+    seg = [dataclasses.replace(_kf(8 + j, 22, 100.0), robot_id="r0~2", seq=j) for j in range(4)]
+    for kf in seg:  # the new run, 4 m on in the same odometry frame
+        slam.admit(kf)
+    slam.optimize()
+    assert slam.graph.is_anchored("r0~2")
+    T = slam.T_map_odom("r0~2")
+    np.testing.assert_allclose(T, start, atol=1e-6)  # no matches yet: the prior holds
+    slam.add_gps_fix("r0~2", 104.5, np.array([5.0, 3.5]), np.array([1.5, 1.5, 3.0]))
+    assert slam.stats()["gps"]["fixes_ignored"] == 0  # georeferenced as r0 is
+    lone = GlobalSlam(cfg, {"r1": np.zeros(3)})  # r0~2 with no segment before it: floats
+    for kf in seg:
+        lone.admit(kf)
+    assert not lone.graph.is_anchored("r0~2") and lone.T_map_odom("r0~2") is None

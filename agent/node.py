@@ -27,6 +27,7 @@ import numpy as np
 
 from agent.control_log import ControlRecorder
 from agent.downlink_gate import DownlinkGate
+from agent.fresh_start import FreshStart, nearest_waypoint
 from agent.keyframe_selector import KeyframeSelector
 from agent.local_trajectory_builder import LocalSlamResult, LocalTrajectoryBuilder
 from agent.odometry_tracker import OdometryTracker
@@ -65,8 +66,6 @@ log = logging.getLogger(__name__)
 
 # The odometry's twist steers the guard's braking while it is at most this old (s).
 TWIST_MAX_AGE_S = 0.25
-# m: a fresh agent this far from its odometry's origin was restarted in flight
-IN_FLIGHT_M = 1.0
 
 
 class AgentNode:
@@ -145,6 +144,7 @@ class AgentNode:
         self.base_links = {"joins": 0, "losses": 0}  # base-station liveliness events
         self._base_up = threading.Event()
         self._bases: set[str] = set()  # base-station tokens up (one, unless misconfigured)
+        self.fresh = FreshStart.of(resume)  # where its odom frame begins
         if resume is not None:
             self._take_up(resume)
 
@@ -162,22 +162,16 @@ class AgentNode:
             self.tour_map = np.array(r.path, dtype=np.float64).reshape(-1, 2)
             self.follower.index = r.path_index
 
-    def _start_in_flight(self, stamp: float) -> None:
-        """A fresh agent (no state to resume) away from its odometry's origin, restarted in
-        flight: its local pose starts at the odometry's (the frame the agent before it began
-        in at the start pose: T_map_odom holds), its tour at the waypoint nearest the drone
-        (from the first, it had flown into a wall). It maps as a new segment of the robot."""
-        odom = self.frontend.odometry_at(stamp)
-        if odom is None or np.hypot(odom[0], odom[1]) <= IN_FLIGHT_M:
-            return
-        pose = np.array([*odom[:2], self.frontend.pose[2], odom[2]])
-        self.frontend.resume(stamp - 1e-6, pose, None)  # (the odometry is in already)
-        here = odom_to_map(self.T_map_odom, pose)[:2]
-        gaps = np.hypot(*(self.tour_map - here).T)
-        self.follower.index = int(np.argmin(gaps)) if len(gaps) else 0
-        log.warning("started %.1f m from the odometry's origin (restarted in flight, no state): "
-                    "goes on in its frame at (%.1f, %.1f), tour waypoint %d",
-                    np.hypot(*odom[:2]), *here, self.follower.index)  # fmt: skip
+    def _begin(self, stamp: float) -> bool:
+        """A fresh agent's start (agent/fresh_start.py); False: hold this scan."""
+        if not self.fresh.take(stamp, self.frontend.odometry_at(stamp), self.frontend.altitude):
+            return False
+        if (T := self.fresh.start_in_map(self.T_map_odom)) is not None:  # restarted in flight
+            with self._corr_lock:
+                self.T_map_odom, T7 = T, pose4_to_pose7(T)
+                self.smoother = PoseSmoother(self.cfg.agent.smoothing, T7)
+            self.follower.index = nearest_waypoint(self.tour_map, T[:2])
+        return True
 
     # --- wiring -------------------------------------------------------------------------
     def start(self) -> None:
@@ -295,8 +289,9 @@ class AgentNode:
             self._command(scan.stamp)  # a re-sent lock-step tick: answer again
             return
         self.downlink.wait()  # lock-step: the base station's paths and answers for it
-        if self.scans == 0 and self.resumed is None:
-            self._start_in_flight(scan.stamp)
+        if not self.fresh.done and not self._begin(scan.stamp):
+            self._command(scan.stamp)  # a fresh agent waits for its odometry (0.5 s at most)
+            return
         ranges = np.asarray(scan.ranges, dtype=np.float64)
         self.guard.update(scan.angle_min + scan.angle_increment * np.arange(len(ranges)), ranges)
         result = self.frontend.add_scan(scan)
@@ -337,6 +332,7 @@ class AgentNode:
             delta=pose4_to_pose7(delta),
             delta_cov=cov,
             scan2d=scan2d,
+            odom_origin=self.fresh.origin,
         )
         if not sent:  # refused (an altimeter's 1e9 m once): the next spans from the last sent
             self.selector.last_pose = last
@@ -357,7 +353,8 @@ class AgentNode:
         up, kf = self.uplink, self.selector.last_pose.tolist()
         point = ResumePoint(up.chain, up.next_seq, up.outbox.acked_seq, epoch, T, stamp,
                             self.frontend.pose.tolist(), None if odom is None else odom.tolist(),
-                            path, index, kf, self.clock.offset, up.session)  # fmt: skip
+                            path, index, kf, self.clock.offset, up.session,
+                            self.fresh.as_list())  # fmt: skip
         save(self.state_dir, point)
 
     def _publish_control_pose(self, stamp: float, pose_odom: np.ndarray) -> None:

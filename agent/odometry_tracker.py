@@ -23,6 +23,7 @@ log = logging.getLogger(__name__)
 class OdometryTracker:
     def __init__(self) -> None:
         self.pose = np.zeros(4)  # T_odom_base [x, y, z, yaw]; odom starts at the first pose
+        self.altitude: float | None = None  # the altimeter's latest (None: none yet)
         self.last_stamp: float | None = None
         self.distance_m = 0.0
         self.scans = 0
@@ -66,7 +67,7 @@ class OdometryTracker:
         """Attitude is not needed without scan matching."""
 
     def add_altitude(self, stamp: float, altitude_m: float) -> None:
-        self.pose[2] = altitude_m
+        self.altitude = self.pose[2] = float(altitude_m)
 
     def add_scan(self, scan: LaserScan) -> LocalSlamResult | None:
         if self.last_stamp is not None and scan.stamp <= self.last_stamp:

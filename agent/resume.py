@@ -31,9 +31,12 @@ import time
 from dataclasses import asdict, dataclass, fields
 from pathlib import Path
 
+from protocol.messages import MAX_SESSION
+
 log = logging.getLogger(__name__)
 
 STATE_FILE = "state.json"
+ADDED_LATER = ("session", "odom_origin")  # fields a state file may lack (an older agent's)
 
 
 @dataclass
@@ -51,6 +54,7 @@ class ResumePoint:
     keyframe_pose: list[float] | None = None  # T_odom_base of the last keyframe sent
     clock_offset: float = 0.0  # s, common.stamps.BackStepRepair's
     session: int = 0  # the agent's run (protocol MAX_SESSION): the resumed one goes on in it
+    odom_origin: list[float] | None = None  # where its odom frame began (protocol OdomOrigin)
     saved_unix: float = 0.0
 
     def check(self) -> None:
@@ -63,7 +67,10 @@ class ResumePoint:
                 raise ValueError(f"{name}: {v!r}")
         if not self.acked_seq < self.next_seq or (self.next_seq and self.keyframe_pose is None):
             raise ValueError(f"acked_seq {self.acked_seq}, next_seq {self.next_seq}")
-        for name, n in (("T_map_odom", 4), ("pose_odom", 4), ("odometry", 3), ("keyframe_pose", 4)):
+        if self.session > MAX_SESSION:
+            raise ValueError(f"session: {self.session!r}")
+        named = ("T_map_odom", 4), ("pose_odom", 4), ("odometry", 3), ("keyframe_pose", 4)
+        for name, n in (*named, ("odom_origin", 3)):
             v = getattr(self, name)
             if v is not None and (len(v) != n or not all(_finite(x) for x in v)):
                 raise ValueError(f"{name}: {v!r}")
@@ -96,6 +103,9 @@ def load(directory: Path, max_age_s: float) -> ResumePoint | None:
     try:
         raw = json.loads(path.read_text())
         names = {f.name for f in fields(ResumePoint)}
+        if isinstance(raw, dict):  # a state of the version before, with its keyframes
+            raw = {**{k: None for k in ADDED_LATER if k not in raw}, **raw}
+            raw["session"] = raw["session"] or 0
         if not isinstance(raw, dict) or set(raw) != names:
             raise ValueError(f"fields {sorted(raw) if isinstance(raw, dict) else raw!r}")
         point = ResumePoint(**raw)

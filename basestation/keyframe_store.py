@@ -56,6 +56,7 @@ class RobotKeyframes:
     stale_chain: int = 0  # keyframes of an older chain, dropped
     chain_conflicts: int = 0  # keyframes of a newer chain after some were admitted
     session: int = 0  # the agent run its keyframes are from (basestation/robot_segments.py)
+    odom_origin: np.ndarray | None = None  # its odom frame's origin in the odometry's [x y yaw]
 
     def chain_covariance(self, i: ArrayLike, j: ArrayLike) -> np.ndarray:
         """Approximate (n, 3, 3) covariances of nodes j relative to nodes i (index arrays)
@@ -202,7 +203,8 @@ class KeyframeStore:
                     k.stamp,
                 )
             if not len(r.stamps):
-                r.session = k.session
+                r.session, o = k.session, k.odom_origin
+                r.odom_origin = None if o is None else np.array([o.x, o.y, o.yaw])
             r.stamps.append([k.stamp])
             r.poses_odom.append(pose7_to_pose4(k.pose_odom))
             c = k.delta_cov

@@ -104,6 +104,15 @@ class MapBuilder:
         self.last_render_ms = 0.0
 
     # --- keyframes ----------------------------------------------------------------------
+    def rerender_stats(self) -> dict[str, int]:
+        return {
+            "map_rerenders": self.rerenders,  # tiles redrawn
+            "map_rerendered_cells": self.rerendered_cells,
+            "map_rerender_draws": self.rerender_draws,  # keyframes drawn into them
+            "map_rerender_skipped": self.rerender_skipped,  # older ones of a view
+            "map_rerender_pending": self.pending,
+        }
+
     def _beams(self, scan: Scan2D) -> tuple[np.ndarray, np.ndarray]:
         """Ranges (m, float32; a no-return is a max-range beam that clears free space)
         and angles (rad, sensor frame; shared by scans of one geometry)."""

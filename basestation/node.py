@@ -186,25 +186,28 @@ class BaseStationNode:
         self.clock.on_fix()
 
     def _on_keyframe(self, msg: Keyframe, key: str) -> None:
-        if not self._unknown(msg.robot_id, "keyframe"):
-            self.inbox.put(self._to_segment(msg))
+        if not self._unknown(msg.robot_id, "keyframe") and (msg := self._to_segment(msg)):
+            self.inbox.put(msg)
 
     def _on_state(self, msg: RobotState, key: str) -> None:
         """(Zenoh thread) keep it; answer with where the others are (neighbour guard)."""
-        if self._unknown(msg.robot_id, "state"):
+        if self._unknown(msg.robot_id, "state") or not (msg := self._to_segment(msg)):
             return
-        msg = self._to_segment(msg)
-        with self._lock:
-            self.states[msg.robot_id] = msg
+        with self._lock:  # (a run before the robot's newest: relayed, not explored for)
+            if msg.robot_id == self.segments.current(robot_of(msg.robot_id)):
+                self.states[msg.robot_id] = msg
             answer = self.neighbours.on_state(msg)
         self._send("neighbours", answer)
         if msg.keyframes_acked > 0 and (none := self.slam.store.none_of(msg.robot_id, msg.chain)):
             self._send("ack", none)  # a new chain
 
     def _to_segment(self, msg: Any) -> Any:
-        """`msg` of an agent, as its run's segment's (robot_segments.py); a new run makes
-        the robot's segment before it past: its state is forgotten, its goal released."""
+        """`msg` of an agent, as its run's segment's (robot_segments.py; None: no room in
+        the graph); a new run makes the robot's segment before it past: its state is
+        forgotten, its goal released."""
         segment, past = self.segments.segment(msg.robot_id, msg.session)
+        if segment is None:
+            return None
         if past is not None:
             self._forget(past)
         return msg if segment == msg.robot_id else dataclasses.replace(msg, robot_id=segment)
@@ -474,11 +477,7 @@ class BaseStationNode:
             "exploration": explorer_stats(self.explorer, self._path_id, self._explore_ms),
             "robot_segments": self.segments.stats(),  # robots with more than one
             "clock_syncs": self.syncs,
-            "map_rerenders": self.map.rerenders,  # tiles redrawn
-            "map_rerendered_cells": self.map.rerendered_cells,
-            "map_rerender_draws": self.map.rerender_draws,  # keyframes drawn into them
-            "map_rerender_skipped": self.map.rerender_skipped,  # older ones of a view
-            "map_rerender_pending": self.map.pending,
+            **self.map.rerender_stats(),
         }
 
     def write_outputs(self, out_dir: str | Path) -> None:

@@ -9,7 +9,7 @@ Conventions:
 - Covariances are 3x3 over ``[x, y, yaw]`` in the local (body) frame of the node
   (gtsam's Pose2 tangent space), in m^2 / rad^2.
 - Keys: robot k (registration order) is ``ROBOT_KEY_ALPHABET[k]``, node i is
-  ``gtsam.symbol(char, i)``; 26 lower-case letters, upper case left for the rest.
+  ``gtsam.symbol(char, i)``; 62 letters and digits.
 
 Ordering: with ``heads_last`` every chain's newest node is constrained to the end of
 iSAM2's elimination order (the root of the Bayes tree), so when robots take turns the
@@ -55,7 +55,9 @@ from common.growable import empty
 
 logger = logging.getLogger(__name__)
 
-ROBOT_KEY_ALPHABET = "abcdefghijklmnopqrstuvwxyz"
+# one chain per robot (and per later segment of one, basestation/robot_segments.py); ASCII
+# only: keys are also handled as int64 (ord(char) << 56)
+ROBOT_KEY_ALPHABET = "abcdefghijklmnopqrstuvwxyzABCDEFGHIJKLMNOPQRSTUVWXYZ0123456789"
 ROBUST_KERNELS = ("huber", "cauchy")
 GUESS_MERGE_BATCH = 64  # updates whose initial guesses are merged at once
 
@@ -150,7 +152,7 @@ class PoseGraph(EstimateMixin, GaugeMixin, GpsMixin, ReductionMixin, RebuildMixi
         """
         if robot_id in self._chains:
             raise CollabSlamError(f"robot {robot_id!r} is already registered")
-        if len(self._chains) >= len(ROBOT_KEY_ALPHABET):
+        if self.full():
             raise CollabSlamError(f"at most {len(ROBOT_KEY_ALPHABET)} robots are supported")
         start = None if T_map_first is None else vec3(T_map_first, "T_map_first")
         chain = Chain(ROBOT_KEY_ALPHABET[len(self._chains)], start)
@@ -411,6 +413,10 @@ class PoseGraph(EstimateMixin, GaugeMixin, GpsMixin, ReductionMixin, RebuildMixi
         if robot_id is None:
             return sum(c.size for c in self._chains.values())
         return self._chain(robot_id).size
+
+    def full(self) -> bool:
+        """Whether no more robots (chains) can be added."""
+        return len(self._chains) >= len(ROBOT_KEY_ALPHABET)
 
     def robots(self) -> list[str]:
         return list(self._chains)

@@ -8,20 +8,26 @@ the pose graph, a segment: the first run of robot `r0` is `r0`, the next `r0~2`,
 `r0~3` ("~" is never in a robot id). Before, a restarted agent's keyframes were refused
 for good (their seqs clashed with the old run's), and the robot mapped nothing more.
 
-A later segment starts in the frame of the robot's segment before it, loosely
-(`segment_start`, `SEGMENT_START_SIGMAS`): an agent restarted in flight goes on in its
-odometry's frame, the one the run before it began in (agent/node.py), and the loop
-closures take it from there. A hovering drone's matches alone could not join it: they
-come from one place, and joining maps takes matches from places apart (rooms that look
-alike). While no segment before it is on the map it floats, and is joined to the map
-by matching like a robot of unknown start (basestation/global_slam.py).
+A later segment that began in flight (`OdomOrigin`, on every keyframe: where the
+agent's odom frame begins on its odometry source's frame, away from the source's
+origin) starts, loosely (`SEGMENT_START_SIGMAS`), where the source's frame puts it:
+the run before it had the same source, and its `T_map_odom` and origin place the
+source's frame in `map` (`segment_start`). The loop closures take it from there. A
+hovering drone's matches alone could not join it to the map: they come from one place,
+and joining maps takes matches from places apart (rooms that look alike). A run that
+began where its source did (another flight, or another drone with the id), or one
+with no segment before it on the map, floats, and is joined to the map by matching
+like a robot of unknown start (basestation/global_slam.py).
 
 Everything sent to a segment goes to its robot's keys with the segment's session
 (`RobotSegments.address`): the agent of another run drops it (agent/uplink.py).
 
 The newest segment of a robot is its current one: the one its liveliness token, the
-lock-step clock and its GNSS fixes are about. A new segment makes the one before it
-past (`segment` returns it: the base station forgets its state and releases its goal).
+lock-step clock and its GNSS fixes are about, and the one explored for. A new segment
+makes the one before it past (`segment` returns it: the base station forgets its state
+and releases its goal; states of a past run still reach the other drones' guards).
+The pose graph holds `capacity` chains (62): a run beyond them is not mapped (an error
+line, its messages dropped).
 
 Threads: `segment` runs on Zenoh's threads (keyframes, states) and on run()'s.
 """
@@ -30,19 +36,23 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+import math
 import threading
 from collections.abc import Callable, Iterable, Mapping
 from typing import Any, TypeVar
 
 import numpy as np
 
+from basestation.pose_graph import ROBOT_KEY_ALPHABET
+from common.geometry import se2_compose, se2_inverse
+from protocol.messages import IN_FLIGHT_M
+
 log = logging.getLogger(__name__)
 
 SEP = "~"  # between a robot id and the number of its segment
-# [m, m, rad]: how loosely a segment starts in the frame of the one before it: an
-# agent restarted goes on in the odometry's frame, as the run before it began (agent/
-# node.py), but that run's local SLAM corrected the odometry's drift since
-SEGMENT_START_SIGMAS = (1.0, 1.0, 0.2)
+# [m, m, rad]: how loosely a later segment starts where the odometry source's frame puts
+# it (`segment_start`): the source drifted, where the run before it had its local SLAM
+SEGMENT_START_SIGMAS = (2.0, 2.0, 0.25)
 M = TypeVar("M")
 
 
@@ -62,24 +72,43 @@ def _number(segment: str) -> int:
 
 
 def segment_start(
-    segment: str, robots: Iterable[str], T_map_odom: Callable[[str], np.ndarray | None]
+    segment: str,
+    robots: Iterable[str],
+    T_map_odom: Callable[[str], np.ndarray | None],
+    odom_origin: Callable[[str], np.ndarray | None],
 ) -> np.ndarray | None:
-    """Where a segment starts, T_map_odom [x, y, yaw]: the latest of its robot's
-    segments before it that is on the map (`T_map_odom(s)`, None while one is not)
-    places its frame. None: none is, or `segment` is a robot's first."""
-    robot, n = robot_of(segment), _number(segment)
+    """Where a later segment's odom frame begins, T_map_odom [x, y, yaw], if it began in
+    flight (`IN_FLIGHT_M` from its odometry source's origin: the source's frame is the
+    one the robot's run before it had) and a segment of the robot before it is on the
+    map (`T_map_odom(s)`, None while not) with its own `odom_origin` (the source's pose
+    where a segment's frame begins, [x, y, yaw]; None: not known). None otherwise: the
+    segment floats (a run that began where its source did is another flight or drone)."""
+    robot, n, own = robot_of(segment), _number(segment), odom_origin(segment)
+    if own is None or math.hypot(own[0], own[1]) <= IN_FLIGHT_M:
+        return None
     before = sorted((s for s in robots if robot_of(s) == robot and _number(s) < n), key=_number)
-    placed = [(s, T) for s in before if (T := T_map_odom(s)) is not None]
+    placed = [(s, T, o) for s in before
+              if (T := T_map_odom(s)) is not None and (o := odom_origin(s)) is not None
+              ]  # fmt: skip
     if not placed:
         return None
-    log.info("robot segment %s starts in the frame of %s, at T_map_odom (%.2f, %.2f, %.1f "
-             "deg), loosely", segment, placed[-1][0], *placed[-1][1][:2],
-             np.degrees(placed[-1][1][2]))  # fmt: skip
-    return placed[-1][1]
+    s, T, o = placed[-1]
+    T_map_source = se2_compose(T, se2_inverse(o))  # the odometry source's frame in map
+    log.info(
+        "robot segment %s starts in the odometry frame of %s: at (%.2f, %.2f, %.1f deg), loosely",
+        segment,
+        s,
+        *T_map_source[:2],
+        math.degrees(T_map_source[2]),
+    )
+    return se2_compose(T_map_source, own)
 
 
 class RobotSegments:
-    def __init__(self) -> None:
+    def __init__(self, capacity: int = len(ROBOT_KEY_ALPHABET)) -> None:
+        """`capacity`: segments in all (the pose graph's chains)."""
+        self.capacity = capacity
+        self.refused: set[tuple[str, int]] = set()  # runs beyond it
         self._lock = threading.Lock()
         self._of: dict[tuple[str, int], str] = {}  # (robot id, session) -> segment
         self._session: dict[str, int] = {}  # segment -> session
@@ -94,20 +123,29 @@ class RobotSegments:
                 n = int(segment.split(SEP, 1)[1]) if SEP in segment else 1
                 self._add(robot_of(segment), session, segment, n)
 
-    def segment(self, robot_id: str, session: int) -> tuple[str, str | None]:
-        """(the segment of this run of `robot_id`, the segment it makes past or None)."""
+    def segment(self, robot_id: str, session: int) -> tuple[str | None, str | None]:
+        """(the segment of this run of `robot_id`, the segment it makes past or None);
+        (None, None) once there are `capacity` segments (logged: its messages dropped)."""
         with self._lock:
             segment = self._of.get((robot_id, session))
             if segment is not None:
                 return segment, None
+            if len(self._session) >= self.capacity:
+                if (robot_id, session) not in self.refused:
+                    self.refused.add((robot_id, session))
+                    log.error("robot %s: a new run of its agent (session %d) is not mapped: "
+                              "the pose graph holds %d robot segments, its most (restart "
+                              "agents on their state folders)", robot_id, session,
+                              self.capacity)  # fmt: skip
+                return None, None
             n = self._count.get(robot_id, 0) + 1
             segment = robot_id if n == 1 else f"{robot_id}{SEP}{n}"
             past = self._current.get(robot_id)
             self._add(robot_id, session, segment, n)
         if past is not None:
             log.warning("robot %s: another run of its agent (session %d; %s was session %d): "
-                        "mapped as %s, placed from the segment before (restarted afresh, or "
-                        "two drones with this id?)", robot_id, session, past,
+                        "mapped as %s (restarted with no state to take up, or two drones "
+                        "with this id?)", robot_id, session, past,
                         self._session[past], segment)  # fmt: skip
         return segment, past
 

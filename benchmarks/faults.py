@@ -21,10 +21,10 @@ starts:
     starts, 8 s apart: the first while its link is cut, keyframes unacknowledged) and
     restarted 1 s later on their state folders (`agent.state_dir`, as the systemd unit
     does): each must go on in the same trajectory (`agent_restarts`);
-(f) the agents of the next `fresh_kills` robots are SIGKILLed 4 s after their link cut
-    ends, their state folders deleted, and restarted afresh 1 s later: each maps on as
-    a new segment of its robot (basestation/robot_segments.py). What the killed run had
-    sent (`next_seq` of its last state) and not got into the graph counts as lost.
+(f) the agents of the next `fresh_kills` robots are restarted as `systemctl restart`
+    does, 4 s after their link cut ends: SIGINT (the agent sends what is unacknowledged,
+    then forgets its state), and a new agent 1 s after it exited: each maps on as a new
+    segment of its robot (basestation/robot_segments.py); both runs' keyframes count.
 
 The mission ends (SIGINT to the simulator) `settle_s` after the last fault; the
 undisturbed run then flies the same scenario for the same sim time, so ground
@@ -41,7 +41,6 @@ from __future__ import annotations
 import json
 import logging
 import os
-import shutil
 import signal
 import sqlite3
 import time
@@ -201,14 +200,17 @@ def run_faulted(
                 m.kill_base()
                 time.sleep(2.0)
                 m.spawn_base()
-            elif what in ("agent_kill", "agent_fresh"):  # a crash: no drain, no outputs
+            elif what in ("agent_kill", "agent_fresh"):  # a crash, or a clean restart
                 a = agents[ids.index(who)]
-                os.kill(a.proc.pid, signal.SIGKILL)
-                a.proc.wait()
-                if what == "agent_fresh":  # what it had sent; then its state is gone
-                    state = json.loads((out / "state" / who / "state.json").read_text())
-                    m.fresh_sent[who] = int(state["next_seq"])
-                    shutil.rmtree(out / "state" / who)
+                if what == "agent_kill":
+                    os.kill(a.proc.pid, signal.SIGKILL)
+                    a.proc.wait()
+                else:
+                    a.proc.send_signal(signal.SIGINT)
+                    g.wait_all_or_fail([a], [sim, m.base], cfg.agent.drain_timeout_s + 60)
+                    # it drained and forgot its state: what it sent
+                    stats = json.loads((out / "agents" / f"{who}.json").read_text())
+                    m.fresh_sent[who] = int(stats["keyframes_sent"])
                 time.sleep(1.0)
                 agents[ids.index(who)] = g.spawn(f"{who}-restarted", agent_args(who))
                 m.agent_restarts += what == "agent_kill"

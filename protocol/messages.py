@@ -30,6 +30,9 @@ MAX_CHAIN = 2**31 - 1  # keyframe chains (an agent starts one per base station t
 # robot (basestation/robot_segments.py); an agent takes what is sent to it with its own
 # session or 0.
 MAX_SESSION = 2**32 - 1
+# m: a run whose odom frame begins this far from its odometry source's origin (`OdomOrigin`)
+# began in flight: it shares the source's frame with the robot's run before it
+IN_FLIGHT_M = 1.0
 GNSS_ALTITUDE_RANGE_M = (-1000.0, 100_000.0)  # m above the ellipsoid
 ROBOT_STATUSES = ("starting", "waiting", "flying", "blocked", "hovering", "done", "landed")
 
@@ -222,6 +225,18 @@ class Scan2D:
 
 
 @message
+class OdomOrigin:
+    """Where an agent's `odom` frame begins (its first pose), as the odometry source's
+    pose then, [x, y, yaw] in the source's own frame (m, rad). Two runs of a robot's
+    agent in one flight share that frame: the base station starts a later run's frame
+    where the earlier run's puts it (basestation/robot_segments.py)."""
+
+    x: float
+    y: float
+    yaw: float
+
+
+@message
 class Cloud3D:
     """A keyframe's downsampled 3-D cloud in the body frame (m)."""
 
@@ -252,6 +267,7 @@ class Keyframe(Message):
     cloud3d: Cloud3D | None = None
     chain: int = 0
     session: int = 0  # the agent's run (MAX_SESSION)
+    odom_origin: OdomOrigin | None = None  # None: no odometry source (or an older agent)
 
     def validate(self) -> None:
         super().validate()
@@ -261,6 +277,8 @@ class Keyframe(Message):
             raise ProtocolError(f"Keyframe.chain must be in 0..{MAX_CHAIN}, got {self.chain}")
         _check_pose7("Keyframe.pose_odom", self.pose_odom)
         _check_pose7("Keyframe.delta", self.delta)
+        if (o := self.odom_origin) is not None:
+            _check_position("Keyframe.odom_origin", np.array([o.x, o.y]))
         if (self.scan2d is None) == (self.cloud3d is None):
             raise ProtocolError("Keyframe: exactly one of scan2d / cloud3d must be set")
         step = float(np.linalg.norm(self.delta[:3]))

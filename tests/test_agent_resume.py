@@ -71,6 +71,23 @@ def test_state_is_taken_up_only_when_recent_and_whole(tmp_path: Path, caplog) ->
         assert not (tmp_path / STATE_FILE).exists()
 
 
+def test_a_state_of_the_version_before_is_taken_up(tmp_path: Path) -> None:
+    """Written before `session` and `odom_origin` were: taken up in session 0, not
+    deleted with the keyframes it had not got acknowledged. A session beyond 32 bits
+    (every keyframe would fail its check) is not."""
+    point = ResumePoint(0, 12, 9, 4, [1.0, 2.0, 0.0, 0.5], 30.0, [3, 4, 1, 0.1], [5, 6, 0.2],
+                        None, 0, [2.9, 4, 1, 0.1], 0.5, 7, [1.0, 2.0, 0.1])  # fmt: skip
+    save(tmp_path, point)
+    assert load(tmp_path, 60.0) == point  # (saved_unix set by save)
+    raw = json.loads((tmp_path / STATE_FILE).read_text())
+    old = {k: v for k, v in raw.items() if k not in ("session", "odom_origin")}
+    (tmp_path / STATE_FILE).write_text(json.dumps(old))
+    got = load(tmp_path, 60.0)
+    assert got is not None and (got.next_seq, got.session, got.odom_origin) == (12, 0, None)
+    (tmp_path / STATE_FILE).write_text(json.dumps({**raw, "session": 2**32}))
+    assert load(tmp_path, 60.0) is None
+
+
 def test_local_slam_goes_on_from_the_last_keyframe_by_the_odometry_since() -> None:
     cfg = Config().agent
     ltb = LocalTrajectoryBuilder(cfg.local_slam, cfg.local_keyframe_period_s)

@@ -12,13 +12,16 @@ from pathlib import Path
 import numpy as np
 from process_helpers import poll_until, synthetic_keyframe
 
+from agent.fresh_start import FreshStart, nearest_waypoint
+from agent.resume import ResumePoint
 from agent.uplink import KeyframeUplink
 from basestation.global_slam import GlobalSlam
 from basestation.node import BaseStationNode
 from basestation.robot_segments import RobotSegments, as_sent, robot_of
 from common.bus import Bus
 from common.config import Config, ZenohConfig, load_config
-from protocol import Keyframe, KeyframeAck, PoseCorrection, RobotState, encode
+from common.geometry import se2_compose
+from protocol import Keyframe, KeyframeAck, OdomOrigin, PoseCorrection, RobotState, encode
 
 
 def _kf(seq: int, session: int, t0: float = 0.0) -> Keyframe:
@@ -103,9 +106,10 @@ def test_base_station_maps_a_second_run_and_keeps_it(
 
 
 def test_a_later_segment_starts_where_the_one_before_left_off() -> None:
-    """r0~2's first node is placed by r0's T_map_odom (the restarted agent goes on in
-    the odometry's frame), loosely, and takes GNSS fixes as r0 does; before, it floated
-    and a hovering drone's matches from one place never joined it to the map."""
+    """r0~2 began in flight 4 m along its odometry's frame, which r0 began at: its first
+    node is placed by r0's T_map_odom and both origins, loosely, and it takes GNSS fixes
+    as r0 does. Before, it floated, and a hovering drone's matches from one place never
+    joined it to the map. A run that began where its odometry did floats."""
     cfg = load_config(
         overrides={
             "basestation.gps.enabled": True,
@@ -115,19 +119,56 @@ def test_a_later_segment_starts_where_the_one_before_left_off() -> None:
     )
     start = np.array([2.0, 1.0, 0.5])
     slam = GlobalSlam(cfg, {"r0": start})
-    for seq in range(10):  # along x in its odom frame
-        slam.admit(_kf(seq, 11))
+    for seq in range(10):  # along x in its odom frame, begun at the odometry's origin
+        slam.admit(dataclasses.replace(_kf(seq, 11), odom_origin=OdomOrigin(0.0, 0.0, 0.0)))
     slam.optimize()
-    seg = [dataclasses.replace(_kf(8 + j, 22, 100.0), robot_id="r0~2", seq=j) for j in range(4)]
-    for kf in seg:  # the new run, 4 m on in the same odometry frame
+
+    def run(origin: OdomOrigin) -> list[Keyframe]:  # from the identity, in a new session
+        return [dataclasses.replace(_kf(j, 22, 100.0), robot_id="r0~2", odom_origin=origin)
+                for j in range(4)]  # fmt: skip
+
+    for kf in run(OdomOrigin(4.0, 0.0, 0.0)):
         slam.admit(kf)
     slam.optimize()
     assert slam.graph.is_anchored("r0~2")
-    T = slam.T_map_odom("r0~2")
-    np.testing.assert_allclose(T, start, atol=1e-6)  # no matches yet: the prior holds
+    expected = se2_compose(start, [4.0, 0.0, 0.0])  # no matches yet: the prior holds
+    np.testing.assert_allclose(slam.T_map_odom("r0~2"), expected, atol=1e-6)
     slam.add_gps_fix("r0~2", 104.5, np.array([5.0, 3.5]), np.array([1.5, 1.5, 3.0]))
     assert slam.stats()["gps"]["fixes_ignored"] == 0  # georeferenced as r0 is
-    lone = GlobalSlam(cfg, {"r1": np.zeros(3)})  # r0~2 with no segment before it: floats
-    for kf in seg:
-        lone.admit(kf)
-    assert not lone.graph.is_anchored("r0~2") and lone.T_map_odom("r0~2") is None
+    for origin in (OdomOrigin(0.3, 0.0, 0.0), None):  # began where its odometry did: floats
+        other = GlobalSlam(cfg, {"r0": start})
+        for kf in [dataclasses.replace(_kf(s, 11), odom_origin=OdomOrigin(0, 0, 0)) for s in
+                   range(3)] + run(origin):  # fmt: skip
+            other.admit(kf)
+        assert not other.graph.is_anchored("r0~2") and other.T_map_odom("r0~2") is None
+
+
+def test_segments_beyond_the_graphs_chains_are_refused(caplog) -> None:
+    """The 27th run had raised out of the base station's loop (26 chains), and again
+    after every restart on its database."""
+    seg = RobotSegments(capacity=3)
+    assert [seg.segment("r0", s)[0] for s in (1, 2, 3, 4, 4)] == ["r0", "r0~2", "r0~3", None, None]
+    assert seg.refused == {("r0", 4)} and caplog.text.count("is not mapped") == 1
+    assert RobotSegments().capacity == 62
+
+
+def test_a_fresh_agent_waits_for_its_odometry_and_knows_it_is_in_flight() -> None:
+    """A scan before any odometry had started the agent's frame unplaced on the
+    source's, and a drone restarted in flight had flown its tour from the first
+    waypoint, into a wall."""
+    f = FreshStart.of(None)
+    assert not f.take(10.0, None, None) and not f.take(10.2, None, 1.0)  # held
+    assert f.take(10.3, np.array([6.0, 2.0, 0.3]), 1.0) and f.done and f.in_flight
+    assert (f.origin.x, f.origin.y, f.origin.yaw) == (6.0, 2.0, 0.3)
+    T = f.start_in_map(np.array([1.0, 1.0, 1.0, 0.0]))  # the start pose: the source's frame
+    np.testing.assert_allclose(T, [7.0, 3.0, 1.0, 0.3])
+    tour = np.array([[0.0, 0.0], [7.5, 3.0], [20.0, 0.0]])
+    assert nearest_waypoint(tour, T[:2]) == 1 and nearest_waypoint(np.zeros((0, 2)), T[:2]) == 0
+    ground = FreshStart.of(None)  # carried from where the autopilot began: not a restart
+    assert ground.take(0.0, np.array([6.0, 2.0, 0.3]), 0.0) and not ground.in_flight
+    assert ground.start_in_map(np.zeros(4)) is None and ground.origin is not None
+    blind = FreshStart.of(None)  # no odometry source: begins after ODOM_WAIT_S
+    assert not blind.take(0.0, None, None) and blind.take(0.6, None, None)
+    assert blind.origin is None and not blind.in_flight
+    resumed = FreshStart.of(ResumePoint(odom_origin=[1.0, 2.0, 3.0]))
+    assert resumed.done and resumed.as_list() == [1.0, 2.0, 3.0]

@@ -1,0 +1,81 @@
+"""How an agent that starts afresh (no state to take up, agent/resume.py) begins.
+
+Its `odom` frame begins at its first pose, at the identity; where that is on the
+odometry source's frame goes with every keyframe (`OdomOrigin`), so the base station
+can start a later run of the robot in the frame of the run before it
+(basestation/robot_segments.py). Started away from the source's origin and airborne,
+the agent was restarted in flight: where it is in `map` is its start pose composed
+with the source's pose (a simulator's odometry and a VIO's begin at the start pose),
+until the base station's correction comes, and it flies on from the waypoint of its
+tour nearest to it (from the first, it had flown into a wall). A first scan before any
+odometry (or altimeter reading) waits for it, `ODOM_WAIT_S` at most (an agent joining
+a running sensor stream).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+
+import numpy as np
+
+from agent.resume import ResumePoint
+from common.geometry import pose4_compose
+from protocol import OdomOrigin
+from protocol.messages import IN_FLIGHT_M
+
+log = logging.getLogger(__name__)
+
+ODOM_WAIT_S = 0.5  # s of scans held at the start for the odometry
+AIRBORNE_M = 0.3  # m: above this the drone is in the air
+
+
+class FreshStart:
+    @staticmethod
+    def of(resume: ResumePoint | None) -> FreshStart:
+        """An agent's start: a resumed one has begun, with the origin it had."""
+        o = None if resume is None or not resume.odom_origin else OdomOrigin(*resume.odom_origin)
+        return FreshStart(o, resumed=resume is not None)
+
+    def __init__(self, origin: OdomOrigin | None = None, resumed: bool = False) -> None:
+        """`resumed`: the agent took up a state (its `origin` is the one it had)."""
+        self.origin = origin
+        self.done = resumed  # begun: the origin is known (or there is no odometry)
+        self.in_flight = False
+        self._first_stamp: float | None = None
+
+    def take(self, stamp: float, odometry: np.ndarray | None, altitude: float | None) -> bool:
+        """At a scan of a fresh agent that has not begun: False to hold it (no odometry
+        or altimeter reading yet), True once it has begun (`origin`, `in_flight` set)."""
+        if self._first_stamp is None:
+            self._first_stamp = stamp
+        if (odometry is None or altitude is None) and stamp - self._first_stamp < ODOM_WAIT_S:
+            return False
+        self.done = True
+        if odometry is not None:
+            x, y, yaw = (float(v) for v in odometry[:3])
+            self.origin = OdomOrigin(x, y, yaw)
+            airborne = altitude is not None and altitude > AIRBORNE_M
+            self.in_flight = math.hypot(x, y) > IN_FLIGHT_M and airborne
+        return True
+
+    def start_in_map(self, T_map_odom: np.ndarray) -> np.ndarray | None:
+        """Restarted in flight: its `odom` frame in `map`, [x, y, z, yaw], from the start
+        pose (`T_map_odom`: where the source's frame begins) and `origin`; else None."""
+        if not self.in_flight or (o := self.origin) is None:
+            return None
+        T = pose4_compose(T_map_odom, [o.x, o.y, 0.0, o.yaw])
+        log.warning("restarted in flight %.1f m from the odometry's origin, with no state: "
+                    "at (%.1f, %.1f) in map", math.hypot(o.x, o.y), T[0], T[1])  # fmt: skip
+        return T
+
+    def as_list(self) -> list[float] | None:
+        """The origin as [x, y, yaw] (for the state file)."""
+        o = self.origin
+        return None if o is None else [o.x, o.y, o.yaw]
+
+
+def nearest_waypoint(tour: np.ndarray, xy: np.ndarray) -> int:
+    """Index of the waypoint of `tour` ((M, 2), map) nearest to `xy` (0 if none). In a
+    straight line: one behind a wall can be nearest (the guard holds the drone there)."""
+    return int(np.argmin(np.hypot(*(tour - xy).T))) if len(tour) else 0

@@ -7,9 +7,9 @@ can start a later run of the robot in the frame of the run before it
 the agent was restarted in flight: where it is in `map` is its start pose composed
 with the source's pose (a simulator's odometry and a VIO's begin at the start pose),
 until the base station's correction comes, and it flies on from the waypoint of its
-tour nearest to it (from the first, it had flown into a wall). A first scan before any
-odometry (or altimeter reading) waits for it, `ODOM_WAIT_S` at most (an agent joining
-a running sensor stream).
+tour nearest to it (from the first, it had flown into a wall). Its first keyframe waits
+for the odometry, and the decision for the altimeter, `ODOM_WAIT_S` at most (an agent
+joining a running sensor stream may get a scan first); its scans are taken meanwhile.
 """
 
 from __future__ import annotations
@@ -20,7 +20,7 @@ import math
 import numpy as np
 
 from agent.resume import ResumePoint
-from common.geometry import pose4_compose
+from common.geometry import pose4_compose, se2_compose, se2_inverse
 from protocol import OdomOrigin
 from protocol.messages import IN_FLIGHT_M
 
@@ -40,30 +40,38 @@ class FreshStart:
     def __init__(self, origin: OdomOrigin | None = None, resumed: bool = False) -> None:
         """`resumed`: the agent took up a state (its `origin` is the one it had)."""
         self.origin = origin
-        self.done = resumed  # begun: the origin is known (or there is no odometry)
+        self.begun = resumed  # the origin is known (or there is no odometry): keyframes go
+        self.settled = resumed  # and whether it was restarted in flight
         self.in_flight = False
         self._first_stamp: float | None = None
 
-    def take(self, stamp: float, odometry: np.ndarray | None, altitude: float | None) -> bool:
-        """At a scan of a fresh agent that has not begun: False to hold it (no odometry
-        or altimeter reading yet), True once it has begun (`origin`, `in_flight` set)."""
+    def take(
+        self, stamp: float, odometry: np.ndarray | None, altitude: float | None, pose: np.ndarray
+    ) -> bool:
+        """At each scan until settled: the odometry source's pose [x, y, yaw] at `stamp`
+        (None: none yet), the altimeter's latest (None: none yet) and the local pose
+        [x, y, z, yaw] then. True when it has just found the drone restarted in flight.
+        Either missing, it waits `ODOM_WAIT_S` from the first scan at most."""
         if self._first_stamp is None:
             self._first_stamp = stamp
-        if (odometry is None or altitude is None) and stamp - self._first_stamp < ODOM_WAIT_S:
+        late = stamp - self._first_stamp >= ODOM_WAIT_S
+        if not self.begun and (odometry is not None or late):
+            self.begun = True
+            if odometry is not None:  # T_source_odom = T_source_base * T_odom_base^-1
+                o = se2_compose(odometry[:3], se2_inverse(np.asarray(pose)[[0, 1, 3]]))
+                self.origin = OdomOrigin(float(o[0]), float(o[1]), float(o[2]))
+        if not self.begun or self.settled or (altitude is None and not late):
             return False
-        self.done = True
-        if odometry is not None:
-            x, y, yaw = (float(v) for v in odometry[:3])
-            self.origin = OdomOrigin(x, y, yaw)
-            airborne = altitude is not None and altitude > AIRBORNE_M
-            self.in_flight = math.hypot(x, y) > IN_FLIGHT_M and airborne
-        return True
+        self.settled, o = True, self.origin
+        far = o is not None and math.hypot(o.x, o.y) > IN_FLIGHT_M
+        self.in_flight = far and altitude is not None and altitude > AIRBORNE_M
+        return self.in_flight
 
-    def start_in_map(self, T_map_odom: np.ndarray) -> np.ndarray | None:
+    def start_in_map(self, T_map_odom: np.ndarray) -> np.ndarray:
         """Restarted in flight: its `odom` frame in `map`, [x, y, z, yaw], from the start
-        pose (`T_map_odom`: where the source's frame begins) and `origin`; else None."""
-        if not self.in_flight or (o := self.origin) is None:
-            return None
+        pose (`T_map_odom`: where the source's frame begins) and `origin`."""
+        o = self.origin
+        assert o is not None
         T = pose4_compose(T_map_odom, [o.x, o.y, 0.0, o.yaw])
         log.warning("restarted in flight %.1f m from the odometry's origin, with no state: "
                     "at (%.1f, %.1f) in map", math.hypot(o.x, o.y), T[0], T[1])  # fmt: skip

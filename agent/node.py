@@ -162,16 +162,13 @@ class AgentNode:
             self.tour_map = np.array(r.path, dtype=np.float64).reshape(-1, 2)
             self.follower.index = r.path_index
 
-    def _begin(self, stamp: float) -> bool:
-        """A fresh agent's start (agent/fresh_start.py); False: hold this scan."""
-        if not self.fresh.take(stamp, self.frontend.odometry_at(stamp), self.frontend.altitude):
-            return False
-        if (T := self.fresh.start_in_map(self.T_map_odom)) is not None:  # restarted in flight
-            with self._corr_lock:
-                self.T_map_odom, T7 = T, pose4_to_pose7(T)
-                self.smoother = PoseSmoother(self.cfg.agent.smoothing, T7)
-            self.follower.index = nearest_waypoint(self.tour_map, T[:2])
-        return True
+    def _restarted_in_flight(self) -> None:
+        """A fresh agent found in flight (agent/fresh_start.py): placed at its start pose
+        composed with the odometry's, on from its tour's nearest waypoint."""
+        with self._corr_lock:
+            self.T_map_odom = T = self.fresh.start_in_map(self.T_map_odom)
+            self.smoother = PoseSmoother(self.cfg.agent.smoothing, pose4_to_pose7(T))
+        self.follower.index = nearest_waypoint(self.tour_map, T[:2])
 
     # --- wiring -------------------------------------------------------------------------
     def start(self) -> None:
@@ -289,9 +286,6 @@ class AgentNode:
             self._command(scan.stamp)  # a re-sent lock-step tick: answer again
             return
         self.downlink.wait()  # lock-step: the base station's paths and answers for it
-        if not self.fresh.done and not self._begin(scan.stamp):
-            self._command(scan.stamp)  # a fresh agent waits for its odometry (0.5 s at most)
-            return
         ranges = np.asarray(scan.ranges, dtype=np.float64)
         self.guard.update(scan.angle_min + scan.angle_increment * np.arange(len(ranges)), ranges)
         result = self.frontend.add_scan(scan)
@@ -301,8 +295,12 @@ class AgentNode:
         self.last_scan_stamp = scan.stamp
         self.scans += 1
         self.local_trajectory.append([scan.stamp, *result.pose])
+        if not self.fresh.settled:  # a fresh agent's start (agent/fresh_start.py)
+            odometry, altitude = self.frontend.odometry_at(scan.stamp), self.frontend.altitude
+            if self.fresh.take(scan.stamp, odometry, altitude, result.pose):
+                self._restarted_in_flight()
         self._publish_control_pose(scan.stamp, result.pose)
-        if self.selector.is_due(result.pose) and self.outbox.has_room():
+        if self.fresh.begun and self.selector.is_due(result.pose) and self.outbox.has_room():
             self._send_keyframe(scan, result)
         # the state before the command: in lock-step the command releases the clock, and
         # the base station's exploration step at this stamp must see where the drone is

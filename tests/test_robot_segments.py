@@ -155,20 +155,24 @@ def test_segments_beyond_the_graphs_chains_are_refused(caplog) -> None:
 def test_a_fresh_agent_waits_for_its_odometry_and_knows_it_is_in_flight() -> None:
     """A scan before any odometry had started the agent's frame unplaced on the
     source's, and a drone restarted in flight had flown its tour from the first
-    waypoint, into a wall."""
-    f = FreshStart.of(None)
-    assert not f.take(10.0, None, None) and not f.take(10.2, None, 1.0)  # held
-    assert f.take(10.3, np.array([6.0, 2.0, 0.3]), 1.0) and f.done and f.in_flight
-    assert (f.origin.x, f.origin.y, f.origin.yaw) == (6.0, 2.0, 0.3)
+    waypoint, into a wall. Its scans are taken meanwhile; its first keyframe waits."""
+    f, here = FreshStart.of(None), np.array([0.1, 0.0, 1.0, 0.0])  # local pose at the scans
+    assert not f.take(10.0, None, None, here) and not f.begun  # no odometry yet
+    assert not f.take(10.1, np.array([6.1, 2.0, 0.3]), None, here) and f.begun
+    source_at_origin = se2_compose([6.1, 2.0, 0.3], [-0.1, 0.0, 0.0])  # at local (0, 0, 0)
+    np.testing.assert_allclose(f.as_list(), source_at_origin)
+    assert not f.settled and f.take(10.2, np.array([6.1, 2.0, 0.3]), 1.0, here)  # airborne
+    assert f.settled and f.in_flight
     T = f.start_in_map(np.array([1.0, 1.0, 1.0, 0.0]))  # the start pose: the source's frame
-    np.testing.assert_allclose(T, [7.0, 3.0, 1.0, 0.3])
+    np.testing.assert_allclose(T, [*(source_at_origin[:2] + 1.0), 1.0, 0.3])
     tour = np.array([[0.0, 0.0], [7.5, 3.0], [20.0, 0.0]])
     assert nearest_waypoint(tour, T[:2]) == 1 and nearest_waypoint(np.zeros((0, 2)), T[:2]) == 0
     ground = FreshStart.of(None)  # carried from where the autopilot began: not a restart
-    assert ground.take(0.0, np.array([6.0, 2.0, 0.3]), 0.0) and not ground.in_flight
-    assert ground.start_in_map(np.zeros(4)) is None and ground.origin is not None
-    blind = FreshStart.of(None)  # no odometry source: begins after ODOM_WAIT_S
-    assert not blind.take(0.0, None, None) and blind.take(0.6, None, None)
+    assert not ground.take(0.0, np.array([6.0, 2.0, 0.3]), 0.0, np.zeros(4))
+    assert ground.settled and not ground.in_flight and ground.origin is not None
+    blind = FreshStart.of(None)  # no odometry source and no altimeter: on after ODOM_WAIT_S
+    assert not blind.take(0.0, None, None, np.zeros(4)) and not blind.begun
+    assert not blind.take(0.6, None, None, np.zeros(4)) and blind.begun and blind.settled
     assert blind.origin is None and not blind.in_flight
     resumed = FreshStart.of(ResumePoint(odom_origin=[1.0, 2.0, 3.0]))
-    assert resumed.done and resumed.as_list() == [1.0, 2.0, 3.0]
+    assert resumed.settled and resumed.as_list() == [1.0, 2.0, 3.0]

@@ -166,9 +166,12 @@ class AgentNode:
         """A fresh agent found in flight (agent/fresh_start.py): placed at its start pose
         composed with the odometry's, on from its tour's nearest waypoint."""
         with self._corr_lock:
-            self.T_map_odom = T = self.fresh.start_in_map(self.T_map_odom)
-            self.smoother = PoseSmoother(self.cfg.agent.smoothing, pose4_to_pose7(T))
-        self.follower.index = nearest_waypoint(self.tour_map, T[:2])
+            if self.epoch < 0:  # (no correction yet: the base station's would know better)
+                self.T_map_odom = T = self.fresh.start_in_map(self.T_map_odom)
+                self.smoother = PoseSmoother(self.cfg.agent.smoothing, pose4_to_pose7(T))
+                self._new_correction = True  # the path again, in the new frame
+            here = odom_to_map(self.T_map_odom, self.frontend.pose)[:2]
+        self.follower.index = nearest_waypoint(self.tour_map, here)
 
     # --- wiring -------------------------------------------------------------------------
     def start(self) -> None:

@@ -16,7 +16,7 @@ import time
 from pathlib import Path
 
 import pytest
-from process_helpers import end_mission, stored_keyframes, tour_mission, wait_for
+from process_helpers import TourMission, end_mission, stored_keyframes, tour_mission, wait_for
 
 from collabslam.summary import build_summary
 from collabslam.supervisor import ProcessGroup
@@ -25,12 +25,17 @@ from protocol import Keyframe, decode
 pytestmark = pytest.mark.e2e
 
 
-def test_a_restarted_agent_goes_on_where_it_was(tmp_path: Path) -> None:
+def _tour_with_a_restart(tmp_path: Path, with_state: bool) -> tuple[TourMission, int, float]:
+    """A two-drone tour whose r0 agent is SIGKILLed once every robot has 30 keyframes
+    stored and started again 1 s later, on its state folder or afresh (none), until 40
+    more of r0's are stored (as r0, or as its segment r0~2). (the mission, r0's keyframes
+    stored at the kill, wall time)"""
     m = tour_mission(tmp_path)
     out, robots, db = m.out, m.robots, m.out / "base.db"
 
     def agent_args(rid: str) -> list[str]:
-        return m.agent(rid, "--set", f'agent.state_dir="{out / "state" / rid}"')
+        state = ["--set", f'agent.state_dir="{out / "state" / rid}"'] if with_state else []
+        return m.agent(rid, *state)
 
     g = ProcessGroup(out)
     t0 = time.monotonic()
@@ -45,13 +50,18 @@ def test_a_restarted_agent_goes_on_where_it_was(tmp_path: Path) -> None:
         before = stored_keyframes(db, "r0")
         time.sleep(1.0)
         agents["r0"] = g.spawn("r0-restarted", agent_args("r0"))
-        wait_for(lambda: stored_keyframes(db, "r0") >= before + 40, 60,
+        new = ("r0", before + 40) if with_state else ("r0~2", 40)
+        wait_for(lambda: stored_keyframes(db, new[0]) >= new[1], 60,
                  "keyframes of the restarted agent", g, [sim, *agents.values()])  # fmt: skip
         end_mission(g, sim, list(agents.values()), base)
     finally:
         g.terminate_all()
-    wall = time.monotonic() - t0
+    return m, before, time.monotonic() - t0
 
+
+def test_a_restarted_agent_goes_on_where_it_was(tmp_path: Path) -> None:
+    m, before, wall = _tour_with_a_restart(tmp_path, with_state=True)
+    out, robots, db = m.out, m.robots, m.out / "base.db"
     stats = json.loads((out / "basestation.json").read_text())["robots"]["r0"]
     agent = json.loads((out / "agents" / "r0.json").read_text())  # the restarted one's
     assert not stats["another_source"] and stats["id_conflicts"] == 0
@@ -123,29 +133,11 @@ def test_a_restarted_agent_explores_on(tmp_path: Path, with_state: bool) -> None
 def test_an_agent_restarted_afresh_maps_on_as_a_new_segment(tmp_path: Path) -> None:
     """Restarted with no state to take up (no state folder here; or one older than
     `agent.resume_within_s`) the agent starts again at seq 0 in a session of its own: the
-    base station maps it as segment r0~2, matched onto the map, and it flies on from where
-    it is, in its odometry's frame. Before, its keyframes were refused as another
-    source's, and nothing more of r0 was mapped."""
-    m = tour_mission(tmp_path)
-    out, robots, db = m.out, m.robots, m.out / "base.db"
-    g = ProcessGroup(out)
-    t0 = time.monotonic()
-    try:
-        base = g.spawn("basestation", m.base(db))
-        sim = g.spawn("sim", m.sim())
-        agents = {r: g.spawn(r, m.agent(r)) for r in robots}
-        wait_for(lambda: all(stored_keyframes(db, r) >= 30 for r in robots), 60,
-                 "keyframes of every robot", g, [sim, *agents.values()])  # fmt: skip
-        os.kill(agents["r0"].proc.pid, signal.SIGKILL)
-        agents["r0"].proc.wait()
-        time.sleep(1.0)
-        agents["r0"] = g.spawn("r0-restarted", m.agent("r0"))
-        wait_for(lambda: stored_keyframes(db, "r0~2") >= 150, 60,
-                 "keyframes of the restarted agent", g, [sim, *agents.values()])  # fmt: skip
-        end_mission(g, sim, list(agents.values()), base)
-    finally:
-        g.terminate_all()
-    wall = time.monotonic() - t0
+    base station maps it as segment r0~2, started where r0's odometry frame puts it (it
+    began in flight), and it flies on from its tour's waypoint nearest to it. Before, its
+    keyframes were refused as another source's, and nothing more of r0 was mapped."""
+    m, _, wall = _tour_with_a_restart(tmp_path, with_state=False)
+    out, robots = m.out, m.robots
 
     base_stats = json.loads((out / "basestation.json").read_text())
     first, second = base_stats["robots"]["r0"], base_stats["robots"]["r0~2"]

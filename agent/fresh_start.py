@@ -56,15 +56,16 @@ class FreshStart:
             self._first_stamp = stamp
         late = stamp - self._first_stamp >= ODOM_WAIT_S
         if not self.begun and (odometry is not None or late):
-            self.begun = True
-            if odometry is not None:  # T_source_odom = T_source_base * T_odom_base^-1
-                o = se2_compose(odometry[:3], se2_inverse(np.asarray(pose)[[0, 1, 3]]))
-                self.origin = OdomOrigin(float(o[0]), float(o[1]), float(o[2]))
+            self.begun = True  # T_source_odom = T_source_base * T_odom_base^-1
+            self.origin = None if odometry is None else self.now(odometry, pose)
         if not self.begun or self.settled or (altitude is None and not late):
             return False
         self.settled, o = True, self.origin
         far = o is not None and math.hypot(o.x, o.y) > IN_FLIGHT_M
         self.in_flight = far and altitude is not None and altitude > AIRBORNE_M
+        if self.in_flight and o is not None:
+            log.warning("restarted in flight %.1f m from the odometry's origin, with no "
+                        "state to take up", math.hypot(o.x, o.y))  # fmt: skip
         return self.in_flight
 
     def start_in_map(self, T_map_odom: np.ndarray) -> np.ndarray:
@@ -72,10 +73,17 @@ class FreshStart:
         pose (`T_map_odom`: where the source's frame begins) and `origin`."""
         o = self.origin
         assert o is not None
-        T = pose4_compose(T_map_odom, [o.x, o.y, 0.0, o.yaw])
-        log.warning("restarted in flight %.1f m from the odometry's origin, with no state: "
-                    "at (%.1f, %.1f) in map", math.hypot(o.x, o.y), T[0], T[1])  # fmt: skip
-        return T
+        return pose4_compose(T_map_odom, [o.x, o.y, 0.0, o.yaw])
+
+    def now(self, odometry: np.ndarray | None, pose: np.ndarray) -> OdomOrigin | None:
+        """Where the odom frame's origin is on the source's frame now (a keyframe's
+        `odom_origin`): local SLAM and the odometry drift apart as it corrects it, so the
+        base station pairs a run's latest with its latest `T_map_odom`. `origin` without
+        the odometry (None: none yet)."""
+        if odometry is None:
+            return self.origin
+        o = se2_compose(odometry[:3], se2_inverse(np.asarray(pose)[[0, 1, 3]]))
+        return OdomOrigin(float(o[0]), float(o[1]), float(o[2]))
 
     def as_list(self) -> list[float] | None:
         """The origin as [x, y, yaw] (for the state file)."""

@@ -333,7 +333,7 @@ class AgentNode:
             delta=pose4_to_pose7(delta),
             delta_cov=cov,
             scan2d=scan2d,
-            odom_origin=self.fresh.origin,
+            odom_origin=self.fresh.now(self.frontend.odometry_at(scan.stamp), pose),
         )
         if not sent:  # refused (an altimeter's 1e9 m once): the next spans from the last sent
             self.selector.last_pose = last

@@ -190,17 +190,8 @@ class GlobalSlam:
         if kf.seq == 0:  # a known start is T_map_odom: a chain can start on the way
             odom, start = pose7_to_pose4(kf.pose_odom)[[0, 1, 3]], self.known_starts.get(rid)
             start, start_sigmas = None if start is None else se2_compose(start, odom), None
-            T = (
-                None
-                if start is not None
-                else segment_start(
-                    rid,
-                    self.graph.robots(),
-                    self.T_map_odom,
-                    lambda s: self.store.robot(s).odom_origin,
-                )
-            )
-            if T is not None:  # (a later run of a robot's agent: GNSS fixes as its first's)
+            T = segment_start(rid, self.graph.robots(), self.T_map_odom, self.store.robot)
+            if start is None and T is not None:  # a later run (GNSS fixes as its first's)
                 start, start_sigmas = se2_compose(T, odom), SEGMENT_START_SIGMAS
                 if robot_of(rid) in self._georeferenced:
                     self._georeferenced.add(rid)

@@ -56,7 +56,8 @@ class RobotKeyframes:
     stale_chain: int = 0  # keyframes of an older chain, dropped
     chain_conflicts: int = 0  # keyframes of a newer chain after some were admitted
     session: int = 0  # the agent run its keyframes are from (basestation/robot_segments.py)
-    odom_origin: np.ndarray | None = None  # its odom frame's origin in the odometry's [x y yaw]
+    odom_origin: np.ndarray | None = None  # at its first keyframe: on the odometry's [x y yaw]
+    odom_origin_latest: np.ndarray | None = None  # at its latest keyframe with one
 
     def chain_covariance(self, i: ArrayLike, j: ArrayLike) -> np.ndarray:
         """Approximate (n, 3, 3) covariances of nodes j relative to nodes i (index arrays)
@@ -202,9 +203,11 @@ class KeyframeStore:
                     k.seq,
                     k.stamp,
                 )
+            o = None if k.odom_origin is None else np.array([k.odom_origin.x, k.odom_origin.y,
+                                                             k.odom_origin.yaw])  # fmt: skip
             if not len(r.stamps):
-                r.session, o = k.session, k.odom_origin
-                r.odom_origin = None if o is None else np.array([o.x, o.y, o.yaw])
+                r.session, r.odom_origin = k.session, o
+            r.odom_origin_latest = o if o is not None else r.odom_origin_latest
             r.stamps.append([k.stamp])
             r.poses_odom.append(pose7_to_pose4(k.pose_odom))
             c = k.delta_cov

@@ -75,24 +75,22 @@ def segment_start(
     segment: str,
     robots: Iterable[str],
     T_map_odom: Callable[[str], np.ndarray | None],
-    odom_origin: Callable[[str], np.ndarray | None],
+    keyframes: Callable[[str], Any],
 ) -> np.ndarray | None:
     """Where a later segment's odom frame begins, T_map_odom [x, y, yaw], if it began in
-    flight (`IN_FLIGHT_M` from its odometry source's origin: the source's frame is the
-    one the robot's run before it had) and a segment of the robot before it is on the
-    map (`T_map_odom(s)`, None while not) with its own `odom_origin` (the source's pose
-    where a segment's frame begins, [x, y, yaw]; None: not known). None otherwise: the
+    flight (its first keyframe's `odom_origin` more than `IN_FLIGHT_M` from its odometry
+    source's origin: the source's frame is the one the robot's run before it had) and
+    that run (the segment just before it, `keyframes(s).odom_origin_latest` paired with
+    `T_map_odom(s)`, both at its latest keyframe) is on the map. None otherwise: the
     segment floats (a run that began where its source did is another flight or drone)."""
-    robot, n, own = robot_of(segment), _number(segment), odom_origin(segment)
-    if own is None or math.hypot(own[0], own[1]) <= IN_FLIGHT_M:
+    robot, n, own = robot_of(segment), _number(segment), keyframes(segment).odom_origin
+    before = [s for s in robots if robot_of(s) == robot and _number(s) < n]
+    if own is None or math.hypot(own[0], own[1]) <= IN_FLIGHT_M or not before:
         return None
-    before = sorted((s for s in robots if robot_of(s) == robot and _number(s) < n), key=_number)
-    placed = [(s, T, o) for s in before
-              if (T := T_map_odom(s)) is not None and (o := odom_origin(s)) is not None
-              ]  # fmt: skip
-    if not placed:
+    s = max(before, key=_number)  # (not across a run of another flight)
+    T, o = T_map_odom(s), keyframes(s).odom_origin_latest
+    if T is None or o is None:
         return None
-    s, T, o = placed[-1]
     T_map_source = se2_compose(T, se2_inverse(o))  # the odometry source's frame in map
     log.info(
         "robot segment %s starts in the odometry frame of %s: at (%.2f, %.2f, %.1f deg), loosely",

@@ -208,9 +208,10 @@ def run_faulted(
                 else:
                     a.proc.send_signal(signal.SIGINT)
                     g.wait_all_or_fail([a], [sim, m.base], cfg.agent.drain_timeout_s + 60)
-                    # it drained and forgot its state: what it sent
-                    stats = json.loads((out / "agents" / f"{who}.json").read_text())
-                    m.fresh_sent[who] = int(stats["keyframes_sent"])
+                    # it drained and forgot its state (else the next one resumes): its sent
+                    if not (out / "state" / who / "state.json").exists():
+                        stats = json.loads((out / "agents" / f"{who}.json").read_text())
+                        m.fresh_sent[who] = int(stats["keyframes_sent"])
                 time.sleep(1.0)
                 agents[ids.index(who)] = g.spawn(f"{who}-restarted", agent_args(who))
                 m.agent_restarts += what == "agent_kill"

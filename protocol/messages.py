@@ -24,14 +24,11 @@ ROBOT_ID_RE = re.compile(r"^[A-Za-z0-9_-]{1,32}$")
 KEYFRAME_MAX_STEP_M = 1000.0  # m
 KEYFRAME_VAR_RANGE = (1e-10, 100.0)  # m^2 or rad^2, each diagonal entry of delta_cov
 MAX_CHAIN = 2**31 - 1  # keyframe chains (an agent starts one per base station that lost its)
-# Agent runs: `session` on the messages to and from an agent is drawn at random when it
-# starts afresh and kept when it resumes (agent/resume.py); 0 from an agent that does not
-# tell. The base station maps each (robot_id, session) to one trajectory segment of the
-# robot (basestation/robot_segments.py); an agent takes what is sent to it with its own
-# session or 0.
+# `session`, to and from an agent: its run, random when it starts afresh, kept when it
+# resumes (0: it does not say); one trajectory segment each (basestation/robot_segments.py)
 MAX_SESSION = 2**32 - 1
-# m: a run whose odom frame begins this far from its odometry source's origin (`OdomOrigin`)
-# began in flight: it shares the source's frame with the robot's run before it
+# m: a run whose odom frame begins this far from its odometry source's origin began in
+# flight, in the source's frame of the robot's run before it (`OdomOrigin`)
 IN_FLIGHT_M = 1.0
 GNSS_ALTITUDE_RANGE_M = (-1000.0, 100_000.0)  # m above the ellipsoid
 ROBOT_STATUSES = ("starting", "waiting", "flying", "blocked", "hovering", "done", "landed")
@@ -226,10 +223,12 @@ class Scan2D:
 
 @message
 class OdomOrigin:
-    """Where an agent's `odom` frame begins (its first pose), as the odometry source's
-    pose then, [x, y, yaw] in the source's own frame (m, rad). Two runs of a robot's
-    agent in one flight share that frame: the base station starts a later run's frame
-    where the earlier run's puts it (basestation/robot_segments.py)."""
+    """Where an agent's `odom` frame's origin is on its odometry source's frame at a
+    keyframe, [x, y, yaw] (m, rad): the source's pose composed with the inverse of the
+    local pose (they drift apart as local SLAM corrects the odometry). Two runs of a
+    robot's agent in one flight share the source's frame: the base station starts a
+    later run's frame where the earlier run's latest puts it (basestation/
+    robot_segments.py)."""
 
     x: float
     y: float
@@ -267,7 +266,7 @@ class Keyframe(Message):
     cloud3d: Cloud3D | None = None
     chain: int = 0
     session: int = 0  # the agent's run (MAX_SESSION)
-    odom_origin: OdomOrigin | None = None  # None: no odometry source (or an older agent)
+    odom_origin: OdomOrigin | None = None  # None: no odometry (yet), or an older agent
 
     def validate(self) -> None:
         super().validate()

@@ -148,6 +148,8 @@ def test_an_agent_restarted_afresh_maps_on_as_a_new_segment(tmp_path: Path) -> N
     assert (out / "trajectories" / "r0~2.tum").is_file()  # on the map
     log = (out / "logs" / "r0-restarted.log").read_text()
     assert "restarted in flight" in log and agent["correction_epoch"] > 0
+    base_log = (out / "logs" / "basestation.log").read_text()
+    assert "robot segment r0~2 starts in the odometry frame of r0" in base_log  # the prior
     assert agent["guard_limited_ticks"] < 0.2 * agent["scans"]  # flew on, not into a wall
     summary = build_summary(out, m.world, robots, wall)
     assert summary["map_accuracy"] >= 0.95

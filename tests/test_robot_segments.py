@@ -20,7 +20,7 @@ from basestation.node import BaseStationNode
 from basestation.robot_segments import RobotSegments, as_sent, robot_of
 from common.bus import Bus
 from common.config import Config, ZenohConfig, load_config
-from common.geometry import se2_compose
+from common.geometry import se2_compose, se2_inverse
 from protocol import Keyframe, KeyframeAck, OdomOrigin, PoseCorrection, RobotState, encode
 
 
@@ -119,26 +119,29 @@ def test_a_later_segment_starts_where_the_one_before_left_off() -> None:
     )
     start = np.array([2.0, 1.0, 0.5])
     slam = GlobalSlam(cfg, {"r0": start})
-    for seq in range(10):  # along x in its odom frame, begun at the odometry's origin
-        slam.admit(dataclasses.replace(_kf(seq, 11), odom_origin=OdomOrigin(0.0, 0.0, 0.0)))
+    for seq in range(10):  # along x in its odom frame; the odometry drifts from it
+        origin = OdomOrigin(3.0 + 0.02 * seq, -1.0, 0.8 + 0.01 * seq)
+        slam.admit(dataclasses.replace(_kf(seq, 11), odom_origin=origin))
     slam.optimize()
+    latest = [origin.x, origin.y, origin.yaw]  # paired with r0's latest T_map_odom
 
-    def run(origin: OdomOrigin) -> list[Keyframe]:  # from the identity, in a new session
+    def run(origin: OdomOrigin | None) -> list[Keyframe]:  # from the identity, new session
         return [dataclasses.replace(_kf(j, 22, 100.0), robot_id="r0~2", odom_origin=origin)
                 for j in range(4)]  # fmt: skip
 
-    for kf in run(OdomOrigin(4.0, 0.0, 0.0)):
+    for kf in run(OdomOrigin(4.0, 2.0, -0.3)):
         slam.admit(kf)
     slam.optimize()
     assert slam.graph.is_anchored("r0~2")
-    expected = se2_compose(start, [4.0, 0.0, 0.0])  # no matches yet: the prior holds
+    source = se2_compose(slam.T_map_odom("r0"), se2_inverse(latest))  # its frame in map
+    expected = se2_compose(source, [4.0, 2.0, -0.3])  # no matches yet: the prior holds
     np.testing.assert_allclose(slam.T_map_odom("r0~2"), expected, atol=1e-6)
     slam.add_gps_fix("r0~2", 104.5, np.array([5.0, 3.5]), np.array([1.5, 1.5, 3.0]))
     assert slam.stats()["gps"]["fixes_ignored"] == 0  # georeferenced as r0 is
     for origin in (OdomOrigin(0.3, 0.0, 0.0), None):  # began where its odometry did: floats
         other = GlobalSlam(cfg, {"r0": start})
-        for kf in [dataclasses.replace(_kf(s, 11), odom_origin=OdomOrigin(0, 0, 0)) for s in
-                   range(3)] + run(origin):  # fmt: skip
+        for kf in [dataclasses.replace(_kf(s, 11), odom_origin=OdomOrigin(3, -1, 0.8)) for s
+                   in range(3)] + run(origin):  # fmt: skip
             other.admit(kf)
         assert not other.graph.is_anchored("r0~2") and other.T_map_odom("r0~2") is None
 

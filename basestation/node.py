@@ -424,8 +424,8 @@ class BaseStationNode:
         stamp = time.time()
         for rid in self.slam.graph.robots():
             T = self.slam.T_map_odom(rid)
-            if T is None or self.slam.store.robot(rid).foreign:  # another agent's frame
-                continue
+            if T is None or self.slam.store.robot(rid).foreign or not self.segments.served(rid):
+                continue  # (not on the map; another agent's frame; a run gone quiet)
             T7 = pose4_to_pose7([T[0], T[1], 0.0, T[2]])
             self._send("correction", PoseCorrection(rid, self.epoch, stamp, T7))
             self.clock.sent_correction(rid, self.epoch)

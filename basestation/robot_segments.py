@@ -38,6 +38,7 @@ import dataclasses
 import logging
 import math
 import threading
+import time
 from collections.abc import Callable, Iterable, Mapping
 from typing import Any, TypeVar
 
@@ -50,6 +51,7 @@ from protocol.messages import IN_FLIGHT_M
 log = logging.getLogger(__name__)
 
 SEP = "~"  # between a robot id and the number of its segment
+PAST_QUIET_S = 30.0  # s: a past segment not heard from this long gets no more corrections
 # [m, m, rad]: how loosely a later segment starts where the odometry source's frame puts
 # it (`segment_start`): the source drifted, where the run before it had its local SLAM
 SEGMENT_START_SIGMAS = (2.0, 2.0, 0.25)
@@ -112,6 +114,7 @@ class RobotSegments:
         self._session: dict[str, int] = {}  # segment -> session
         self._current: dict[str, str] = {}  # robot id -> its newest segment
         self._count: dict[str, int] = {}  # robot id -> segments so far
+        self._heard: dict[str, float] = {}  # segment -> when its agent last sent (monotonic)
 
     def restore(self, sessions: Mapping[str, int]) -> None:
         """The segments of a database: segment -> the session of its keyframes, in the
@@ -127,6 +130,7 @@ class RobotSegments:
         with self._lock:
             segment = self._of.get((robot_id, session))
             if segment is not None:
+                self._heard[segment] = time.monotonic()
                 return segment, None
             if len(self._session) >= self.capacity:
                 if (robot_id, session) not in self.refused:
@@ -140,6 +144,7 @@ class RobotSegments:
             segment = robot_id if n == 1 else f"{robot_id}{SEP}{n}"
             past = self._current.get(robot_id)
             self._add(robot_id, session, segment, n)
+            self._heard[segment] = time.monotonic()
         if past is not None:
             log.warning("robot %s: another run of its agent (session %d; %s was session %d): "
                         "mapped as %s (restarted with no state to take up, or two drones "
@@ -152,6 +157,14 @@ class RobotSegments:
         self._session[segment] = session
         self._current[robot_id] = segment
         self._count[robot_id] = max(n, self._count.get(robot_id, 0))
+
+    def served(self, segment: str) -> bool:
+        """Whether corrections go to `segment`: its robot's current one, or a past one
+        heard from within `PAST_QUIET_S` (a second drone with the id; a restarted run's
+        old session is dead: corrections for it would only load the link)."""
+        if self._current.get(robot_of(segment), segment) == segment:
+            return True
+        return time.monotonic() - self._heard.get(segment, -math.inf) < PAST_QUIET_S
 
     def current(self, robot_id: str) -> str:
         """The robot's newest segment (its id if it has none yet)."""

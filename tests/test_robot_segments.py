@@ -46,6 +46,9 @@ def test_each_run_of_an_agent_is_a_segment_of_its_robot() -> None:
     assert encode(as_sent(dataclasses.replace(kf, robot_id="r0~2"))) == encode(kf)
     assert as_sent(kf) is kf
     assert seg.stats() == {"r0": {"r0": 11, "r0~2": 22}}
+    assert seg.served("r0~2") and seg.served("r0")  # r0's run was heard just now
+    seg._heard["r0"] -= 31.0  # quiet for 31 s: dead (restarted), not another drone
+    assert not seg.served("r0") and seg.served("r0~2") and seg.served("r1")
     again = RobotSegments()  # a base station restarted on its database
     again.restore({"r0": 11, "r1": 12, "r0~2": 22})
     assert again.segment("r0", 22) == ("r0~2", None) and again.current("r0") == "r0~2"

@@ -16,7 +16,7 @@ operating system at each keyframe (a killed process loses none). When a third fi
 starts the oldest is deleted (unless it holds keyframes not acknowledged yet), so the
 latest `max_keyframes / 2` at least are always there (2D keyframes of 1081 beams:
 ~2.8 kB each, 20,000 ~55 MB). The process holds 8 bytes per keyframe (where it starts
-in its file).
+in its file). A new chain's keyframes replace them whole or not at all (`replace`).
 """
 
 from __future__ import annotations
@@ -34,6 +34,8 @@ from typing import BinaryIO
 log = logging.getLogger(__name__)
 
 _LEN = struct.Struct("<I")
+NEXT = "next-"  # a replacement's files (`KeyframeHistory.replace`) ...
+NEXT_DONE = "next-done"  # ... written whole
 
 
 class _Segment:
@@ -47,16 +49,16 @@ class _Segment:
         self._close = weakref.finalize(self, file.close)
 
     @classmethod
-    def new(cls, first_seq: int, directory: Path | None) -> _Segment:
+    def new(cls, first_seq: int, directory: Path | None, prefix: str = "") -> _Segment:
         if directory is None:
             return cls(first_seq, tempfile.TemporaryFile(prefix="collabslam-keyframes-"))
-        path = directory / f"keyframes-{first_seq:010d}.log"
+        path = directory / f"{prefix}keyframes-{first_seq:010d}.log"
         return cls(first_seq, open(path, "w+b"), path)  # noqa: SIM115 (kept open)
 
     @classmethod
     def load(cls, path: Path) -> _Segment:
         """A file written before (a restart): its records read up to a torn last one."""
-        seg = cls(int(path.stem.split("-")[1]), open(path, "r+b"), path)  # noqa: SIM115
+        seg = cls(int(path.stem.rsplit("-", 1)[1]), open(path, "r+b"), path)  # noqa: SIM115
         data = path.read_bytes()
         at = 0
         while at + _LEN.size <= len(data):
@@ -93,6 +95,11 @@ class _Segment:
         if self.path is not None:
             self.path.unlink(missing_ok=True)
 
+    def rename(self, path: Path) -> None:
+        assert self.path is not None
+        os.replace(self.path, path)
+        self.path = path
+
 
 class KeyframeHistory:
     def __init__(self, max_keyframes: int, directory: str | Path | None = None) -> None:
@@ -102,6 +109,7 @@ class KeyframeHistory:
         self._segments: list[_Segment] = []  # oldest first, at most two
         self.dropped = 0  # keyframes deleted with an older file
         if self.directory is not None:
+            self._finish_replace()
             for path in sorted(self.directory.glob("keyframes-*.log")):
                 seg = _Segment.load(path)
                 if self._segments and seg.first_seq != self.next_seq:
@@ -156,6 +164,50 @@ class KeyframeHistory:
         for seg in list(self._segments):
             skip = 0 if start_seq is None else min(max(0, start_seq - seg.first_seq), len(seg))
             yield from seg.payloads(skip)
+
+    def replace(self, payloads: list[bytes]) -> None:
+        """Keep `payloads` (seqs from 0: a new keyframe chain) instead of what is kept. In
+        a folder, the new files are written beside the old ones and take their place only
+        once whole (`NEXT_DONE`): a kill while writing keeps the old ones (a kill had lost
+        every keyframe not rewritten yet). A disk error turns the history off (`add`)."""
+        if self.max_keyframes <= 0:
+            return
+        try:
+            per_file = max(1, self.max_keyframes // 2)
+            new = [_Segment.new(i, self.directory, NEXT) for i in range(0, len(payloads), per_file)]
+            for i, p in enumerate(payloads):
+                new[i // per_file].append(p)
+            if self.directory is not None:
+                (self.directory / NEXT_DONE).touch()
+            old, self._segments = self._segments, new
+            for seg in old:
+                seg.delete()
+            if self.directory is not None:
+                self._finish_replace()
+        except OSError as exc:
+            log.error("keyframe history off (%s): a base station that loses its "
+                      "database, or this agent restarted, cannot get them", exc)  # fmt: skip
+            self.max_keyframes = 0
+            self.clear()
+
+    def _finish_replace(self) -> None:
+        """A replacement's new files (`NEXT` + name): whole (`NEXT_DONE`), they take the
+        old files' place; else they are dropped."""
+        assert self.directory is not None
+        done = (self.directory / NEXT_DONE).exists()
+        if done:
+            for path in self.directory.glob("keyframes-*.log"):
+                path.unlink()
+        by_path = {s.path: s for s in self._segments}
+        for path in sorted(self.directory.glob(f"{NEXT}keyframes-*.log")):
+            seg = by_path.get(path)
+            if not done:
+                path.unlink()
+            elif seg is not None:
+                seg.rename(path.with_name(path.name[len(NEXT) :]))
+            else:
+                os.replace(path, path.with_name(path.name[len(NEXT) :]))
+        (self.directory / NEXT_DONE).unlink(missing_ok=True)
 
     def clear(self) -> None:
         """Forget (and delete) every keyframe kept."""

@@ -188,14 +188,13 @@ class Outbox:
             n = 0 if first is None or first > pending else pending - first
             kept = list(itertools.islice(self.history.payloads(), n))  # acknowledged
             lost = pending - n  # acknowledged, not kept
-            payloads = [*kept, *self._pending.values()]
-            self.history.clear()
-            self._pending.clear()
+            payloads = [
+                relabel(p, Keyframe, seq=i, chain=chain, **({"delta": IDENTITY7} if i == 0 else {}))
+                for i, p in enumerate([*kept, *self._pending.values()])
+            ]
+            self.history.replace(payloads)  # (whole, or the old ones kept: a kill meanwhile)
             self._sent_at.clear()
-            for i, p in enumerate(payloads):
-                start = {"delta": IDENTITY7} if i == 0 else {}
-                self._pending[i] = relabel(p, Keyframe, seq=i, chain=chain, **start)
-                self.history.add(i, self._pending[i], keep_from=0)  # none is acknowledged
+            self._pending = OrderedDict(enumerate(payloads))
             self.acked_seq, self.added_seq, self._resent_upto = -1, len(payloads) - 1, -1
             self.chain = chain
             self._backoff, self._resend_now = 1, True

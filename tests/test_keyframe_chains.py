@@ -6,12 +6,14 @@ tests/test_basestation_recovery.py)."""
 from __future__ import annotations
 
 import logging
+from pathlib import Path
 
 import msgpack
 import numpy as np
 import pytest
 from process_helpers import synthetic_keyframe
 
+from agent import keyframe_history as kh
 from agent.keyframe_history import KeyframeHistory
 from agent.outbox import IDENTITY7, Outbox
 from basestation.global_slam import GlobalSlam
@@ -146,3 +148,45 @@ def test_a_field_added_later_may_be_absent() -> None:
         decode(msgpack.packb(env, use_bin_type=True), KeyframeAck)
     with pytest.raises(ProtocolError, match="chain"):
         decode(encode(_kf(0, chain=-1)), Keyframe)
+
+
+def test_a_new_chain_replaces_the_files_whole_or_not_at_all(tmp_path: Path) -> None:
+    """A kill while the kept keyframes were rewritten as a new chain had lost every one
+    not rewritten yet (the old files were deleted first). Now the new files are written
+    beside the old ones and take their place once whole."""
+    h = KeyframeHistory(4, tmp_path)  # files of 2
+    for seq in range(5):
+        h.add(seq, b"old%d" % seq, keep_from=0)
+    new = [b"new%d" % i for i in range(5)]
+
+    class Killed(Exception):
+        pass
+
+    real_append = kh._Segment.append
+    calls = {"n": 0}
+
+    def dying_append(seg: kh._Segment, payload: bytes) -> None:
+        calls["n"] += 1
+        if calls["n"] == 4:  # killed with 3 of 5 written
+            raise Killed
+        real_append(seg, payload)
+
+    kh._Segment.append = dying_append  # type: ignore[method-assign]
+    try:
+        with pytest.raises(Killed):
+            h.replace(new)
+    finally:
+        kh._Segment.append = real_append  # type: ignore[method-assign]
+    again = KeyframeHistory(4, tmp_path)  # the next agent: the old ones, whole
+    assert list(again.payloads()) == [b"old%d" % s for s in range(5)]
+    assert not list(tmp_path.glob("next-*"))
+    again.replace(new)
+    assert list(again.payloads()) == new
+    assert list(KeyframeHistory(4, tmp_path).payloads()) == new
+    # killed after the new files were whole, before they took the old ones' place
+    seg = kh._Segment.new(0, tmp_path, kh.NEXT)
+    seg.append(b"x0")
+    seg.append(b"x1")
+    (tmp_path / kh.NEXT_DONE).touch()
+    assert list(KeyframeHistory(4, tmp_path).payloads()) == [b"x0", b"x1"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["keyframes-0000000000.log"]

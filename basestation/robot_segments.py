@@ -121,8 +121,7 @@ class RobotSegments:
         order they were first admitted."""
         with self._lock:
             for segment, session in sessions.items():
-                n = int(segment.split(SEP, 1)[1]) if SEP in segment else 1
-                self._add(robot_of(segment), session, segment, n)
+                self._add(robot_of(segment), session, segment, _number(segment))
 
     def segment(self, robot_id: str, session: int) -> tuple[str | None, str | None]:
         """(the segment of this run of `robot_id`, the segment it makes past or None);
@@ -155,7 +154,8 @@ class RobotSegments:
     def _add(self, robot_id: str, session: int, segment: str, n: int) -> None:
         self._of[(robot_id, session)] = segment
         self._session[segment] = session
-        self._current[robot_id] = segment
+        if n >= _number(self._current.get(robot_id, segment)):  # the newest (restored in
+            self._current[robot_id] = segment  # the order first admitted: not the same)
         self._count[robot_id] = max(n, self._count.get(robot_id, 0))
 
     def served(self, segment: str) -> bool:

@@ -50,7 +50,7 @@ def test_each_run_of_an_agent_is_a_segment_of_its_robot() -> None:
     seg._heard["r0"] -= 31.0  # quiet for 31 s: dead (restarted), not another drone
     assert not seg.served("r0") and seg.served("r0~2") and seg.served("r1")
     again = RobotSegments()  # a base station restarted on its database
-    again.restore({"r0": 11, "r1": 12, "r0~2": 22})
+    again.restore({"r0~2": 22, "r1": 12, "r0": 11})  # r0~2 admitted first (two drones)
     assert again.segment("r0", 22) == ("r0~2", None) and again.current("r0") == "r0~2"
     assert again.segment("r0", 33) == ("r0~3", "r0~2")
 

@@ -42,6 +42,7 @@ from common.bus import Bus
 from common.config import Config
 from common.errors import CollabSlamError
 from common.geometry import pose4_to_pose7, pose7_to_pose4
+from common.logging_setup import set_sim_clock
 from common.memory import HeapTrimmer
 from common.metrics import TIMINGS_KEPT
 from common.scenario import Scenario
@@ -91,6 +92,8 @@ class BaseStationNode:
         # a lock-step simulator's clock paces everything (basestation/lockstep.py)
         lockstep = lockstep and cfg.base_sync_period_s() > 0.0
         self.clock = LockstepClock(lockstep, cfg.sim.basestation_timeout_s)
+        if lockstep:  # DEBUG lines say the sim time of the step they are about
+            set_sim_clock(lambda: self.clock.requested if self.clock.requested >= 0 else None)
         self.slam = GlobalSlam(cfg, starts, headings, self.db.scan_reader(), threaded=not lockstep)
         # With a scenario, map is the world frame: ENU at the world's WGS84 origin (if any).
         origin = None

@@ -48,6 +48,7 @@ from basestation.path_planner import densify
 from collabslam.launcher import make_scenario
 from common.config import Config
 from common.errors import ConfigError
+from common.logging_setup import set_sim_clock
 from common.metrics import CoverageTarget, coverage_of, reachable_free
 from common.occupancy_grid import OccupancyGrid
 from simulation.quadrotor import Quadrotor
@@ -131,6 +132,7 @@ def fly_kinematic(
     scan_every = max(1, round(SCAN_PERIOD_S / TICK_S))
     step_every = max(1, round(c.exploration.period_s / TICK_S))
     end_reason, k = "max_sim_time", 0
+    set_sim_clock(lambda: k * TICK_S)  # its DEBUG lines say the model's time
     while True:
         t = k * TICK_S
         if k % scan_every == 0:

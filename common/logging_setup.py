@@ -1,9 +1,33 @@
-"""Logging configuration; only entry points call `setup_logging`."""
+"""Logging configuration; only entry points call `setup_logging`.
+
+A process with a simulation clock (a lock-step base station) gives it to
+`set_sim_clock`: its DEBUG lines then say the sim time they are about (`t=12.0 s:`),
+which wall-clock stamps cannot tell in a run paced by the simulator.
+"""
 
 from __future__ import annotations
 
 import logging
 import sys
+from collections.abc import Callable
+
+_sim_clock: Callable[[], float | None] | None = None
+
+
+def set_sim_clock(clock: Callable[[], float | None] | None) -> None:
+    """`clock()`: the sim time now (None: none yet); None: no sim time in the lines."""
+    global _sim_clock
+    _sim_clock = clock
+
+
+class SimTimeFilter(logging.Filter):
+    """Puts the sim time before the message of DEBUG lines (see the module doc)."""
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        t = _sim_clock() if _sim_clock is not None and record.levelno <= logging.DEBUG else None
+        if t is not None and not getattr(record, "sim_time_set", False):
+            record.msg, record.sim_time_set = f"t={t:.1f} s: {record.msg}", True
+        return True
 
 
 def setup_logging(level: str = "INFO", name: str = "") -> None:
@@ -15,5 +39,7 @@ def setup_logging(level: str = "INFO", name: str = "") -> None:
         stream=sys.stderr,
         force=True,
     )
+    for handler in logging.getLogger().handlers:
+        handler.addFilter(SimTimeFilter())
     for noisy in ("numba", "matplotlib", "PIL"):
         logging.getLogger(noisy).setLevel(logging.WARNING)

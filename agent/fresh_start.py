@@ -4,10 +4,12 @@ Its `odom` frame begins at its first pose, at the identity; where that is on the
 odometry source's frame goes with every keyframe (`OdomOrigin`), so the base station
 can start a later run of the robot in the frame of the run before it
 (basestation/robot_segments.py). Started away from the source's origin and airborne,
-the agent was restarted in flight: where it is in `map` is its start pose composed
-with the source's pose (a simulator's odometry and a VIO's begin at the start pose),
-until the base station's correction comes, and it flies on from the waypoint of its
-tour nearest to it (from the first, it had flown into a wall). Its first keyframe waits
+the agent was restarted in flight: it hovers until the base station's first correction
+says where it is (a later run where the odometry's frame puts it; a robot's first run
+at its start pose: the agent cannot tell which it is), `PLACEMENT_WAIT_S` at most (then
+its start pose composed with the source's pose: a simulator's odometry and a VIO's
+begin at the start pose), and flies on from the waypoint of its tour nearest to it
+(from the first, it had flown into a wall). Its first keyframe waits
 for the odometry, and the decision for the altimeter, `ODOM_WAIT_S` at most (an agent
 joining a running sensor stream may get a scan first); its scans are taken meanwhile.
 """
@@ -27,6 +29,7 @@ from protocol.messages import IN_FLIGHT_M
 log = logging.getLogger(__name__)
 
 ODOM_WAIT_S = 0.5  # s of scans held at the start for the odometry
+PLACEMENT_WAIT_S = 5.0  # s a drone restarted in flight hovers for the base station's word
 AIRBORNE_M = 0.3  # m: above this the drone is in the air
 
 
@@ -43,6 +46,7 @@ class FreshStart:
         self.begun = resumed  # the origin is known (or there is no odometry): keyframes go
         self.settled = resumed  # and whether it was restarted in flight
         self.in_flight = False
+        self.placed = False  # in flight: where it is in map is known (agent/node.py)
         self._first_stamp: float | None = None
 
     def take(
@@ -67,6 +71,10 @@ class FreshStart:
             log.warning("restarted in flight %.1f m from the odometry's origin, with no "
                         "state to take up", math.hypot(o.x, o.y))  # fmt: skip
         return self.in_flight
+
+    def waited(self, stamp: float) -> bool:
+        """Whether it has waited `PLACEMENT_WAIT_S` since its first scan."""
+        return self._first_stamp is not None and stamp - self._first_stamp >= PLACEMENT_WAIT_S
 
     def start_in_map(self, T_map_odom: np.ndarray) -> np.ndarray:
         """Restarted in flight: its `odom` frame in `map`, [x, y, z, yaw], from the start

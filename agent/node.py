@@ -31,7 +31,7 @@ from agent.fresh_start import FreshStart, nearest_waypoint
 from agent.keyframe_selector import KeyframeSelector
 from agent.local_trajectory_builder import LocalSlamResult, LocalTrajectoryBuilder
 from agent.odometry_tracker import OdometryTracker
-from agent.outputs import write_agent_outputs
+from agent.outputs import frontend_stats, write_agent_outputs
 from agent.path_follower import PathFollower
 from agent.pose_smoother import IDENTITY7, PoseSmoother, pose7_compose
 from agent.resume import STATE_FILE, ResumePoint, load, save
@@ -162,16 +162,20 @@ class AgentNode:
             self.tour_map = np.array(r.path, dtype=np.float64).reshape(-1, 2)
             self.follower.index = r.path_index
 
-    def _restarted_in_flight(self) -> None:
-        """A fresh agent found in flight (agent/fresh_start.py): placed at its start pose
-        composed with the odometry's, on from its tour's nearest waypoint."""
+    def _hold_for_placement(self, stamp: float) -> bool:
+        """A fresh agent found in flight (agent/fresh_start.py) hovers until the base
+        station's first correction places it, `PLACEMENT_WAIT_S` at most (then its start pose
+        composed with the odometry's), then flies on from its tour's nearest waypoint."""
         with self._corr_lock:
-            if self.epoch < 0:  # (no correction yet: the base station's would know better)
+            if self.epoch < 0 and not self.fresh.waited(stamp):
+                return True
+            if self.epoch < 0:  # no base station: its own guess
                 self.T_map_odom = T = self.fresh.start_in_map(self.T_map_odom)
                 self.smoother = PoseSmoother(self.cfg.agent.smoothing, pose4_to_pose7(T))
                 self._new_correction = True  # the path again, in the new frame
             here = odom_to_map(self.T_map_odom, self.frontend.pose)[:2]
-        self.follower.index = nearest_waypoint(self.tour_map, here)
+        self.follower.index, self.fresh.placed = nearest_waypoint(self.tour_map, here), True
+        return False
 
     # --- wiring -------------------------------------------------------------------------
     def start(self) -> None:
@@ -300,8 +304,7 @@ class AgentNode:
         self.local_trajectory.append([scan.stamp, *result.pose])
         if not self.fresh.settled:  # a fresh agent's start (agent/fresh_start.py)
             odometry, altitude = self.frontend.odometry_at(scan.stamp), self.frontend.altitude
-            if self.fresh.take(scan.stamp, odometry, altitude, result.pose):
-                self._restarted_in_flight()
+            self.fresh.take(scan.stamp, odometry, altitude, result.pose)
         self._publish_control_pose(scan.stamp, result.pose)
         if self.fresh.begun and self.selector.is_due(result.pose) and self.outbox.has_room():
             self._send_keyframe(scan, result)
@@ -417,6 +420,8 @@ class AgentNode:
                 )
             )
         vx, vy, vz, yaw_rate = self.follower.command(self.frontend.pose)
+        if self.fresh.in_flight and not self.fresh.placed and self._hold_for_placement(stamp):
+            vx = vy = vz = yaw_rate = 0.0  # where it is in map is not known yet: it hovers
         moving = self._twist  # the guard brakes along it (a turn lags the command)
         fresh = moving is not None and abs(stamp - moving[0]) <= TWIST_MAX_AGE_S
         vx, vy = self.guard.limit(stamp, vx, vy, velocity=moving[1] if fresh else None)
@@ -481,10 +486,7 @@ class AgentNode:
             "lockstep_downlink_timeouts": self.downlink.timeouts,
             "scans": self.scans,
             **self.clock.stats(),
-            "odom_distance_m": self.frontend.distance_m,
-            "scans_rejected": self.frontend.rejected_scans,
-            "matches_gated": self.frontend.gated_matches,
-            "odometry_rejected": self.frontend.rejected_odometry,
+            **frontend_stats(self.frontend),
             **self.guard.stats(),
             # sim time since the state the neighbours' relay answered (the latest ticks)
             **percentiles("neighbour_news_age_s", self._news_ages),

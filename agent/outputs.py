@@ -25,3 +25,13 @@ def write_agent_outputs(
         write_tum(path, Trajectory.from_pose4(rows[:, 0], rows[:, 1:]))
     if len(control):
         write_control_log(out / "control_poses" / f"{robot_id}.csv", control.log())
+
+
+def frontend_stats(frontend: Any) -> dict[str, Any]:
+    """The local SLAM front end's (or the odometry tracker's) statistics."""
+    return {
+        "odom_distance_m": frontend.distance_m,
+        "scans_rejected": frontend.rejected_scans,
+        "matches_gated": frontend.gated_matches,
+        "odometry_rejected": frontend.rejected_odometry,
+    }

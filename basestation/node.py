@@ -385,8 +385,8 @@ class BaseStationNode:
         """Whether `rid` is off the roster: its `what` is dropped (logged: the first 20)."""
         if self.roster is None or rid in self.roster:
             return False
-        self.unknown_robot_drops += 1
-        n = self.unknown_robot_drops
+        with self._lock:  # (Zenoh's threads too)
+            self.unknown_robot_drops = n = self.unknown_robot_drops + 1
         if n <= 20 or n % 1000 == 0:
             log.error("%s from unknown robot %r dropped (%d so far); known: %s",
                       what, rid, n, sorted(self.roster))  # fmt: skip

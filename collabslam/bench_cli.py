@@ -231,7 +231,10 @@ def add_bench_parsers(sub: argparse._SubParsersAction[argparse.ArgumentParser]) 
     b.add_argument("--malformed", type=int, default=10000, help="bad messages injected")
     b.add_argument("--agent-kills", type=int, default=1, help="agents SIGKILLed + restarted")
     b.add_argument(
-        "--fresh-kills", type=int, default=1, help="agents SIGKILLed + restarted without state"
+        "--fresh-kills",
+        type=int,
+        default=1,
+        help="agents restarted as systemctl restart does (SIGINT, drain, start again)",
     )
 
 

@@ -43,12 +43,13 @@ def build_summary(
         segments = {s: r for s, r in base.get("robots", {}).items() if robot_of(s) == rid}
         in_graph = sum(r.get("keyframes_in_graph", 0) for r in segments.values())
         ate = None
-        est, gt_path = _segments_trajectory(out, rid), out / "ground_truth" / f"{rid}.tum"
-        if est is not None and gt_path.is_file():
-            try:
+        gt_path = out / "ground_truth" / f"{rid}.tum"
+        try:  # (a file cut short: no ATE, the rest of the summary stands)
+            est = _segments_trajectory(out, rid)
+            if est is not None and gt_path.is_file():
                 ate = ate_rmse(est, read_tum(gt_path))
-            except CollabSlamError as exc:
-                log.warning("no ATE for %s: %s", rid, exc)
+        except CollabSlamError as exc:
+            log.warning("no ATE for %s: %s", rid, exc)
         sim_r = sim.get("robots", {}).get(rid, {})
         robots.append(
             {

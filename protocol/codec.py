@@ -40,6 +40,13 @@ def array_field(dtype: str, shape: tuple[int | None, ...], *, finite: bool = Tru
     )
 
 
+def later_field(default: Any) -> Any:
+    """Declare a field added to a message after peers that do not know it were out: left
+    out of the encoding while it holds `default`, so those peers still read the message
+    (they refuse fields they do not know)."""
+    return dataclasses.field(default=default, metadata={"later": True})
+
+
 def message(cls: type[T]) -> type[T]:
     """Class decorator: make a frozen dataclass and register it by name."""
     dc = dataclasses.dataclass(frozen=True, eq=False)(cls)
@@ -59,12 +66,21 @@ def _hints(cls: type) -> dict[str, Any]:
 
 def _to_wire(obj: Any) -> Any:
     if dataclasses.is_dataclass(obj):
-        return {f.name: _field_to_wire(f, getattr(obj, f.name)) for f in dataclasses.fields(obj)}
+        out = {}
+        for f in dataclasses.fields(obj):
+            v = getattr(obj, f.name)
+            if not (f.metadata.get("later") and _is_default(v, f)):
+                out[f.name] = _field_to_wire(f, v)
+        return out
     if isinstance(obj, (list, tuple)):
         return [_to_wire(v) for v in obj]
     if isinstance(obj, np.generic):
         return obj.item()
     return obj
+
+
+def _is_default(value: Any, f: dataclasses.Field) -> bool:
+    return value is None if f.default is None else bool(value == f.default)
 
 
 def _field_to_wire(f: dataclasses.Field, value: Any) -> Any:

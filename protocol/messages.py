@@ -15,7 +15,7 @@ import numpy as np
 
 from common.errors import ProtocolError
 from common.geometry import MAX_POSITION_M
-from protocol.codec import array_field, message
+from protocol.codec import array_field, later_field, message
 
 ROBOT_ID_RE = re.compile(r"^[A-Za-z0-9_-]{1,32}$")
 # What one keyframe may carry and the pose graph still solves (iSAM2 failed on a step of
@@ -265,8 +265,8 @@ class Keyframe(Message):
     scan2d: Scan2D | None = None
     cloud3d: Cloud3D | None = None
     chain: int = 0
-    session: int = 0  # the agent's run (MAX_SESSION)
-    odom_origin: OdomOrigin | None = None  # None: no odometry (yet), or an older agent
+    session: int = later_field(0)  # the agent's run (MAX_SESSION)
+    odom_origin: OdomOrigin | None = later_field(None)  # None: no odometry (yet), older agent
 
     def validate(self) -> None:
         super().validate()
@@ -313,7 +313,7 @@ class KeyframeAck(Message):
     robot_id: str
     acked_seq: int
     chain: int = 0
-    session: int = 0
+    session: int = later_field(0)
 
 
 @message
@@ -324,7 +324,7 @@ class PoseCorrection(Message):
     epoch: int
     stamp: float
     T_map_odom: np.ndarray = array_field("f8", (7,))
-    session: int = 0
+    session: int = later_field(0)
 
     def validate(self) -> None:
         super().validate()
@@ -361,7 +361,7 @@ class Path(Message):
     frame: str
     epoch: int
     waypoints: np.ndarray = array_field("f4", (None, 4))
-    session: int = 0
+    session: int = later_field(0)
 
     def validate(self) -> None:
         super().validate()
@@ -383,7 +383,7 @@ class RobotState(Message):
     pose_odom: np.ndarray = array_field("f8", (7,))
     pose_map: np.ndarray = array_field("f8", (7,))
     chain: int = 0  # the keyframe chain keyframes_sent / keyframes_acked count in
-    session: int = 0
+    session: int = later_field(0)
 
     def validate(self) -> None:
         super().validate()
@@ -403,7 +403,7 @@ class Neighbours(Message):
     stamps: np.ndarray = array_field("f8", (None,))
     xy: np.ndarray = array_field("f8", (None, 2))
     velocity: np.ndarray = array_field("f8", (None, 2))
-    session: int = 0
+    session: int = later_field(0)
 
     def validate(self) -> None:
         super().validate()
@@ -421,7 +421,7 @@ class DownlinkMark(Message):
     stamp: float
     paths: int
     epoch: int
-    session: int = 0
+    session: int = later_field(0)
 
 
 @message

@@ -190,3 +190,14 @@ def test_a_new_chain_replaces_the_files_whole_or_not_at_all(tmp_path: Path) -> N
     (tmp_path / kh.NEXT_DONE).touch()
     assert list(KeyframeHistory(4, tmp_path).payloads()) == [b"x0", b"x1"]
     assert sorted(p.name for p in tmp_path.iterdir()) == ["keyframes-0000000000.log"]
+
+
+def test_fields_added_later_are_left_out_at_their_defaults() -> None:
+    """A base station sending `session` 0 to an agent of the version before (which
+    refuses fields it does not know) had every ack, correction and path refused."""
+    raw = msgpack.unpackb(encode(KeyframeAck("r0", 4)))["d"]
+    assert raw == {"robot_id": "r0", "acked_seq": 4, "chain": 0}  # as the version before
+    assert msgpack.unpackb(encode(KeyframeAck("r0", 4, 0, 7)))["d"]["session"] == 7
+    assert decode(encode(KeyframeAck("r0", 4)), KeyframeAck).session == 0
+    kf = _kf(0)
+    assert "odom_origin" not in msgpack.unpackb(encode(kf))["d"]

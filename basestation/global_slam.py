@@ -40,6 +40,7 @@ from basestation.constraint_builder import (
     hypothesis_poses,
 )
 from basestation.false_matches import FalseMatches
+from basestation.gps_fixes import gnss_start
 from basestation.keyframe_store import KeyframeScans, KeyframeStore
 from basestation.loop_closure_manager import LoopClosureManager
 from basestation.node_keys import NodeKeys
@@ -87,6 +88,7 @@ class GlobalSlam:
         self._last_fix: dict[str, np.ndarray] = {}  # robot -> latest fix [east, north]
         self._early_fixes: dict[str, list[tuple[float, np.ndarray, np.ndarray]]] = {}
         self._node_stamps: dict[str, float] = {}  # robot -> stamp of its latest node
+        self.odom_now: Callable[[str], np.ndarray | None] = lambda r: None  # latest local pose
         self.cc = b.constraints
         self.builder = ConstraintBuilder(self.cc, threaded=threaded) if self.cc.enabled else None
         self.loops = LoopClosureManager(self.graph, self.cc, self._chain_covariance)
@@ -197,7 +199,8 @@ class GlobalSlam:
                     self._georeferenced.add(rid)
             elif start is None and rid in self.start_headings and rid in self._last_fix:
                 g = self.cfg.basestation.gps  # virtual ENU-origin trajectory (seed 000 §III-C)
-                start = np.array([*self._last_fix[rid], self.start_headings[rid] + odom[2]])
+                fix, heading = self._last_fix[rid], self.start_headings[rid]
+                start = gnss_start(fix, heading, odom, self.odom_now(rid))
                 start_sigmas = (g.start_sigma_xy_m, g.start_sigma_xy_m, g.start_sigma_yaw_rad)
                 self._georeferenced.add(rid)
                 log.info("robot %s starts georeferenced at its latest GNSS fix", rid)

@@ -28,6 +28,8 @@ import numpy as np
 from numpy.typing import NDArray
 
 from basestation.gps_factor import interpolation_factor
+from common.geometry import pose7_to_pose4, se2_compose, se2_inverse
+from protocol import RobotState
 
 logger = logging.getLogger(__name__)
 
@@ -109,3 +111,22 @@ class GpsFixQueue:
             self._last_release[robot_id] = node_stamps[-1]
             self._released[robot_id] = self._released.get(robot_id, 0) + len(out)
         return out
+
+
+def gnss_start(
+    fix_en: np.ndarray, heading: float, odom: np.ndarray, odom_now: np.ndarray | None
+) -> np.ndarray:
+    """A GNSS-started robot's first node [x, y, yaw] in `map` (ENU, seed 000 §III-C):
+    its odom frame is turned by the autopilot's `heading` at takeoff and put so that the
+    robot's latest local pose `odom_now` ([x, y, yaw]; None: the node's own, `odom`) is
+    at its latest fix `fix_en`. A chain that starts on the way (a new base station: its
+    first keyframe from long before) had been put at the latest fix, as far off as the
+    robot had flown since."""
+    now = np.asarray(odom if odom_now is None else odom_now, dtype=np.float64)
+    T_map_odom = se2_compose([fix_en[0], fix_en[1], heading + now[2]], se2_inverse(now))
+    return se2_compose(T_map_odom, odom)
+
+
+def local_pose(state: RobotState | None) -> np.ndarray | None:
+    """A robot's local pose [x, y, yaw] in its odom frame, by its latest `RobotState`."""
+    return None if state is None else pose7_to_pose4(state.pose_odom)[[0, 1, 3]]

@@ -30,6 +30,7 @@ import numpy as np
 from basestation.exploration_setup import explorer_stats, make_explorer, path_message
 from basestation.global_slam import GlobalSlam
 from basestation.gnss_intake import GnssIntake
+from basestation.gps_fixes import local_pose
 from basestation.inbox import KeyframeInbox
 from basestation.lockstep import LockstepClock
 from basestation.map_builder import MapBuilder
@@ -111,6 +112,7 @@ class BaseStationNode:
         self.inbox = KeyframeInbox()  # bounded (see basestation/inbox.py)
         self.gnss_inbox: queue.Queue[GnssFix] = queue.Queue()  # basestation.gps.enabled
         self.states: dict[str, RobotState] = {}  # by segment (robot_segments.py)
+        self.slam.odom_now = lambda r: local_pose(self.states.get(r))  # (GNSS starts)
         self.segments = RobotSegments()  # each run of a robot's agent: a robot of the graph
         self.neighbours = NeighbourRelay(strictly_earlier=lockstep)
         self.epoch = 0
@@ -205,9 +207,8 @@ class BaseStationNode:
             self._send("ack", none)  # a new chain
 
     def _to_segment(self, msg: Any) -> Any:
-        """`msg` of an agent, as its run's segment's (robot_segments.py; None: no room in
-        the graph); a new run makes the robot's segment before it past: its state is
-        forgotten, its goal released."""
+        """`msg` of an agent as its run's segment's (robot_segments.py; None: no room); a
+        new run makes the segment before it past: state forgotten, goal released."""
         segment, past = self.segments.segment(msg.robot_id, msg.session)
         if segment is None:
             return None
@@ -233,11 +234,10 @@ class BaseStationNode:
             ev = self.links.setdefault(name, {"joins": 0, "losses": 0})
             ev["joins" if alive else "losses"] += 1
             (self._alive.add if alive else self._alive.discard)(name)
-        if not alive:
-            self._forget(self.segments.current(name))
         if alive:
             log.info("agent %s joined", name)
         else:
+            self._forget(self.segments.current(name))
             log.warning("agent %s lost (liveliness token gone): its goal is released", name)
 
     # --- processing ---------------------------------------------------------------------

@@ -128,6 +128,24 @@ def test_known_heading_starts_the_robot_at_its_fix() -> None:
     assert not slam.graph.is_anchored("r1")  # no fix yet: floats (never defines map)
 
 
+def test_a_chain_starting_on_the_way_is_placed_back_from_the_latest_fix() -> None:
+    """A new base station (no database) gets a robot's keyframes from the first again
+    (a new chain) while its fixes are of now: the chain's first node had been put at the
+    latest fix, as far off as the robot had flown since (here 10 m along its heading)."""
+    heading = 0.5
+    slam = GlobalSlam(_cfg(), {}, {"r0": heading})
+    slam.odom_now = lambda rid: np.array([10.0, 0.0, 0.0])  # its latest state: 10 m on
+    slam.add_gps_fix("r0", 100.0, np.array([30.0, 20.0]), SIG)  # where it is now
+    slam.admit(_keyframe(0))  # the mission's first keyframe, at its odom origin
+    np.testing.assert_allclose(
+        slam.graph.poses("r0")[0], [30.0 - 10 * np.cos(heading), 20.0 - 10 * np.sin(heading),
+                                    heading], atol=1e-6)  # fmt: skip
+    fresh = GlobalSlam(_cfg(), {}, {"r0": heading})  # no state yet: the first node at the fix
+    fresh.add_gps_fix("r0", 0.0, np.array([30.0, 20.0]), SIG)
+    fresh.admit(_keyframe(0))
+    np.testing.assert_allclose(fresh.graph.poses("r0")[0], [30.0, 20.0, heading], atol=1e-6)
+
+
 def test_time_going_backwards_does_not_stop_the_graph() -> None:
     slam = GlobalSlam(_cfg(), {"r0": np.zeros(3)})
     for seq in range(4):

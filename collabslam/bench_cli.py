@@ -230,12 +230,7 @@ def add_bench_parsers(sub: argparse._SubParsersAction[argparse.ArgumentParser]) 
     b.add_argument("--dup-fraction", type=float, default=0.1, help="keyframes re-put")
     b.add_argument("--malformed", type=int, default=10000, help="bad messages injected")
     b.add_argument("--agent-kills", type=int, default=1, help="agents SIGKILLed + restarted")
-    b.add_argument(
-        "--fresh-kills",
-        type=int,
-        default=1,
-        help="agents restarted as systemctl restart does (SIGINT, drain, start again)",
-    )
+    b.add_argument("--fresh-kills", type=int, default=1, help="agents stopped + started afresh")
 
 
 def cmd_bench(args: argparse.Namespace) -> int:

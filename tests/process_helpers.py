@@ -82,10 +82,13 @@ class TourMission:
     base_ep: str
     sim_ep: str
 
-    def agent(self, robot_id: str, *extra: str) -> list[str]:
+    def agent(self, robot_id: str, *extra: str, state: bool = False) -> list[str]:
+        """An agent's command; `state`: with a state folder (`agent.state_dir`, as the
+        systemd unit gives it: a restarted agent takes up where it was)."""
         from collabslam.launcher import agent_command
 
-        return [*agent_command(self.common, robot_id, self.sim_ep, self.base_ep), *extra]
+        folder = ["--set", f'agent.state_dir="{self.out / "state" / robot_id}"'] if state else []
+        return [*agent_command(self.common, robot_id, self.sim_ep, self.base_ep), *folder, *extra]
 
     def base(self, db: Path) -> list[str]:
         return ["basestation", *self.common, "--listen", self.base_ep, "--db", str(db)]

@@ -33,23 +33,19 @@ def _tour_with_a_restart(tmp_path: Path, with_state: bool) -> tuple[TourMission,
     m = tour_mission(tmp_path)
     out, robots, db = m.out, m.robots, m.out / "base.db"
 
-    def agent_args(rid: str) -> list[str]:
-        state = ["--set", f'agent.state_dir="{out / "state" / rid}"'] if with_state else []
-        return m.agent(rid, *state)
-
     g = ProcessGroup(out)
     t0 = time.monotonic()
     try:
         base = g.spawn("basestation", m.base(db))
         sim = g.spawn("sim", m.sim())
-        agents = {r: g.spawn(r, agent_args(r)) for r in robots}
+        agents = {r: g.spawn(r, m.agent(r, state=with_state)) for r in robots}
         wait_for(lambda: all(stored_keyframes(db, r) >= 30 for r in robots), 60,
                  "keyframes of every robot", g, [sim, *agents.values()])  # fmt: skip
         os.kill(agents["r0"].proc.pid, signal.SIGKILL)  # a crash: no drain, no outputs
         agents["r0"].proc.wait()
         before = stored_keyframes(db, "r0")
         time.sleep(1.0)
-        agents["r0"] = g.spawn("r0-restarted", agent_args("r0"))
+        agents["r0"] = g.spawn("r0-restarted", m.agent("r0", state=with_state))
         new = ("r0", before + 40) if with_state else ("r0~2", 40)
         wait_for(lambda: stored_keyframes(db, new[0]) >= new[1], 60,
                  "keyframes of the restarted agent", g, [sim, *agents.values()])  # fmt: skip
@@ -94,23 +90,19 @@ def test_a_restarted_agent_explores_on(tmp_path: Path, with_state: bool) -> None
     m = tour_mission(tmp_path, 3, "rooms15", explore=True)
     out, db = m.out, m.out / "base.db"
 
-    def agent_args(rid: str) -> list[str]:
-        state = ["--set", f'agent.state_dir="{out / "state" / rid}"'] if with_state else []
-        return m.agent(rid, *state)
-
     g = ProcessGroup(out)
     t0 = time.monotonic()
     try:
         base = g.spawn("basestation", [*m.base(db), "--lockstep"])
         sim = g.spawn("sim", [*m.sim(), "--max-sim-time", "200"])
-        agents = {r: g.spawn(r, agent_args(r)) for r in m.robots}
+        agents = {r: g.spawn(r, m.agent(r, state=with_state)) for r in m.robots}
         wait_for(lambda: stored_keyframes(db, "r1") >= 25, 60, "keyframes of r1", g,
                  [sim, *agents.values()])  # fmt: skip
         os.kill(agents["r1"].proc.pid, signal.SIGKILL)
         agents["r1"].proc.wait()
         before = stored_keyframes(db, "r1")
         time.sleep(1.0)
-        agents["r1"] = g.spawn("r1-restarted", agent_args("r1"))
+        agents["r1"] = g.spawn("r1-restarted", m.agent("r1", state=with_state))
         g.wait([sim], 240)  # to the end of the exploration
         end_mission(g, sim, list(agents.values()), base)
     finally:

@@ -152,9 +152,11 @@ class GlobalSlam:
             while pending and pending[0] < b:  # batches of matches only
                 self._replay_matches(cons[pending.pop(0)])
             kfs = [kf for _, kf in group]
+            self.store.replaying = True  # (a chain followed on from an older one)
             for kf in kfs:
                 if self.admit(kf) == 0:
                     log.error("stored keyframe %s/%d was not admitted", kf.robot_id, kf.seq)
+            self.store.replaying = False
             self.saved(Batch(kfs))  # on disk already: the scans may leave memory, and
             self._unsaved.clear()  # the journal need not keep the keyframes till the end
             if pending and pending[0] == b:

@@ -54,7 +54,8 @@ class RobotKeyframes:
     foreign: bool = False  # another agent sends as this robot: nothing more is admitted
     chain: int = 0  # the agent's keyframe chain admitted (Keyframe.chain)
     stale_chain: int = 0  # keyframes of an older chain, dropped
-    chain_conflicts: int = 0  # keyframes of a newer chain after some were admitted
+    chain_conflicts: int = 0  # a newer chain not renumbered from the first admitted
+    unchecked_chain: int = 0  # keyframes of a newer chain beyond those admitted: dropped
     session: int = 0  # the agent run its keyframes are from (basestation/robot_segments.py)
     odom_origin: np.ndarray | None = None  # at its first keyframe: on the odometry's [x y yaw]
     odom_origin_latest: np.ndarray | None = None  # at its latest keyframe with one
@@ -110,6 +111,7 @@ class KeyframeStore:
         self.robots: dict[str, RobotKeyframes] = {}
         self._points: OrderedDict[tuple[str, int], np.ndarray] = OrderedDict()
         self.points_made = 0  # scan_points() calls (cache misses)
+        self.replaying = False  # admitting the database's keyframes (GlobalSlam.restore)
 
     def points(self, robot_id: str, i: int) -> np.ndarray:
         """Keyframe i's scan points, (N, 2) float32 in its body frame (m); read only."""
@@ -220,26 +222,43 @@ class KeyframeStore:
             self.scan_archive.add((k.robot_id, k.seq), k.scan2d)
         return ready
 
-    @staticmethod
-    def _in_chain(r: RobotKeyframes, kf: Keyframe) -> bool:
-        """Whether `kf` is of the robot's chain; a newer chain is taken up while nothing
-        of the robot's is admitted (what is held of the old one is dropped)."""
+    def _in_chain(self, r: RobotKeyframes, kf: Keyframe) -> bool:
+        """Whether `kf` is of the robot's chain. A newer chain is taken up while nothing
+        of the robot's is admitted (what is held of the old one is dropped), or once one
+        of its keyframes is one admitted here (the same stamp at the same seq: the agent
+        sent everything again renumbered from its first, for another base station, and
+        this one, on its older database, follows on). Keyframes of a newer chain that
+        cannot be checked yet are dropped: the agent's state brings an ack -1 of its
+        chain (`none_of`), and it sends everything from its first keyframe again."""
         if kf.chain == r.chain:
             return True
         if kf.chain < r.chain:  # sent before its agent started the new chain
             r.stale_chain += 1
             return False
-        if r.next_seq == 0:
-            log.warning("robot %s: its agent starts keyframe chain %d (it had keyframes "
-                        "acknowledged by a base station without this one's database: what "
-                        "it kept comes renumbered from seq 0); %d held keyframes of chain "
-                        "%d dropped", kf.robot_id, kf.chain, len(r.held), r.chain)  # fmt: skip
+        if r.next_seq == 0 or self.replaying:  # (the database holds only admitted ones)
+            if not self.replaying:
+                log.warning("robot %s: its agent starts keyframe chain %d (it had keyframes "
+                            "acknowledged by a base station without this one's database: "
+                            "what it kept comes renumbered from seq 0); %d held keyframes "
+                            "of chain %d dropped", kf.robot_id, kf.chain, len(r.held),
+                            r.chain)  # fmt: skip
+            r.chain, r.held = kf.chain, {}
+            return True
+        if kf.seq >= r.next_seq:
+            r.unchecked_chain += 1
+            return False
+        if kf.stamp == r.stamps[kf.seq, 0]:
+            log.warning("robot %s: its agent sends keyframe chain %d (renumbered for another "
+                        "base station from its first keyframe, as admitted here): followed "
+                        "on from chain %d at seq %d", kf.robot_id, kf.chain, r.chain,
+                        r.next_seq)  # fmt: skip
             r.chain, r.held = kf.chain, {}
             return True
         r.chain_conflicts += 1
-        KeyframeStore._foreign(r, f"a keyframe of chain {kf.chain} came after {r.next_seq} "
-                               f"of chain {r.chain} (did another base station tell its "
-                               f"agent it had none?)")  # fmt: skip
+        KeyframeStore._foreign(r, f"keyframe {kf.seq} of chain {kf.chain} is not keyframe "
+                               f"{kf.seq} of chain {r.chain} admitted here (its agent kept "
+                               f"too few keyframes to send them all again, or another agent "
+                               f"sends as it)")  # fmt: skip
         return False
 
     @staticmethod
@@ -269,12 +288,15 @@ class KeyframeStore:
         return KeyframeAck(robot_id, r.next_seq - 1, r.chain) if ok else None
 
     def none_of(self, robot_id: str, chain: int) -> KeyframeAck | None:
-        """Ack -1 of `chain` if none of `robot_id`'s keyframes of it is admitted (for an
-        agent that says some of that chain were acknowledged: by a base station whose
-        database this one has not), else None (a state from before a chain this store
-        has taken up too). Safe from any thread (it only reads)."""
+        """Ack -1 of `chain` for an agent that says some of that chain were acknowledged
+        if none of `robot_id`'s keyframes of it is admitted here: none at all (they are
+        in another base station's database), or only of an older chain (this one is on
+        an older database: the agent's next chain, everything again from its first
+        keyframe, lets it follow on). None: a state from before a chain this store has
+        taken up too, or a robot refused as another source's. Safe from any thread (it
+        only reads)."""
         r = self.robots.get(robot_id)
-        if r is not None and (r.foreign or r.next_seq > 0 or chain < r.chain):
+        if r is not None and (r.foreign or chain < r.chain or chain == r.chain and r.next_seq):
             return None
         return KeyframeAck(robot_id, -1, chain)
 

@@ -20,7 +20,7 @@ import pytest
 from process_helpers import end_mission, stored_keyframes, tour_mission, wait_for
 
 from collabslam.summary import build_summary
-from collabslam.supervisor import ProcessGroup
+from collabslam.supervisor import Child, ProcessGroup
 from protocol import Keyframe, decode
 
 pytestmark = pytest.mark.e2e
@@ -47,10 +47,7 @@ def test_basestation_killed_and_restarted_loses_nothing(tmp_path: Path) -> None:
             )
             if kill == 1:
                 break
-            os.kill(base.proc.pid, signal.SIGKILL)
-            base.proc.wait()
-            time.sleep(2.0)  # the drones fly on without it
-            base = g.spawn(f"basestation{kill + 2}", m.base(db))
+            base = _kill_and_start(g, base, m.base(db), f"basestation{kill + 2}")
         end_mission(g, sim, agents, base)
     finally:
         g.terminate_all()
@@ -89,7 +86,10 @@ def test_a_base_station_with_a_new_database_gets_the_whole_mission(tmp_path: Pat
     """A laptop lost with its database: the base station started in its place has none
     of the robots' keyframes. It had waited for seq 0, dropped by the agents once the
     first acked it, and mapped nothing of them; now each agent sends what it kept (its
-    acknowledged keyframes are on disk) as keyframe chain 1, from its first keyframe."""
+    acknowledged keyframes are on disk) as keyframe chain 1, from its first keyframe.
+    When the first laptop comes back on its older database, it follows on: its ack -1
+    of chain 1 has everything sent again as chain 2, whose first keyframes it has (it
+    had frozen those robots, refusing chain 1 as another source's)."""
     m = tour_mission(tmp_path)
     out, robots = m.out, m.robots
     lost, new = out / "lost.db", out / "new.db"
@@ -102,32 +102,51 @@ def test_a_base_station_with_a_new_database_gets_the_whole_mission(tmp_path: Pat
         wait_for(lambda: all(stored_keyframes(lost, r) >= 30 for r in robots), 60,
                  "keyframes of every robot", g, [sim, *agents])  # fmt: skip
         time.sleep(1.0)  # their acks too (stored, then acked: a loaded machine once
-        os.kill(base.proc.pid, signal.SIGKILL)  # killed it between: nothing acked, chain 0)
-        base.proc.wait()
+        base = _kill_and_start(g, base, m.base(new), "basestation2")  # killed it between)
         before = {r: stored_keyframes(lost, r) for r in robots}
-        time.sleep(2.0)  # the drones fly on without it
-        base = g.spawn("basestation2", m.base(new))
         wait_for(lambda: all(stored_keyframes(new, r) >= before[r] + 10 for r in robots), 60,
                  "the mission so far in the new database", g, [sim, *agents])  # fmt: skip
+        chain1 = {r: _first_keyframe(new, r) for r in robots}
+        in_new = {r: stored_keyframes(new, r) for r in robots}
+        base = _kill_and_start(g, base, m.base(lost), "basestation3")  # the old one back
+        wait_for(lambda: all(stored_keyframes(lost, r) >= in_new[r] + 10 for r in robots), 60,
+                 "the mission so far in the old database", g, [sim, *agents])  # fmt: skip
         end_mission(g, sim, agents, base)
     finally:
         g.terminate_all()
     wall = time.monotonic() - t0
 
     stats = json.loads((out / "basestation.json").read_text())
-    assert stats["persistence"]["starts"] == 1  # the new database's
+    assert stats["persistence"]["starts"] == 2  # the old database's
+    with sqlite3.connect(lost) as con:
+        seqs = dict(con.execute("SELECT robot_id, group_concat(seq) FROM keyframes GROUP BY 1"))
     for r in robots:
         agent = json.loads((out / "agents" / f"{r}.json").read_text())
-        assert agent["keyframe_chain"] == 1
-        sent = agent["keyframes_sent"]  # of chain 1: every keyframe cut (none dropped)
+        # followed on with chain 1 (some of its first keyframes were still unacknowledged)
+        chain = agent["keyframe_chain"]  # or with chain 2 (all sent again on its ack -1)
+        assert chain in (1, 2)
+        sent = agent["keyframes_sent"]  # of that chain: every keyframe cut (none dropped)
         assert stats["robots"][r]["keyframes_in_graph"] == sent == agent["keyframes_acked"]
-        assert stored_keyframes(new, r) == sent > before[r]
-        first, was = _first_keyframe(new, r), _first_keyframe(lost, r)
+        assert sorted(int(s) for s in seqs[r].split(",")) == list(range(sent))  # once each
+        first, was = chain1[r], _first_keyframe(lost, r)
         assert (first.chain, was.chain) == (1, 0)
         assert first.stamp == was.stamp  # from the mission's first keyframe on
         np.testing.assert_array_equal(first.pose_odom, was.pose_odom)
         log = (out / "logs" / f"{r}.log").read_text()
         assert re.search(r"sending the \d+ kept as keyframe chain 1 \(0 acknowledged", log)
+        again = re.search(r"sending the \d+ kept as keyframe chain 2 \(0 acknowledged", log)
+        assert bool(again) == (chain == 2)
+    base_log = (out / "logs" / "basestation3.log").read_text()
+    assert base_log.count("followed on from chain") == len(robots)
     summary = build_summary(out, m.world, robots, wall)
     assert summary["map_accuracy"] >= 0.95
     assert all(x["ate_rmse_m"] < 0.5 for x in summary["robots"])
+
+
+def _kill_and_start(g: ProcessGroup, base: Child, argv: list[str], name: str) -> Child:
+    """SIGKILL the base station and start `argv` in its place 2 s later (the drones
+    fly on without one meanwhile)."""
+    os.kill(base.proc.pid, signal.SIGKILL)
+    base.proc.wait()
+    time.sleep(2.0)
+    return g.spawn(name, argv)

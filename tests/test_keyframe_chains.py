@@ -18,6 +18,7 @@ from agent.keyframe_history import KeyframeHistory
 from agent.outbox import IDENTITY7, Outbox
 from basestation.global_slam import GlobalSlam
 from basestation.keyframe_store import KeyframeStore
+from basestation.persistence import Recovered
 from common.config import Config
 from common.errors import ProtocolError
 from protocol import Keyframe, KeyframeAck, decode, encode
@@ -107,10 +108,33 @@ def test_store_follows_a_new_chain_only_while_it_has_nothing(caplog) -> None:
     assert st.admit(_kf(302)) == [] and r.stale_chain == 1  # in flight before the switch
     ack = st.ack("r0")
     assert (ack.acked_seq, ack.chain) == (1, 1) and st.none_of("r0", 0) is None
-    with caplog.at_level(logging.ERROR):  # a second base station told the agent "none"
-        assert st.admit(_kf(0, chain=2)) == []
-    assert r.chain_conflicts == 1 and "another base station" in caplog.text
-    assert r.foreign and st.ack("r0") is None  # its corrections come from that one now
+    assert st.none_of("r0", 2).chain == 2  # another base station's chain: send it all
+    assert st.admit(_kf(2, chain=2)) == [] and r.unchecked_chain == 1  # cannot check it
+    with caplog.at_level(logging.WARNING):  # ... and resent from the first: followed on
+        assert st.admit(_kf(0, chain=2)) == [] and r.duplicates == 1
+    assert "followed on from chain 1 at seq 2" in caplog.text
+    assert [k.seq for k in st.admit(_kf(2, chain=2))] == [2]
+    assert (st.ack("r0").chain, st.none_of("r0", 2), st.none_of("r0", 1)) == (2, None, None)
+    with caplog.at_level(logging.ERROR):  # renumbered from a later first: no way to join
+        assert st.admit(Keyframe(**{**_kf(1, chain=3).__dict__, "stamp": 9.0})) == []
+    assert r.chain_conflicts == 1 and "kept too few keyframes" in caplog.text
+    assert r.foreign and st.ack("r0") is None and st.none_of("r0", 4) is None
+
+
+def test_a_restore_follows_the_chains_as_admitted() -> None:
+    """The database holds a robot's keyframes as admitted, chain 0 and then the chain it
+    followed on with: a restart takes them all up again."""
+    cfg = Config()
+    cfg.basestation.constraints.enabled = False
+    slam = GlobalSlam(cfg)
+    for kf in [_kf(0), _kf(1), _kf(0, chain=1), _kf(2, chain=1), _kf(3, chain=1)]:
+        slam.admit(kf)
+    kept = slam.take_journal()
+    assert [(k.chain, k.seq) for k in kept.keyframes] == [(0, 0), (0, 1), (1, 2), (1, 3)]
+    again = GlobalSlam(cfg)
+    again.restore(Recovered([(0, k) for k in kept.keyframes], [], 0, 0, {}, 1))
+    r = again.store.robot("r0")
+    assert (r.next_seq, r.chain, again.store.ack("r0").acked_seq) == (4, 1, 3)
 
 
 def test_a_chain_starting_on_the_way_is_placed_by_its_odometry() -> None:

@@ -27,6 +27,7 @@ from typing import Any
 
 import numpy as np
 
+from basestation.correction_epochs import CorrectionEpochs
 from basestation.exploration_setup import explorer_stats, make_explorer, path_message
 from basestation.global_slam import GlobalSlam
 from basestation.gnss_intake import GnssIntake
@@ -37,7 +38,7 @@ from basestation.map_builder import MapBuilder
 from basestation.map_history import MapHistory
 from basestation.map_outputs import write_map_outputs
 from basestation.neighbour_relay import NeighbourRelay
-from basestation.persistence import EPOCH_BLOCK, Batch, open_database
+from basestation.persistence import Batch, open_database
 from basestation.robot_segments import RobotSegments, robot_of
 from common.bus import Bus
 from common.config import Config
@@ -115,7 +116,7 @@ class BaseStationNode:
         self.slam.odom_now = lambda r: local_pose(self.states.get(r))  # (GNSS starts)
         self.segments = RobotSegments()  # each run of a robot's agent: a robot of the graph
         self.neighbours = NeighbourRelay(strictly_earlier=lockstep)
-        self.epoch = 0
+        self.epochs = CorrectionEpochs(self.db)
         self.unknown_robot_drops = self.intake_pauses = 0
         self._last_map = 0.0
         self._map_dirty = False
@@ -125,7 +126,6 @@ class BaseStationNode:
         self.links: dict[str, dict[str, int]] = {}  # agent -> {"joins": n, "losses": n}
         self._alive: set[str] = set()  # agents whose liveliness token is up
         self._lost: list[str] = []  # agents whose token went away, for run()'s thread
-        self._epoch_reserved = 0
         self.recovered: dict[str, Any] = {}
         slam = self.slam  # per-keyframe arrays: keyframe store, pose graph, map builder
         arrays = [slam.store.arrays_nbytes, slam.graph.arrays_nbytes, self.map.arrays_nbytes]
@@ -137,7 +137,7 @@ class BaseStationNode:
         and continue epochs and path ids above every one sent before."""
         t0 = time.monotonic()
         rec = self.db.load()
-        self.epoch = self._epoch_reserved = max(self.epoch, rec.epoch)
+        self.epochs.resume(rec.epoch)
         self._path_id = max(self._path_id, rec.path_id)
         if rec.empty:
             return
@@ -157,7 +157,7 @@ class BaseStationNode:
         }
         log.info("recovered from %s (start %d): %d keyframes, %d matches in %.1f s; epoch %d",
                  self.db.path, rec.starts, len(rec.keyframes), len(rec.constraints),
-                 self.recovered["seconds"], self.epoch)  # fmt: skip
+                 self.recovered["seconds"], self.epochs.current)  # fmt: skip
 
     def _persist(self, batch: Batch | None = None) -> None:
         """Write what changed (one transaction) before anything is acked or published."""
@@ -202,6 +202,7 @@ class BaseStationNode:
             if msg.robot_id == self.segments.current(robot_of(msg.robot_id)):
                 self.states[msg.robot_id] = msg
             answer = self.neighbours.on_state(msg)
+        self.epochs.seen(msg.correction_epoch)  # another base station's, if above ours
         self._send("neighbours", answer)
         if msg.keyframes_acked > 0 and (none := self.slam.store.none_of(msg.robot_id, msg.chain)):
             self._send("ack", none)  # a new chain
@@ -360,7 +361,7 @@ class BaseStationNode:
             what = "hold" if path is None else f"{len(path)} points to {path[-1].round(1)}"
             log.info("t=%.1f s: path %d for %s from (%.1f, %.1f): %s", self.clock.answered,
                      self._path_id, rid, *poses[rid][:2], what)  # fmt: skip
-            msg = path_message(rid, 0 if over else self._path_id, path, z, self.epoch)
+            msg = path_message(rid, 0 if over else self._path_id, path, z, self.epochs.current)
             out.append((rid, encode(self.segments.address(msg))))
             batch.paths.append((rid, self._path_id, out[-1][1]))
         self._persist(batch)
@@ -420,18 +421,15 @@ class BaseStationNode:
         self.slam.search_constraints()  # new nodes, and nodes of maps just joined
 
     def publish_corrections(self) -> None:
-        self.epoch += 1
-        if self.epoch > self._epoch_reserved:  # never reuse an epoch after a restart
-            self._epoch_reserved = self.epoch + EPOCH_BLOCK
-            self.db.reserve_epochs(self._epoch_reserved)
+        epoch = self.epochs.next()
         stamp = time.time()
         for rid in self.slam.graph.robots():
             T = self.slam.T_map_odom(rid)
             if T is None or self.slam.store.robot(rid).foreign or not self.segments.served(rid):
                 continue  # (not on the map; another agent's frame; a run gone quiet)
             T7 = pose4_to_pose7([T[0], T[1], 0.0, T[2]])
-            self._send("correction", PoseCorrection(rid, self.epoch, stamp, T7))
-            self.clock.sent_correction(rid, self.epoch)
+            self._send("correction", PoseCorrection(rid, epoch, stamp, T7))
+            self.clock.sent_correction(rid, epoch)
 
     def refresh_map(self) -> None:
         """New keyframes into the grid, and up to `map.rerender_budget_s` of redrawing
@@ -474,7 +472,7 @@ class BaseStationNode:
             "memory_series": self.heap.series_json(),  # after each trim: where the RSS is
             "rejected_messages": dict(self.bus.rejected),
             "other_base_stations": sorted(self.bus.rivals),
-            "correction_epoch": self.epoch,
+            "correction_epoch": self.epochs.current,
             "links": {k: dict(v) for k, v in self.links.items()},
             "persistence": self.db.stats() and {**self.db.stats(), "recovered": self.recovered},
             "exploration": explorer_stats(self.explorer, self._path_id, self._explore_ms),

@@ -128,8 +128,8 @@ def test_node_does_not_grow_while_no_keyframe_arrives(cfg: Config, endpoint: str
             node.process(kfs[k : k + 20])
             node.refresh_map()
         node.map.finish()
-        state = RobotState("r0", 60.0, "holding", node.epoch, 120, 119, 0, kfs[-1].pose_odom,
-                           kfs[-1].pose_odom)  # fmt: skip
+        pose = kfs[-1].pose_odom
+        state = RobotState("r0", 60.0, "holding", node.epochs.current, 120, 119, 0, pose, pose)
         _settle(node)
         tracemalloc.start()  # before the warm-up: what it frees must be counted too
         for k in range(50):  # warm up caches (logging, zenoh publishers, exploration)

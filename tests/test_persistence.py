@@ -19,7 +19,7 @@ from common.bus import Bus
 from common.config import Config
 from common.errors import PersistenceError
 from common.geometry import se2_compose
-from protocol import Keyframe, encode
+from protocol import Keyframe, RobotState, encode
 from protocol import Path as PathMsg
 
 
@@ -216,14 +216,19 @@ def test_node_resumes_epochs_paths_and_acks(tmp_path: Path, cfg: Config, endpoin
         node = BaseStationNode(cfg, bus, None)
         node.recover()
         assert node.slam.store.acked_seq("r0") == 2 and node.slam.graph.num_nodes("r0") == 3
-        assert node.epoch == 1000 and node._path_id == 7
+        assert node.epochs.current == 1000 and node._path_id == 7
         assert node.explorer is not None
         assert np.allclose(node.explorer.tasks["r0"].path, wp[:, :2])
         node.publish_corrections()
-        assert node.epoch == 1001
+        assert node.epochs.current == 1001
+        pose = np.array([0, 0, 0, 0, 0, 0, 1.0])
+        for epoch in (5000, 5000 + 200_000):  # another base station's (a new database),
+            node._on_state(RobotState("r0", 9.0, "flying", epoch, 3, 3, 0, pose, pose), "")
+        node.publish_corrections()  # ... which it took; not one no base station counts to
+        assert node.epochs.current == 5001  # else its corrections would be dropped
         node.drain(1.0)
     again = KeyframeDatabase(tmp_path / "base.db")
-    assert again.load().epoch >= 1001 + 999 and again.starts == 3  # the next epoch block
+    assert again.load().epoch >= 5002 + 999 and again.starts == 3  # the next epoch block
     again.close()
 
 

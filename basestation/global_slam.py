@@ -104,9 +104,9 @@ class GlobalSlam:
         self._unsaved: list[Keyframe] = []  # admitted since the last take_journal()
 
     # --- keyframes ----------------------------------------------------------------------
-    def admit(self, kf: Keyframe) -> int:
-        """Offer a keyframe; returns how many keyframes entered the graph (0 or more)."""
-        for k in (ready := self.store.admit(kf)):
+    def admit(self, kf: Keyframe, replay: bool = False) -> int:
+        """Offer a keyframe (`replay`: the database's); returns how many entered the graph."""
+        for k in (ready := self.store.admit(kf, replay)):
             self._add_node(k)
         self._unsaved.extend(ready)
         return len(ready)
@@ -152,11 +152,9 @@ class GlobalSlam:
             while pending and pending[0] < b:  # batches of matches only
                 self._replay_matches(cons[pending.pop(0)])
             kfs = [kf for _, kf in group]
-            self.store.replaying = True  # (a chain followed on from an older one)
             for kf in kfs:
-                if self.admit(kf) == 0:
+                if self.admit(kf, replay=True) == 0:
                     log.error("stored keyframe %s/%d was not admitted", kf.robot_id, kf.seq)
-            self.store.replaying = False
             self.saved(Batch(kfs))  # on disk already: the scans may leave memory, and
             self._unsaved.clear()  # the journal need not keep the keyframes till the end
             if pending and pending[0] == b:

@@ -111,7 +111,6 @@ class KeyframeStore:
         self.robots: dict[str, RobotKeyframes] = {}
         self._points: OrderedDict[tuple[str, int], np.ndarray] = OrderedDict()
         self.points_made = 0  # scan_points() calls (cache misses)
-        self.replaying = False  # admitting the database's keyframes (GlobalSlam.restore)
 
     def points(self, robot_id: str, i: int) -> np.ndarray:
         """Keyframe i's scan points, (N, 2) float32 in its body frame (m); read only."""
@@ -156,13 +155,14 @@ class KeyframeStore:
             self.robots[robot_id] = RobotKeyframes(robot_id)
         return self.robots[robot_id]
 
-    def admit(self, kf: Keyframe) -> list[Keyframe]:
-        """Offer one keyframe; returns the keyframes now admitted, in order (maybe none)."""
+    def admit(self, kf: Keyframe, replay: bool = False) -> list[Keyframe]:
+        """Offer one keyframe (`replay`: from the database, where only admitted ones are);
+        returns the keyframes now admitted, in order (maybe none)."""
         r = self.robot(kf.robot_id)
         if r.foreign:
             r.id_conflicts += 1
             return []
-        if not self._in_chain(r, kf):
+        if not self._in_chain(r, kf, replay):
             return []
         if kf.seq < r.next_seq or kf.seq in r.held:
             r.duplicates += 1
@@ -222,7 +222,8 @@ class KeyframeStore:
             self.scan_archive.add((k.robot_id, k.seq), k.scan2d)
         return ready
 
-    def _in_chain(self, r: RobotKeyframes, kf: Keyframe) -> bool:
+    @staticmethod
+    def _in_chain(r: RobotKeyframes, kf: Keyframe, replay: bool) -> bool:
         """Whether `kf` is of the robot's chain. A newer chain is taken up while nothing
         of the robot's is admitted (what is held of the old one is dropped), or once one
         of its keyframes is one admitted here (the same stamp at the same seq: the agent
@@ -235,8 +236,8 @@ class KeyframeStore:
         if kf.chain < r.chain:  # sent before its agent started the new chain
             r.stale_chain += 1
             return False
-        if r.next_seq == 0 or self.replaying:  # (the database holds only admitted ones)
-            if not self.replaying:
+        if r.next_seq == 0 or replay:  # (the database holds only admitted ones)
+            if not replay:
                 log.warning("robot %s: its agent starts keyframe chain %d (it had keyframes "
                             "acknowledged by a base station without this one's database: "
                             "what it kept comes renumbered from seq 0); %d held keyframes "

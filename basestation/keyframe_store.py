@@ -288,18 +288,27 @@ class KeyframeStore:
         ok = r.next_seq and not r.foreign
         return KeyframeAck(robot_id, r.next_seq - 1, r.chain) if ok else None
 
-    def none_of(self, robot_id: str, chain: int) -> KeyframeAck | None:
-        """Ack -1 of `chain` for an agent that says some of that chain were acknowledged
-        if none of `robot_id`'s keyframes of it is admitted here: none at all (they are
-        in another base station's database), or only of an older chain (this one is on
-        an older database: the agent's next chain, everything again from its first
-        keyframe, lets it follow on). None: a state from before a chain this store has
-        taken up too, or a robot refused as another source's. Safe from any thread (it
-        only reads)."""
+    def none_of(self, robot_id: str, chain: int, acked: int) -> KeyframeAck | None:
+        """Ack -1 of `chain` for an agent that says `acked` (> 0) keyframes of it were
+        acknowledged, if this store lacks some of them: none of the robot's is admitted
+        (they are in another base station's database), only an older chain's are (this
+        one is on an older database: the agent's next chain, everything again from its
+        first keyframe, lets it follow on), or fewer than `acked` of this chain (another
+        base station acknowledged the rest; this one acknowledges only what it has). None:
+        a state from before a chain this store has taken up too, or a robot refused as
+        another source's. Safe from any thread (it only reads)."""
         r = self.robots.get(robot_id)
-        if r is not None and (r.foreign or chain < r.chain or chain == r.chain and r.next_seq):
+        if r is not None and (
+            r.foreign or chain < r.chain or chain == r.chain and r.next_seq >= acked
+        ):
             return None
         return KeyframeAck(robot_id, -1, chain)
+
+    def acknowledges(self, robot_id: str, chain: int) -> bool:
+        """Whether this store acknowledges `robot_id`'s keyframes of `chain` (some are
+        admitted, and no other source's)."""
+        r = self.robots.get(robot_id)
+        return r is not None and not r.foreign and r.chain == chain and r.next_seq > 0
 
 
 class KeyframeScans(Sequence[Scan2D]):

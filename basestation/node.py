@@ -202,10 +202,12 @@ class BaseStationNode:
             if msg.robot_id == self.segments.current(robot_of(msg.robot_id)):
                 self.states[msg.robot_id] = msg
             answer = self.neighbours.on_state(msg)
-        self.epochs.seen(msg.correction_epoch)  # another base station's, if above ours
         self._send("neighbours", answer)
-        if msg.keyframes_acked > 0 and (none := self.slam.store.none_of(msg.robot_id, msg.chain)):
+        store, rid = self.slam.store, msg.robot_id
+        if msg.keyframes_acked > 0 and (none := store.none_of(rid, msg.chain, msg.keyframes_acked)):
             self._send("ack", none)  # a new chain
+        elif store.acknowledges(rid, msg.chain) and not self.bus.rivals_up:  # (else: theirs)
+            self.epochs.seen(msg.correction_epoch)  # another base station's, if above ours
 
     def _to_segment(self, msg: Any) -> Any:
         """`msg` of an agent as its run's segment's (robot_segments.py; None: no room); a

@@ -78,6 +78,7 @@ class Bus:
         self.max_message_bytes = max_message_bytes
         self.rejected: Counter[str] = Counter()
         self.rivals: set[str] = set()  # other processes of a unique role (declare_alive)
+        self.rivals_up: set[str] = set()  # ... whose token is up now
         self._lock = threading.Lock()
         self._publishers: dict[str, zenoh.Publisher] = {}
         self._handles: list[Any] = []
@@ -159,12 +160,15 @@ class Bus:
     def declare_alive(self, role: str, name: str, unique: bool = False) -> None:
         """A liveliness token `role`/`name`. `unique`: there should be one process of this
         role on the fleet; the token is `name`-<random> and another's token is an error
-        line, its name kept in `rivals` (two base stations had split the agents'
-        keyframes between them without a word: both declared one token)."""
+        line, its name kept in `rivals` (and in `rivals_up` while its token is up; two
+        base stations had split the agents' keyframes between them without a word:
+        both declared one token)."""
         if unique:
             name = f"{name}-{secrets.token_hex(4)}"
 
             def on_other(other: str, alive: bool) -> None:
+                if other != name:
+                    (self.rivals_up.add if alive else self.rivals_up.discard)(other)
                 if alive and other != name and other not in self.rivals:
                     self.rivals.add(other)
                     log.error("another %s is up on fleet %s (%s; this is %s): run one per "

@@ -90,9 +90,9 @@ def test_history_keeps_every_keyframe_not_acknowledged() -> None:
     assert box.new_chain(1) == 5 and len(box.history) == 5  # none acknowledged: all kept
 
 
-def test_store_follows_a_new_chain_only_while_it_has_nothing(caplog) -> None:
+def test_store_follows_a_new_chain_from_the_keyframes_it_has(caplog) -> None:
     st = KeyframeStore()
-    none = st.none_of("r0", 0)  # an agent that says some were acknowledged is told -1
+    none = st.none_of("r0", 0, 300)  # an agent that says some were acknowledged is told -1
     assert (none.robot_id, none.acked_seq, none.chain) == ("r0", -1, 0)
     for seq in (300, 301):  # the old chain's, resent after the outage: held
         assert st.admit(_kf(seq)) == []
@@ -102,23 +102,30 @@ def test_store_follows_a_new_chain_only_while_it_has_nothing(caplog) -> None:
         assert "starts keyframe chain 1" in caplog.text
     r = st.robot("r0")
     assert r.chain == 1 and list(r.held) == [1]  # the old chain's are dropped
-    assert st.none_of("r0", 0) is None  # a state from before the switch
-    assert st.none_of("r0", 1).chain == 1 and st.none_of("r9", 2).chain == 2  # (lost twice)
+    assert st.none_of("r0", 0, 300) is None  # a state from before the switch
+    assert st.none_of("r0", 1, 5).chain == 1 and st.none_of("r9", 2, 5).chain == 2  # (twice)
     assert [k.seq for k in st.admit(_kf(0, chain=1))] == [0, 1]
     assert st.admit(_kf(302)) == [] and r.stale_chain == 1  # in flight before the switch
     ack = st.ack("r0")
-    assert (ack.acked_seq, ack.chain) == (1, 1) and st.none_of("r0", 0) is None
-    assert st.none_of("r0", 2).chain == 2  # another base station's chain: send it all
+    assert (ack.acked_seq, ack.chain) == (1, 1) and st.none_of("r0", 0, 300) is None
+    assert st.none_of("r0", 1, 2) is None and st.acknowledges("r0", 1)  # what it acked
+    assert st.none_of("r0", 1, 3).chain == 1  # more: another base station acked those
+    assert st.none_of("r0", 2, 9).chain == 2  # another base station's chain: send it all
     assert st.admit(_kf(2, chain=2)) == [] and r.unchecked_chain == 1  # cannot check it
     with caplog.at_level(logging.WARNING):  # ... and resent from the first: followed on
         assert st.admit(_kf(0, chain=2)) == [] and r.duplicates == 1
     assert "followed on from chain 1 at seq 2" in caplog.text
     assert [k.seq for k in st.admit(_kf(2, chain=2))] == [2]
-    assert (st.ack("r0").chain, st.none_of("r0", 2), st.none_of("r0", 1)) == (2, None, None)
+    assert (st.ack("r0").chain, st.none_of("r0", 2, 3), st.none_of("r0", 1, 9)) == (2, None, None)
     with caplog.at_level(logging.ERROR):  # renumbered from a later first: no way to join
         assert st.admit(Keyframe(**{**_kf(1, chain=3).__dict__, "stamp": 9.0})) == []
     assert r.chain_conflicts == 1 and "kept too few keyframes" in caplog.text
-    assert r.foreign and st.ack("r0") is None and st.none_of("r0", 4) is None
+    assert (
+        r.foreign
+        and st.ack("r0") is None
+        and st.none_of("r0", 4, 9) is None
+        and not st.acknowledges("r0", 2)
+    )
 
 
 def test_a_restore_follows_the_chains_as_admitted() -> None:

@@ -92,7 +92,7 @@ def test_two_base_stations_on_one_fleet_are_named(
         assert not first.rivals and "base stations are up" not in caplog.text
         second.declare_alive("basestation", "base", unique=True)
         assert poll_until(lambda: len(first.rivals) == len(second.rivals) == 1)
-        assert first.rivals.isdisjoint(second.rivals)
+        assert first.rivals.isdisjoint(second.rivals) and first.rivals_up == first.rivals
         assert poll_until(lambda: len(agent._bases) == 2)
         assert "another basestation is up on fleet" in caplog.text
         assert "2 base stations are up" in caplog.text

@@ -24,6 +24,12 @@ def slam_stats(slam: GlobalSlam) -> dict[str, Any]:
                 "id_conflicts": r.id_conflicts,
                 "another_source": r.foreign,  # its later keyframes refused
                 "held_out_of_order": len(r.held),
+                "keyframe_chain": r.chain,  # and keyframes of other chains, dropped:
+                "chain_drops": {
+                    "older": r.stale_chain,
+                    "unchecked": r.unchecked_chain,
+                    "conflicts": r.chain_conflicts,
+                },  # fmt: skip
                 "anchored": rid in slam.graph.robots() and slam.graph.is_anchored(rid),
             }
             for rid, r in slam.store.robots.items()

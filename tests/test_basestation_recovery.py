@@ -136,6 +136,8 @@ def test_a_base_station_with_a_new_database_gets_the_whole_mission(tmp_path: Pat
         assert re.search(r"sending the \d+ kept as keyframe chain 1 \(0 acknowledged", log)
         again = re.search(r"sending the \d+ kept as keyframe chain 2 \(0 acknowledged", log)
         assert bool(again) == (chain == 2)
+        assert stats["robots"][r]["keyframe_chain"] == chain
+        assert stats["robots"][r]["chain_drops"]["conflicts"] == 0
     base_log = (out / "logs" / "basestation3.log").read_text()
     assert base_log.count("followed on from chain") == len(robots)
     summary = build_summary(out, m.world, robots, wall)

@@ -83,6 +83,7 @@ class LocalTrajectoryBuilder:
         self.scans = 0
         self.matched = 0
         self.rejected_scans = 0
+        self.few_point_scans = 0  # gone on with the odometry's prediction (min_num_points)
         self.jumped_scans = 0  # of them: the odometry jumped farther than a drone flies
         self._jump = JumpGate()  # a stamp far ahead of the last (`common.stamps`)
         self.gated_matches = 0  # matches that turned too far from the prediction
@@ -159,7 +160,9 @@ class LocalTrajectoryBuilder:
 
     # --- scans --------------------------------------------------------------------------
     def add_scan(self, scan: LaserScan) -> LocalSlamResult | None:
-        """Process one scan; None if it was rejected (time going back, too few points)."""
+        """Process one scan; None if it was rejected (time going back, an odometry jump).
+        One with too few usable points is not matched or mapped: the pose goes on with
+        the odometry's prediction (it had stood still while the drone flew on)."""
         if self._jump.holds(scan.stamp, self.last_stamp):
             log.error("scan stamp %.3f is far past the previous %.3f: dropped unless the "
                       "next scan follows it", scan.stamp, self.last_stamp)  # fmt: skip
@@ -182,22 +185,20 @@ class LocalTrajectoryBuilder:
             self.pitch,
             self.altitude,
         )
-        if len(prep.points) < self.cfg.min_num_points:
-            log.warning(
-                "scan at %.3f has %d usable points (< %d): skipped",
-                scan.stamp,
-                len(prep.points),
-                self.cfg.min_num_points,
-            )
-            self.rejected_scans += 1
-            return None
+        few = len(prep.points) < self.cfg.min_num_points  # (a dropout, open space, fog)
+        if few and self.few_point_scans % 400 == 0:  # ~10 s of scans at 40 Hz a line
+            log.warning("scan at %.3f has %d usable points (< %d): the pose goes on with the "
+                        "odometry's prediction, the scan is not matched or mapped (%d so "
+                        "far)", scan.stamp, len(prep.points), self.cfg.min_num_points,
+                        self.few_point_scans + 1)  # fmt: skip
+        self.few_point_scans += few
         predicted = self.extrapolator.predict(scan.stamp)
         if self._jumped(predicted, scan.stamp):
             self.rejected_scans += 1
             return None
         self.last_stamp = scan.stamp
         pose2, cov, score, matched = predicted, np.diag([0.1, 0.1, 0.05]) ** 2, math.nan, False
-        submap = self.submaps.matching_submap()
+        submap = None if few else self.submaps.matching_submap()
         if submap is not None:
             m = self.matcher.match(submap.grid, prep.match_points, submap.to_submap(predicted))
             # LM never accepts a step that raises the cost, so a refinement that ran out
@@ -225,7 +226,7 @@ class LocalTrajectoryBuilder:
         if self.scans:
             self.distance_m += float(np.hypot(step[0], step[1]))
         self.extrapolator.add_pose(scan.stamp, pose2)
-        inserted = self.motion_filter.accept(scan.stamp, pose2)
+        inserted = not few and self.motion_filter.accept(scan.stamp, pose2)
         if inserted:
             self.submaps.insert(pose2, prep.points, prep.miss_points)
         self.scans += 1

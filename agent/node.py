@@ -293,8 +293,9 @@ class AgentNode:
             self._command(scan.stamp)  # a re-sent lock-step tick: answer again
             return
         self.downlink.wait()  # lock-step: the base station's paths and answers for it
-        ranges = np.asarray(scan.ranges, dtype=np.float64)
-        self.guard.update(scan.angle_min + scan.angle_increment * np.arange(len(ranges)), ranges)
+        r = np.asarray(scan.ranges, dtype=np.float64)
+        angles = scan.angle_min + scan.angle_increment * np.arange(len(r))
+        self.guard.update(angles, r, scan.range_min)
         result = self.frontend.add_scan(scan)
         if result is None:  # rejected (time going back, too few points): logged there
             self._command(scan.stamp)
@@ -310,10 +311,9 @@ class AgentNode:
             self._send_keyframe(scan, result)
         # the state before the command: in lock-step the command releases the clock, and
         # the base station's exploration step at this stamp must see where the drone is
-        # now, not half a second ago (0.5 m at cruise speed)
-        # (less a rounding slack: lock-step stamps are ticks x dt, and 0.4 - 0.2 < 0.2 in
-        # floating point would slip the states off the base station's sync stamps, to
-        # 0.825 s at the step of 1.0 s)
+        # now, not 0.5 s ago (0.5 m) (`due` has a rounding slack: lock-step stamps are
+        # ticks x dt, and 0.4 - 0.2 < 0.2 had slipped the states off the base station's
+        # sync stamps, to 0.825 s at the step of 1.0 s)
         if due(scan.stamp, self.last_state_stamp, self.cfg.agent.state_period_s):
             self.last_state_stamp = scan.stamp
             self._take_path()  # the state's status reflects a path that just came
@@ -344,8 +344,7 @@ class AgentNode:
             self._save_state(scan.stamp)
 
     def _save_state(self, stamp: float) -> None:
-        """Where this agent is (at each keyframe and state, and at a new chain), for one
-        restarted on its state folder (agent/resume.py)."""
+        """Where this agent is now, for one restarted on its state folder (resume.py)."""
         if self.state_dir is None or self.selector.last_pose is None:
             return
         if not self.outbox.history.max_keyframes:  # off (a disk error): nothing to resume
@@ -419,7 +418,8 @@ class AgentNode:
                     a.neighbour_extrapolation_s,
                 )
             )
-        vx, vy, vz, yaw_rate = self.follower.command(self.frontend.pose)
+        pose = self.frontend.pose  # (no altimeter: no vertical speed, else it climbed)
+        vx, vy, vz, yaw_rate = self.follower.command(pose, self.frontend.altitude is not None)
         if self.fresh.in_flight and not self.fresh.placed and self._hold_for_placement(stamp):
             vx = vy = vz = yaw_rate = 0.0  # where it is in map is not known yet: it hovers
         moving = self._twist  # the guard brakes along it (a turn lags the command)

@@ -28,6 +28,7 @@ class OdometryTracker:
         self.distance_m = 0.0
         self.scans = 0
         self.rejected_scans = 0
+        self.few_point_scans = 0  # (local SLAM's: no scan is matched here)
         self.rejected_odometry = 0
         self.gated_matches = 0  # no scan matching here: always 0
         self._last_odom: np.ndarray | None = None

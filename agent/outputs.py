@@ -32,6 +32,7 @@ def frontend_stats(frontend: Any) -> dict[str, Any]:
     return {
         "odom_distance_m": frontend.distance_m,
         "scans_rejected": frontend.rejected_scans,
+        "scans_too_few_points": frontend.few_point_scans,  # on the odometry's prediction
         "matches_gated": frontend.gated_matches,
         "odometry_rejected": frontend.rejected_odometry,
     }

@@ -71,10 +71,13 @@ class PathFollower:
     def done(self) -> bool:
         return self.index >= len(self.waypoints)
 
-    def command(self, T_odom_base: np.ndarray) -> tuple[float, float, float, float]:
-        """(vx, vy, vz, yaw_rate) body-frame command for the pose [x, y, z, yaw]."""
+    def command(
+        self, T_odom_base: np.ndarray, z_known: bool = True
+    ) -> tuple[float, float, float, float]:
+        """(vx, vy, vz, yaw_rate) body-frame command for the pose [x, y, z, yaw];
+        `z_known` False (no altimeter): no vertical speed (it had climbed for good)."""
         x, y, z, yaw = (float(v) for v in T_odom_base)
-        vz = float(np.clip(1.0 * (self.altitude_m - z), -0.5, 0.5))
+        vz = float(np.clip(1.0 * (self.altitude_m - z), -0.5, 0.5)) if z_known else 0.0
         while not self.done:
             d = self.waypoints[self.index] - (x, y)
             last = self.index == len(self.waypoints) - 1
@@ -97,5 +100,7 @@ class PathFollower:
         v_odom = speed * d / max(dist, 1e-9)
         vx = c * v_odom[0] + s * v_odom[1]
         vy = -s * v_odom[0] + c * v_odom[1]
-        yaw_rate = self.yaw_gain * heading_err if dist > 0.2 else 0.0
+        # (close in the bearing swings: no turn, but one behind is turned to, else it stays)
+        turn = dist > 0.2 or abs(heading_err) >= self.max_off_nose
+        yaw_rate = self.yaw_gain * heading_err if turn else 0.0
         return float(vx), float(vy), vz, float(yaw_rate)

@@ -85,12 +85,27 @@ def _finite(v: object) -> bool:
     return isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
 
 
-def save(directory: Path, point: ResumePoint) -> None:
-    """Write `point` (now) in one step: a reader finds the old state or the new one."""
+def save(directory: Path, point: ResumePoint) -> bool:
+    """Write `point` (now) in one step: a reader finds the old state or the new one. A
+    disk error (full, read-only) is logged when it starts and the agent flies on (it
+    had raised out of its loop): False."""
+    global _failing
     point.saved_unix = time.time()
     tmp = directory / (STATE_FILE + ".tmp")
-    tmp.write_text(json.dumps(asdict(point)))
-    os.replace(tmp, directory / STATE_FILE)
+    try:
+        tmp.write_text(json.dumps(asdict(point)))
+        os.replace(tmp, directory / STATE_FILE)
+    except OSError as exc:
+        if not _failing:
+            log.error("state not saved in %s (%s): restarted, this agent would go on from "
+                      "an older state, or afresh", directory, exc)  # fmt: skip
+        _failing = True
+        return False
+    _failing = False
+    return True
+
+
+_failing = False  # the last save failed (one error line until one succeeds)
 
 
 def load(directory: Path, max_age_s: float) -> ResumePoint | None:

@@ -98,10 +98,14 @@ class SafetyGuard:
             "guard_neighbour_ticks": self.neighbour_ticks,
         }
 
-    def update(self, angles: NDArray[np.float64], ranges: NDArray[np.float64]) -> None:
-        """Take the latest scan (beam angles, rad; ranges, m; NaN/inf = no return)."""
+    def update(
+        self, angles: NDArray[np.float64], ranges: NDArray[np.float64], range_min: float = 0.0
+    ) -> None:
+        """Take the latest scan (beam angles, rad; ranges, m; NaN/inf, or below the
+        laser's `range_min`, = no return: a driver's error codes, the drone's own frame,
+        had held it as a wall at 2 cm)."""
         r = np.asarray(ranges, dtype=np.float64)
-        keep = np.isfinite(r) & (r < self.horizon)
+        keep = np.isfinite(r) & (r >= range_min) & (r < self.horizon)
         a = np.asarray(angles, dtype=np.float64)[keep]
         self.points = np.column_stack([r[keep] * np.cos(a), r[keep] * np.sin(a)])
         self._range = r[keep]

@@ -172,3 +172,14 @@ def test_a_disk_error_turns_the_history_off(tmp_path: Path, caplog) -> None:
         h.add(2, b"kf2")  # no exception: the agent flies on
         h.add(3, b"kf3")
     assert "keyframe history off" in caplog.text and len(h) == 0
+
+
+def test_a_state_that_cannot_be_written_is_logged_and_flown_on(tmp_path: Path, caplog) -> None:
+    """A full or read-only disk had raised out of the agent's loop (it saves its state
+    at every state message, 5 Hz, hovering too): the process died in flight."""
+    (tmp_path / "file").write_text("")  # not a folder: every write fails
+    point = ResumePoint(0, 12, 9, 4, None, 30.0, [3, 4, 1, 0.1], None, [], 0, [3, 4, 1, 0.1], 0.0)
+    with caplog.at_level(logging.ERROR):
+        assert not save(tmp_path / "file", point) and not save(tmp_path / "file", point)
+        assert caplog.text.count("state not saved") == 1  # once, until one succeeds
+        assert save(tmp_path, point) and (tmp_path / STATE_FILE).exists()

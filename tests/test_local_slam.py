@@ -61,15 +61,31 @@ def test_bad_scans_are_rejected_without_crashing(cfg, caplog) -> None:
     b = LocalTrajectoryBuilder(cfg.agent.local_slam)
     room = 3.0 + np.abs(np.sin(np.linspace(0, 6, 361)))
     caplog.set_level(logging.WARNING)
-    assert b.add_scan(_scan(1.0, np.full(361, np.nan))) is None
-    assert b.add_scan(_scan(1.1, np.full(361, np.inf))) is None
-    assert "usable points" in caplog.text
     assert b.add_scan(_scan(1.2, room)) is not None
     assert b.add_scan(_scan(1.1, room)) is None  # time going backwards
     assert b.add_scan(_scan(1.2, room)) is None  # repeated stamp
     assert "not after the previous" in caplog.text
     assert b.add_scan(_scan(1.3, room)) is not None
-    assert b.rejected_scans == 4 and b.scans == 2
+    assert b.rejected_scans == 2 and b.scans == 2
+
+
+def test_a_scan_with_too_few_points_goes_on_with_the_odometry(cfg, caplog) -> None:
+    """A laser that sees nothing (all NaN: a dropout; all inf: open space) neither stops
+    the pose nor goes into the map: the pose went on with the odometry (it had stood at
+    the last matched scan while the drone flew on, into a wall)."""
+    b = LocalTrajectoryBuilder(cfg.agent.local_slam)
+    room = 3.0 + np.abs(np.sin(np.linspace(0, 6, 361)))
+    b.add_odometry(1.0, np.array([0.0, 0.0, 0.0]))
+    assert b.add_scan(_scan(1.0, room)).matched is False  # (nothing to match against yet)
+    caplog.set_level(logging.WARNING)
+    for k, ranges in enumerate([np.full(361, np.nan), np.full(361, np.inf)]):
+        t = 2.0 + k
+        b.add_odometry(t, np.array([0.5 * (t - 1.0), 0.0, 0.0]))
+        res = b.add_scan(_scan(t, ranges))
+        assert not res.matched and not res.inserted and res.num_points == 0
+        assert res.pose[0] == pytest.approx(0.5 * (t - 1.0))
+    assert "the pose goes on with the odometry's prediction" in caplog.text
+    assert (b.few_point_scans, b.rejected_scans, b.scans) == (2, 0, 3)
 
 
 def test_local_slam_beats_odometry_on_a_simulated_flight(cfg) -> None:

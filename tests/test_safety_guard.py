@@ -35,6 +35,18 @@ def test_far_wall_does_not_slow_the_drone() -> None:
     assert g.limit(0.0, 1.0, 0.0) == (1.0, 0.0)
 
 
+def test_returns_below_the_lasers_minimum_range_are_no_returns() -> None:
+    """A driver's error codes (0.001-0.02 m) or the drone's own frame: they had held
+    the drone as if a wall touched it on three sides."""
+    r = _wall_ranges(20.0)
+    r[[500, 540, 580]] = 0.02
+    g = _guard()
+    g.update(ANGLES, r, range_min=0.1)
+    assert g.limit(0.0, 1.0, 0.0) == (1.0, 0.0) and g.limit(0.0, 0.0, 1.0) == (0.0, 1.0)
+    g.update(ANGLES, r)  # (without the laser's minimum: points, and held)
+    assert g.limit(0.0, 1.0, 0.0)[0] < 0.05
+
+
 def test_speed_toward_a_wall_allows_stopping_before_it() -> None:
     g = _guard()
     for x_wall in (0.5, 0.8, 1.2, 2.0):

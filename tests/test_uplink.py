@@ -253,6 +253,21 @@ def test_path_follower_flies_off_the_nose_only_where_the_laser_sees() -> None:
         PathFollower(1.0, 0.3, 1.5, 1.0, 1.0, full_speed_off_nose_deg=90.0, max_off_nose_deg=80.0)
 
 
+def test_path_follower_turns_to_a_last_waypoint_just_behind() -> None:
+    """0.15-0.2 m short of the last waypoint with it behind (a correction moved the
+    path), the drone neither flew (blind sector) nor turned (close in): it hovered
+    there for good, `flying`. It turns to it now, then reaches it."""
+    f = PathFollower(cruise_speed=1.0, tolerance=0.3, yaw_gain=1.5, max_accel=1.0, altitude_m=1.0)
+    f.set_path(np.array([[-0.18, 0.0]]))
+    pose = np.array([0.0, 0.0, 1.0, 0.0])
+    assert f.command(pose)[3] != 0.0
+    for _ in range(400):
+        vx, vy, vz, wz = f.command(pose)
+        c, s = np.cos(pose[3]), np.sin(pose[3])
+        pose = pose + 0.05 * np.array([c * vx - s * vy, s * vx + c * vy, vz, wz])
+    assert f.done and np.hypot(pose[0] + 0.18, pose[1]) <= 0.15
+
+
 def test_a_keyframe_that_never_comes_is_named(caplog: pytest.LogCaptureFixture) -> None:
     """A base station restarted without its database waits for seq 0, which an agent
     that does not start a new chain (an old one) dropped once the first base station

@@ -29,6 +29,9 @@ from common.stamps import JumpGate
 from protocol import Neighbours, RobotState
 
 log = logging.getLogger(__name__)
+# s: two states closer than this give no velocity (1e-300 s apart had made it infinite,
+# and every answer then failed the agents' checks)
+MIN_STEP_S = 1e-3
 
 
 @dataclass
@@ -57,7 +60,7 @@ class NeighbourRelay:
         odom_xy = np.asarray(msg.pose_odom[:2], dtype=np.float64)
         old = self._tracks.get(msg.robot_id)
         velocity = np.zeros(2)
-        if old is not None and 0.0 < msg.stamp - old.stamp <= self.max_dt_s:
+        if old is not None and MIN_STEP_S <= msg.stamp - old.stamp <= self.max_dt_s:
             turn = pose7_to_pose4(msg.pose_map)[3] - pose7_to_pose4(msg.pose_odom)[3]
             c, s = np.cos(turn), np.sin(turn)
             d = (odom_xy - old.odom_xy) / (msg.stamp - old.stamp)

@@ -22,7 +22,7 @@ import numpy as np
 from common.errors import CollabSlamError, FileFormatError
 from common.geodesy import GeoOrigin, georeferenced_waypoints
 from common.world_files import world_wgs84_origin
-from protocol.messages import ROBOT_ID_RE
+from protocol.checks import ROBOT_ID_RE
 
 MAX_COORDINATE_M = 1e6  # m: start poses and tour points (map frame)
 

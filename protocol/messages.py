@@ -8,16 +8,20 @@ Frames (REP-105): each robot's local frame is `odom`; the global frame is
 
 from __future__ import annotations
 
-import re
 from typing import Any
 
 import numpy as np
 
 from common.errors import ProtocolError
-from common.geometry import MAX_POSITION_M
+from protocol.checks import (
+    check_covariance,
+    check_frame,
+    check_pose7,
+    check_position,
+    check_robot_id,
+)
 from protocol.codec import array_field, later_field, message
 
-ROBOT_ID_RE = re.compile(r"^[A-Za-z0-9_-]{1,32}$")
 # What one keyframe may carry and the pose graph still solves (iSAM2 failed on a step of
 # 2e4 m, on a variance of 1e4 m^2 or 1e3 rad^2, and on one of 1e-12): keyframes come
 # every 0.2 m, and one spanning an outage of the link is still far inside these.
@@ -31,26 +35,8 @@ MAX_SESSION = 2**32 - 1
 # flight, in the source's frame of the robot's run before it (`OdomOrigin`)
 IN_FLIGHT_M = 1.0
 GNSS_ALTITUDE_RANGE_M = (-1000.0, 100_000.0)  # m above the ellipsoid
+MAX_TWIST = 1000.0  # m/s or rad/s in an odometry's twist
 ROBOT_STATUSES = ("starting", "waiting", "flying", "blocked", "hovering", "done", "landed")
-
-
-def _check_robot_id(robot_id: str) -> None:
-    if not ROBOT_ID_RE.match(robot_id):
-        raise ProtocolError(
-            f"robot_id {robot_id!r} is invalid: expected 1-32 letters, digits, '_' or '-'"
-        )
-
-
-def _check_position(name: str, xyz: np.ndarray) -> None:
-    if xyz.size and float(np.abs(xyz).max()) > MAX_POSITION_M:
-        raise ProtocolError(f"{name}: a position beyond {MAX_POSITION_M:g} m")
-
-
-def _check_pose7(name: str, pose: np.ndarray) -> None:
-    _check_position(name, pose[:3])
-    norm = float(np.linalg.norm(pose[3:7]))
-    if abs(norm - 1.0) > 1e-3:
-        raise ProtocolError(f"{name}: quaternion norm is {norm:.6f}, expected 1")
 
 
 class Message:
@@ -59,7 +45,7 @@ class Message:
     robot_id: str
 
     def validate(self) -> None:
-        _check_robot_id(self.robot_id)
+        check_robot_id(self.robot_id)
         session = getattr(self, "session", 0)
         if not 0 <= session <= MAX_SESSION:
             raise ProtocolError(f"session must be in 0..{MAX_SESSION}, got {session}")
@@ -108,7 +94,9 @@ class Odometry(Message):
 
     def validate(self) -> None:
         super().validate()
-        _check_pose7("Odometry.pose", self.pose)
+        check_pose7("Odometry.pose", self.pose)
+        if float(np.abs(self.twist).max()) > MAX_TWIST:  # (1e155 had raised in the guard)
+            raise ProtocolError(f"Odometry.twist beyond {MAX_TWIST:g} m/s or rad/s")
 
 
 @message
@@ -274,10 +262,10 @@ class Keyframe(Message):
             raise ProtocolError(f"Keyframe.seq must be >= 0, got {self.seq}")
         if not 0 <= self.chain <= MAX_CHAIN:
             raise ProtocolError(f"Keyframe.chain must be in 0..{MAX_CHAIN}, got {self.chain}")
-        _check_pose7("Keyframe.pose_odom", self.pose_odom)
-        _check_pose7("Keyframe.delta", self.delta)
+        check_pose7("Keyframe.pose_odom", self.pose_odom)
+        check_pose7("Keyframe.delta", self.delta)
         if (o := self.odom_origin) is not None:
-            _check_position("Keyframe.odom_origin", np.array([o.x, o.y]))
+            check_position("Keyframe.odom_origin", np.array([o.x, o.y]))
         if (self.scan2d is None) == (self.cloud3d is None):
             raise ProtocolError("Keyframe: exactly one of scan2d / cloud3d must be set")
         step = float(np.linalg.norm(self.delta[:3]))
@@ -285,19 +273,13 @@ class Keyframe(Message):
             raise ProtocolError(
                 f"Keyframe.delta moves {step:.3g} m (> {KEYFRAME_MAX_STEP_M:g} m from one keyframe)"
             )
-        cov = self.delta_cov
-        if not np.allclose(cov, cov.T, atol=1e-9) or np.any(np.diag(cov) <= 0.0):
-            raise ProtocolError("Keyframe.delta_cov must be symmetric with a positive diagonal")
+        check_covariance("Keyframe.delta_cov", cov := self.delta_cov)
         var = np.diag(cov)
         if var.min() < KEYFRAME_VAR_RANGE[0] or var.max() > KEYFRAME_VAR_RANGE[1]:
             raise ProtocolError(
                 f"Keyframe.delta_cov variances {var.min():.3g}..{var.max():.3g} outside "
                 f"{KEYFRAME_VAR_RANGE[0]:g}..{KEYFRAME_VAR_RANGE[1]:g}"
             )
-        try:
-            np.linalg.cholesky(cov)
-        except np.linalg.LinAlgError:
-            raise ProtocolError("Keyframe.delta_cov is not positive definite") from None
         if self.scan2d is not None and not 0.0 < self.scan2d.range_max:
             raise ProtocolError(
                 f"Keyframe.scan2d.range_max must be > 0, got {self.scan2d.range_max}"
@@ -328,7 +310,7 @@ class PoseCorrection(Message):
 
     def validate(self) -> None:
         super().validate()
-        _check_pose7("PoseCorrection.T_map_odom", self.T_map_odom)
+        check_pose7("PoseCorrection.T_map_odom", self.T_map_odom)
 
 
 @message
@@ -346,8 +328,8 @@ class Goal(Message):
 
     def validate(self) -> None:
         super().validate()
-        _check_frame(self.frame, ("odom", "map", "wgs84"))
-        _check_pose7("Goal.pose", self.pose)
+        check_frame(self.frame, ("odom", "map", "wgs84"))
+        check_pose7("Goal.pose", self.pose)
 
 
 @message
@@ -365,8 +347,8 @@ class Path(Message):
 
     def validate(self) -> None:
         super().validate()
-        _check_frame(self.frame)
-        _check_position("Path.waypoints", self.waypoints[:, :3])
+        check_frame(self.frame)
+        check_position("Path.waypoints", self.waypoints[:, :3])
 
 
 @message
@@ -389,6 +371,8 @@ class RobotState(Message):
         super().validate()
         if self.status not in ROBOT_STATUSES:
             raise ProtocolError(f"RobotState.status {self.status!r} not in {ROBOT_STATUSES}")
+        check_pose7("RobotState.pose_odom", self.pose_odom)  # (relayed to the others, and
+        check_pose7("RobotState.pose_map", self.pose_map)  # a GNSS start's local pose)
 
 
 @message
@@ -467,12 +451,7 @@ class ControlPose(Message):
         if not 0.0 <= self.alpha <= 1.0:
             raise ProtocolError(f"ControlPose.alpha: expected a value in [0, 1], got {self.alpha}")
         for name in ("pose_odom", "pose_map", "pose_map_raw"):
-            _check_pose7(f"ControlPose.{name}", getattr(self, name))
-
-
-def _check_frame(frame: str, allowed: tuple[str, ...] = ("odom", "map")) -> None:
-    if frame not in allowed:
-        raise ProtocolError(f"frame must be one of {allowed}, got {frame!r}")
+            check_pose7(f"ControlPose.{name}", getattr(self, name))
 
 
 def message_types() -> dict[str, Any]:

@@ -57,6 +57,16 @@ def test_velocity_from_odometry_and_old_or_unplaced_robots_left_out() -> None:
     assert len(relay.on_state(_state("r0", 3.8, 0, 0)).xy) == 0
 
 
+def test_two_states_a_hair_apart_give_no_velocity() -> None:
+    """1e-12 s apart: 1e18 m/s (an infinite velocity, from poses far out, had every
+    answer that held it refused by the agents: they lost every neighbour)."""
+    relay = NeighbourRelay()
+    relay.on_state(_state("r1", 1.0, 5.0, 0.0))
+    relay.on_state(_state("r1", 1.0 + 1e-12, -1e6, 0.0))
+    ans = decode(encode(relay.on_state(_state("r0", 1.1, 0.0, 0.0))))
+    np.testing.assert_array_equal(ans.velocity, [[0.0, 0.0]])
+
+
 def test_lockstep_answers_do_not_depend_on_which_state_came_first() -> None:
     """In lock-step every robot reports at the same stamps; the answer to a state of stamp
     t holds the others' latest states before t, whichever of two states of stamp t came

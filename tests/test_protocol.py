@@ -212,6 +212,12 @@ def _not_positive_definite() -> np.ndarray:
     return cov
 
 
+def _slightly_asymmetric() -> np.ndarray:
+    cov = np.eye(6) * 1e-4
+    cov[0, 1], cov[1, 0] = 1e-5, 1e-5 + 5e-9  # within allclose's 1e-5 relative
+    return cov
+
+
 @pytest.mark.parametrize(
     "kf, reason",
     [
@@ -220,6 +226,7 @@ def _not_positive_definite() -> np.ndarray:
         (_keyframe(cov=np.eye(6) * 1e300), "variances"),
         (_keyframe(delta_xy=1e7), "moves"),
         (_keyframe(range_max=-5.0), "range_max"),
+        (_keyframe(cov=_slightly_asymmetric()), "symmetric"),  # (graph: "must be symmetric")
     ],
 )
 def test_keyframes_the_pose_graph_cannot_take_are_refused(kf: Keyframe, reason: str) -> None:
@@ -228,6 +235,20 @@ def test_keyframes_the_pose_graph_cannot_take_are_refused(kf: Keyframe, reason: 
     with pytest.raises(ProtocolError, match=reason):
         decode(encode(kf))
     decode(encode(_keyframe()))  # the same keyframe with sane values passes
+
+
+def test_states_and_odometry_out_of_bounds_are_refused() -> None:
+    """A state's pose of 1e308 m had poisoned the neighbours' relay (velocities NaN, every
+    answer refused by the agents) and, with GNSS starts, stopped the base station; an
+    odometry twist of 1e155 m/s had raised in the agent's safety guard."""
+    far = pose4_to_pose7([1e308, 0.0, 0.0, 0.0])
+    for odom, world in ((far, P7), (P7, far)):
+        with pytest.raises(ProtocolError, match="RobotState.pose_"):
+            decode(encode(RobotState("r1", 1.0, "flying", 3, 1, 1, 0, odom, world)))
+    decode(encode(RobotState("r1", 1.0, "flying", 3, 1, 1, 0, P7, P7)))
+    with pytest.raises(ProtocolError, match="Odometry.twist"):
+        decode(encode(Odometry("r0", 1.0, P7, np.array([1e155, 0.0, 0.0, 0.0]))))
+    decode(encode(Odometry("r0", 1.0, P7, np.array([30.0, 0.0, 0.0, 3.0]))))
 
 
 def test_positions_beyond_ten_thousand_km_are_refused() -> None:

@@ -184,6 +184,7 @@ class GlobalSlam:
                 )  # fmt: skip
             except CollabSlamError as e:
                 log.error("stored match %d not restored: %s", m.id, e)
+        self._constraints_added = bool(stored)  # the forced relinearization, as when live
         self.optimize()
 
     def _add_node(self, kf: Keyframe) -> None:
@@ -239,10 +240,9 @@ class GlobalSlam:
         last = stamps.get(kf.robot_id) if kf.seq > 0 else None
         stamp = float(kf.stamp)
         if last is not None and not stamp > last:
-            log.warning(
-                "robot %s keyframe %d: stamp %.3f not after %.3f", kf.robot_id, kf.seq, stamp, last
-            )
-            stamp = last + 1e-6
+            log.warning("robot %s keyframe %d: stamp %.3f not after %.3f", kf.robot_id,
+                        kf.seq, stamp, last)  # fmt: skip
+            stamp = max(last + 1e-6, float(np.nextafter(last, np.inf)))  # (1e12 + 1e-6 = 1e12)
         stamps[kf.robot_id] = stamp
         return stamp
 

@@ -69,14 +69,20 @@ class EstimateMixin(PoseGraphState):
 
     def _extract(self, values: gtsam.Values) -> FloatArray:
         """Every committed node's pose, chain after chain in index order."""
-        # Keys sort by (character, index), so rows come chain after chain in index order.
+        # Keys sort by (character, index): rows come chain after chain in index order
         rows = np.asarray(gtsam.utilities.extractPose2(values), dtype=np.float64).reshape(-1, 3)
         expected = sum(c.num_committed for c in self._chains.values())
         out = self._estimate_rows(expected)
         if not self.reducing:
             if rows.shape[0] != expected:
                 raise CollabSlamError(f"estimate has {rows.shape[0]} poses, expected {expected}")
-            out[:] = rows
+            chains, start, at = list(self._chains.values()), 0, {}
+            for c in sorted(chains, key=lambda c: c.char):  # rows by key character: 'A' < 'a'
+                at[c.char], start = start, start + c.num_committed
+            done = 0
+            for c in chains:  # (a 27th chain's rows had been taken for the first chain's)
+                out[done : done + c.num_committed] = rows[at[c.char] :][: c.num_committed]
+                done += c.num_committed
             return out
         done = 0
         keys = np.fromiter(values.keys(), dtype=np.int64, count=values.size())

@@ -262,6 +262,20 @@ def test_robot_alphabet_is_bounded() -> None:
         graph.add_robot("one_too_many", None)
 
 
+def test_chains_past_the_lowercase_letters_keep_their_poses() -> None:
+    """Keys sort by character and 'A' < 'a': the 27th chain's rows came first in the
+    estimate, and (unreduced) every robot's poses were another's (r0 read 2600 m)."""
+    graph = PoseGraph()
+    for k in range(28):
+        graph.add_robot(f"r{k}", np.array([100.0 * k, 0.0, 0.0]))
+        graph.add_node(f"r{k}", 0, None, None)
+        graph.add_node(f"r{k}", 1, [1.0, 0.0, 0.0], np.eye(3) * 1e-4)
+    graph.update()
+    for k in (0, 1, 25, 26, 27):
+        np.testing.assert_allclose(graph.poses(f"r{k}")[:, 0], [100.0 * k, 100.0 * k + 1])
+        assert graph.pose(f"r{k}", 0)[0] == pytest.approx(100.0 * k)
+
+
 def _feed_m3500(graph: PoseGraph, m3500: Path, n_nodes: int, n_robots: int) -> int:
     """Feed an M3500 prefix node by node, cut into one chain per robot (the bench's
     split, robot 0 at the file's first vertex, the others floating until an edge

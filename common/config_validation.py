@@ -13,6 +13,7 @@ from collections.abc import Iterable, Iterator
 from typing import TYPE_CHECKING, Any
 
 from common.errors import ConfigError
+from protocol.messages import KEYFRAME_VAR_RANGE
 
 if TYPE_CHECKING:  # common.config imports this module
     from common.config import BaseStationConfig, Config
@@ -242,6 +243,10 @@ def _validate_agent(cfg: Config) -> None:
             "neighbour_extrapolation_s",
         ),
     )
+    lo, hi = (v**0.5 for v in KEYFRAME_VAR_RANGE)  # (below: every keyframe refused)
+    if not lo <= a.odom_sigma_min <= hi:
+        raise ConfigError(f"agent.odom_sigma_min: expected {lo:g}..{hi:g} (a keyframe's "
+                          f"variances must be within {KEYFRAME_VAR_RANGE})")  # fmt: skip
     if not 0.0 < a.outbox_warn_fraction <= 1.0:
         raise ConfigError("agent.outbox_warn_fraction: expected a value in (0, 1]")
     if not 0.0 <= a.full_speed_off_nose_deg < a.max_off_nose_deg <= 180.0:

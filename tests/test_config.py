@@ -47,6 +47,7 @@ def test_round_trip(tmp_path: Path) -> None:
         ({"basestation.malloc_mmap_threshold_kb": -1}, "basestation.malloc_mmap_threshold_kb"),
         ({"agent.malloc_arenas": -2}, "agent.malloc_arenas"),
         ({"agent.max_off_nose_deg": 200.0}, "agent.full_speed_off_nose_deg"),
+        ({"agent.odom_sigma_min": 5e-6}, "agent.odom_sigma_min"),  # every keyframe refused
         ({"agent.local_slam.max_match_yaw_jump_deg": -1.0}, "agent.local_slam.max_match_yaw"),
         ({"agent.resend_batch": 0}, "agent.resend_batch"),
         ({"agent.safety_margin_m": 0.3}, "agent.vehicle_radius_m + agent.safety_margin_m"),

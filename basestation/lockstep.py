@@ -37,6 +37,7 @@ from protocol import ClockSync, DownlinkMark, VehicleCommand
 log = logging.getLogger(__name__)
 
 POLL_S = 0.002  # s: keyframes and states come on other subscribers than the commands
+MAX_FIX_JUMP = 100_000  # GNSS fixes between two clock requests, at most
 
 
 class LockstepClock:
@@ -50,6 +51,8 @@ class LockstepClock:
         self._epochs: dict[str, int] = {}  # robot -> the latest correction epoch sent to it
         self._fixes = self._fixes_due = 0  # GNSS fixes received / sent by the simulator
         self.takes_fixes = False  # the base station takes them (basestation.gps.enabled)
+        self._fix_jump = JumpGate(MAX_FIX_JUMP)  # a count of fixes far past the last: held
+        self._command_jumps: dict[str, JumpGate] = {}  # a command stamped far past its last
         self._jump = JumpGate()  # a request far past the last: held (one at 1e9 s had
         # been answered, and every real one after it taken as answered already)
         self._cond = threading.Condition()
@@ -62,7 +65,12 @@ class LockstepClock:
                           "unless the next follows it", msg.stamp, self.requested)  # fmt: skip
                 return
             self.requested = max(self.requested, msg.stamp)
-            self._fixes_due = max(self._fixes_due, msg.gnss_fixes)
+            if self._fix_jump.holds(msg.gnss_fixes, self._fixes_due):  # (2^63 had had every
+                log.error("clock request counts %d GNSS fixes, far past %d: not waited for "
+                          "unless the next follows it", msg.gnss_fixes,
+                          self._fixes_due)  # fmt: skip
+            else:  # later sync wait for them, 10 s each)
+                self._fixes_due = max(self._fixes_due, msg.gnss_fixes)
             self._cond.notify_all()
 
     def on_fix(self) -> None:
@@ -77,7 +85,12 @@ class LockstepClock:
     def on_command(self, msg: VehicleCommand, key: str) -> None:
         with self._cond:
             old = self._commands.get(msg.robot_id)
-            if old is None or msg.stamp >= old.stamp:
+            gate = self._command_jumps.setdefault(msg.robot_id, JumpGate())
+            last = max(self.requested, 0.0) if old is None else old.stamp  # (1e300 had been
+            if gate.holds(msg.stamp, last):
+                log.error("robot %s: command stamped %.6g, far past its last: dropped unless "
+                          "the next follows it", msg.robot_id, msg.stamp)  # fmt: skip
+            elif old is None or msg.stamp >= old.stamp:  # its latest for good, unnoticed)
                 self._commands[msg.robot_id] = msg
             self._cond.notify_all()
 

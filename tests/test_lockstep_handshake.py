@@ -155,6 +155,20 @@ def test_a_clock_stamped_far_ahead_is_held_back() -> None:
     assert gate.timeouts == 0
 
 
+def test_a_fix_count_or_command_far_ahead_is_held_back() -> None:
+    """A request counting 2^63 GNSS fixes had every later sync wait 10 s for them; a
+    command stamped 1e300 s stayed its robot's latest for good (nothing waited for)."""
+    clock = LockstepClock(active=True, timeout_s=60.0)
+    clock.takes_fixes = True
+    clock.on_request(ClockSync("sim", 1.0, gnss_fixes=2**63), "")
+    clock.on_command(VehicleCommand("r0", 1e300, 0, 0, 0, 0, keyframes_sent=0), "")
+    clock.on_command(VehicleCommand("r0", 1.0, 0, 0, 0, 0, keyframes_sent=7, state_stamp=1.0), "")
+    got = {"r0": (0, -1.0)}
+    assert clock.wait_inputs(1.0, ["r0"], got.get, 0.05) == ["r0"]  # its 7 keyframes
+    got["r0"] = (7, 1.0)
+    assert clock.wait_inputs(1.0, ["r0"], got.get, 10.0) == []  # and no fix count
+
+
 def test_a_resumed_agent_does_not_wait_for_what_went_to_the_one_before() -> None:
     """An agent restarted mid-mission (agent.state_dir): the base station's marks count
     the paths sent to the agent before it, which this one never gets. It had waited

@@ -26,8 +26,6 @@ import logging
 import time
 from collections import deque
 from collections.abc import Callable, Sequence
-from itertools import groupby
-from operator import itemgetter
 from typing import Any
 
 import numpy as np
@@ -44,10 +42,11 @@ from basestation.gps_fixes import gnss_start
 from basestation.keyframe_store import KeyframeScans, KeyframeStore
 from basestation.loop_closure_manager import LoopClosureManager
 from basestation.node_keys import NodeKeys
-from basestation.persistence import Batch, Recovered, StoredConstraint
+from basestation.persistence import Batch, Fix, Recovered, StoredConstraint
 from basestation.pose_graph import PoseGraph
 from basestation.robot_segments import SEGMENT_START_SIGMAS, robot_of, segment_start
 from basestation.scan_archive import ScanArchive, ScanReader
+from basestation.slam_restore import replay_order
 from basestation.slam_stats import slam_stats
 from basestation.update_series import UpdateSeries
 from basestation.whole_map_search import WholeMapSearch, tie
@@ -102,6 +101,7 @@ class GlobalSlam:
         self._last_candidate: dict[tuple[str, str], int] = {}  # (robot, target robot) -> index
         self._together: dict[str, frozenset[str]] = {}  # robot -> its map's robots, last search
         self._unsaved: list[Keyframe] = []  # admitted since the last take_journal()
+        self._unsaved_fixes: list[Fix] = []  # GNSS fixes given since then
 
     # --- keyframes ----------------------------------------------------------------------
     def admit(self, kf: Keyframe, replay: bool = False) -> int:
@@ -116,7 +116,8 @@ class GlobalSlam:
     ) -> None:
         """A fix in ``map`` = ENU; used once the robot's chain exists from a known start
         or heading."""
-        self._last_fix[robot_id] = np.asarray(enu_xy, dtype=np.float64)[:2]
+        self._last_fix[robot_id] = xy = np.asarray(enu_xy, dtype=np.float64)[:2]
+        self._unsaved_fixes.append((robot_id, float(stamp), xy, np.asarray(sigmas_enu, float)))
         expected = robot_id in self.known_starts or robot_id in self.start_headings
         if robot_id not in self.graph.robots() and expected:  # wait for its first keyframe
             early = self._early_fixes.setdefault(robot_id, [])
@@ -130,9 +131,10 @@ class GlobalSlam:
 
     def take_journal(self) -> Batch:
         """What changed since the last call (admitted keyframes, new matches, matches
-        entering or leaving the graph), for the database."""
+        entering or leaving the graph, GNSS fixes given), for the database."""
         constraints, changes = self.loops.take_journal()
-        batch, self._unsaved = Batch(self._unsaved, constraints, changes), []
+        batch = Batch(self._unsaved, constraints, changes, fixes=self._unsaved_fixes)
+        self._unsaved, self._unsaved_fixes = [], []
         return batch
 
     def saved(self, batch: Batch) -> None:
@@ -140,27 +142,22 @@ class GlobalSlam:
         self.store.saved([(k.robot_id, k.seq) for k in batch.keyframes])
 
     def restore(self, rec: Recovered) -> None:
-        """Rebuild the graph from the database: keyframes and stored matches are replayed
-        through the same admission path and the same loop-closure manager (PCM), batch by
-        batch in the order they were first written; the graph is optimized before each
-        batch of matches, as it was then. Stored matches are not verified again."""
-        cons: dict[int, list[StoredConstraint]] = {}
-        for c in rec.constraints:
-            cons.setdefault(c.batch, []).append(c)
-        pending = sorted(cons)  # batches whose matches are not replayed yet
-        for b, group in groupby(rec.keyframes, key=itemgetter(0)):  # read as it goes
-            while pending and pending[0] < b:  # batches of matches only
-                self._replay_matches(cons[pending.pop(0)])
-            kfs = [kf for _, kf in group]
-            for kf in kfs:
-                if self.admit(kf, replay=True) == 0:
-                    log.error("stored keyframe %s/%d was not admitted", kf.robot_id, kf.seq)
-            self.saved(Batch(kfs))  # on disk already: the scans may leave memory, and
-            self._unsaved.clear()  # the journal need not keep the keyframes till the end
-            if pending and pending[0] == b:
-                self._replay_matches(cons[pending.pop(0)])
-        for b in pending:
-            self._replay_matches(cons[b])
+        """Rebuild the graph from the database: GNSS fixes, keyframes and stored matches
+        are replayed through the same paths (admission, loop-closure manager and PCM) in
+        the order they were first taken (`slam_restore`); the graph is optimized before
+        each batch of matches, as it was then. Stored matches are not verified again."""
+        for kind, items in replay_order(rec):
+            if kind == "fixes":
+                for fix in items:
+                    self.add_gps_fix(*fix)
+            elif kind == "matches":
+                self._replay_matches(items)
+            else:
+                for kf in items:
+                    if self.admit(kf, replay=True) == 0:
+                        log.error("stored keyframe %s/%d not admitted", kf.robot_id, kf.seq)
+                self.saved(Batch(items))  # on disk already: the scans may leave memory, and
+                self._unsaved.clear()  # the journal need not keep the keyframes till the end
         self.optimize()
         self._new_nodes.clear()  # their candidates were searched before the crash
         frames = self._frames(self.graph.components())

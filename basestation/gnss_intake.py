@@ -28,6 +28,22 @@ class GnssIntake:
         self.reach_m = reach_m  # m from the origin: farther fixes are dropped
         self._first: list[GnssFix] = []  # held until the origin is known
         self.dropped = 0
+        self._origin_saved = False  # on the database (persistence.Batch.origin)
+
+    def new_origin(self) -> list[float] | None:
+        """The origin, once it is set and not on the database yet (for it; else None): a
+        restart converts later fixes as the stored ones were."""
+        if self.origin is None or self._origin_saved:
+            return None
+        self._origin_saved = True
+        return self.origin.as_list()
+
+    def restore(self, stored: list[float] | None) -> None:
+        """The origin of a restored database (None: none was set), unless the world gives
+        one: set from the first fixes, it had been set again from the next five."""
+        if stored is not None and self.origin is None:
+            self.origin = GeoOrigin.from_sequence(stored)
+        self._origin_saved |= stored is not None
 
     def take(self, fix: GnssFix) -> list[tuple[GnssFix, NDArray[np.float64]]]:
         """The fixes now ready for the graph (this one, or the held ones once the origin

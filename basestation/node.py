@@ -63,8 +63,7 @@ from protocol import Path as PathMsg
 
 log = logging.getLogger(__name__)
 
-# s of tile redraws between two heap trims when the outputs are written (all at once left
-# the redraw threads' freed temporaries in glibc's arenas: resident, not live)
+# s of tile redraws between heap trims writing the outputs (else freed temporaries stay)
 OUTPUT_REDRAW_CHUNK_S = 1.0
 
 
@@ -76,9 +75,8 @@ class BaseStationNode:
         self.bus = bus
         self.keys = bus.keys
         # With a scenario the roster is closed (other ids dropped). Its start poses are used
-        # if basestation.known_start_poses; else the first robot's (the map frame) and the
-        # others found by matching; with GPS, each starts at its first GNSS fix with the
-        # scenario's heading (standing in for the autopilot's compass, seed 000 III-C).
+        # if basestation.known_start_poses; else the first robot's (the map frame), others
+        # by matching; with GPS, at its first fix with the scenario's heading (seed 000).
         starts: dict[str, np.ndarray] = {}
         headings: dict[str, float] = {}
         self.roster: set[str] | None = None
@@ -139,6 +137,7 @@ class BaseStationNode:
         rec = self.db.load()
         self.epochs.resume(rec.epoch)
         self._path_id = max(self._path_id, rec.path_id)
+        self.gnss.restore(rec.gnss_origin)  # (before its fixes are replayed)
         if rec.empty:
             return
         self.slam.restore(rec)
@@ -163,6 +162,7 @@ class BaseStationNode:
         """Write what changed (one transaction) before anything is acked or published."""
         if batch is None:
             batch = self.slam.take_journal()
+        batch.origin = self.gnss.new_origin()  # (once set: the map's WGS84 origin)
         self.db.commit(batch)
         self.slam.saved(batch)  # its scans may leave memory now
 

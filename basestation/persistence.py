@@ -11,7 +11,10 @@ acknowledged or published:
   take it out again later: that removal is written too);
 - the correction-epoch high-water mark (epochs are reserved in blocks, so an
   epoch is never reused after a restart without one write per correction);
-- the latest exploration path per robot and the path-id counter.
+- the latest exploration path per robot and the path-id counter;
+- every GNSS fix given to the graph (robot segment, stamp, east-north in `map`, sigmas)
+  and the map's WGS84 origin: a restart had lost them, and its robots started from a
+  heading and a fix floated, their later fixes ignored.
 
 Durability: WAL journal with ``synchronous=FULL``: a commit returns only after
 the WAL is fsynced, so an acknowledged keyframe survives SIGKILL *and* power
@@ -69,7 +72,17 @@ CREATE TABLE IF NOT EXISTS paths (
     path_id INTEGER NOT NULL,
     payload BLOB NOT NULL
 );
+CREATE TABLE IF NOT EXISTS gnss_fixes (
+    batch INTEGER NOT NULL,
+    robot_id TEXT NOT NULL,
+    stamp REAL NOT NULL,
+    x REAL NOT NULL, y REAL NOT NULL,
+    sigmas BLOB NOT NULL
+);
+CREATE TABLE IF NOT EXISTS gnss_origin (lat_deg REAL, lon_deg REAL, alt_m REAL);
 """
+# a GNSS fix as the graph took it: (robot segment, stamp, east-north in map, ENU sigmas)
+Fix = tuple[str, float, np.ndarray, np.ndarray]
 
 
 @dataclass
@@ -90,9 +103,14 @@ class Batch:
     constraints: list[tuple[LoopMeasurement, str]] = field(default_factory=list)
     in_graph: dict[int, bool] = field(default_factory=dict)  # constraint id -> in graph now
     paths: list[tuple[str, int, bytes]] = field(default_factory=list)  # (robot, path_id, Path)
+    fixes: list[Fix] = field(default_factory=list)  # given to the graph, in order
+    origin: list[float] | None = None  # the map's WGS84 origin, once set: [lat, lon, alt]
 
     def __bool__(self) -> bool:
-        return bool(self.keyframes or self.constraints or self.in_graph or self.paths)
+        return bool(
+            self.keyframes or self.constraints or self.in_graph or self.paths or self.fixes
+            or self.origin
+        )  # fmt: skip
 
 
 class StoredKeyframes:
@@ -135,10 +153,12 @@ class Recovered:
     path_id: int  # highest path id sent
     paths: dict[str, bytes]  # robot -> its latest encoded Path
     starts: int  # how many times a base station opened this database (this one included)
+    fixes: list[tuple[int, Fix]] = field(default_factory=list)  # (batch, fix) in order
+    gnss_origin: list[float] | None = None  # the map's WGS84 origin, if it was set
 
     @property
     def empty(self) -> bool:
-        return not self.keyframes
+        return not self.keyframes and not self.fixes
 
 
 class KeyframeDatabase:
@@ -207,6 +227,14 @@ class KeyframeDatabase:
                     [(int(v), i) for i, v in batch.in_graph.items()],
                 )
                 self._db.executemany("INSERT OR REPLACE INTO paths VALUES (?, ?, ?)", batch.paths)
+                self._db.executemany(
+                    "INSERT INTO gnss_fixes VALUES (?, ?, ?, ?, ?, ?)",
+                    [(b, r, float(t), float(xy[0]), float(xy[1]),
+                      np.asarray(sig, "<f8").tobytes()) for r, t, xy, sig in batch.fixes],
+                )  # fmt: skip
+                if batch.origin is not None:
+                    self._db.execute("DELETE FROM gnss_origin")
+                    self._db.execute("INSERT INTO gnss_origin VALUES (?, ?, ?)", batch.origin)
                 if batch.paths:
                     top = max(p[1] for p in batch.paths)
                     self._db.execute(
@@ -253,6 +281,13 @@ class KeyframeDatabase:
             )  # fmt: skip
             constraints.append(StoredConstraint(m, kind, bool(in_graph), int(b)))
         paths = dict(self._db.execute("SELECT robot_id, payload FROM paths").fetchall())
+        fixes = [
+            (int(b), (r, float(t), np.array([x, y]), np.frombuffer(sig, "<f8").copy()))
+            for b, r, t, x, y, sig in self._db.execute(
+                "SELECT batch, robot_id, stamp, x, y, sigmas FROM gnss_fixes ORDER BY rowid"
+            )
+        ]
+        origin = self._db.execute("SELECT lat_deg, lon_deg, alt_m FROM gnss_origin").fetchone()
         return Recovered(
             keyframes,
             constraints,
@@ -260,6 +295,8 @@ class KeyframeDatabase:
             self._meta("path_id", 0),
             paths,
             self.starts,
+            fixes,
+            None if origin is None else [float(v) for v in origin],
         )
 
     def counts(self) -> dict[str, int]:

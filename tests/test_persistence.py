@@ -19,7 +19,7 @@ from common.bus import Bus
 from common.config import Config
 from common.errors import PersistenceError
 from common.geometry import se2_compose
-from protocol import Keyframe, RobotState, encode
+from protocol import GnssFix, Keyframe, RobotState, encode
 from protocol import Path as PathMsg
 
 
@@ -228,6 +228,45 @@ def test_a_restore_relinearizes_after_matches_as_the_live_run_did(
     back.restore(KeyframeDatabase(tmp_path / "base.db").load())
     assert back.loops.accepted == live.loops.accepted == {0, 1}
     np.testing.assert_allclose(back.graph.poses("r0"), live.graph.poses("r0"), atol=1e-6)
+
+
+def test_gnss_fixes_and_the_map_origin_are_restored(
+    tmp_path: Path, cfg: Config, endpoint: str
+) -> None:
+    """A robot started from a heading at its first fix: restored without its fixes it
+    floated (no GPS factors, its later fixes ignored), and a map origin taken from the
+    first fixes was set again from the next five."""
+    cfg.basestation.constraints.enabled = False
+    cfg.basestation.gps.enabled = True
+    db, headings, sig = KeyframeDatabase(tmp_path / "base.db"), {"r0": 0.3}, np.ones(3)
+    live = GlobalSlam(cfg, None, headings)
+    live.add_gps_fix("r0", -0.1, np.array([100.0, 50.0]), sig)
+    T = np.zeros(3)
+    for k in range(10):
+        d = np.zeros(3) if k == 0 else np.array([0.5, 0.0, 0.0])
+        live.admit(_keyframe("r0", k, T := se2_compose(T, d), d))
+        live.add_gps_fix("r0", 0.5 * k + 0.25, se2_compose([100, 50, 0.3], T)[:2], sig)
+        db.commit(live.take_journal())
+        live.optimize()
+    db.close()
+    back = GlobalSlam(cfg, None, headings)
+    back.restore(KeyframeDatabase(tmp_path / "base.db").load())
+    assert back.graph.is_anchored("r0") and back.graph.num_gps_factors == 8
+    np.testing.assert_allclose(back.T_map_odom("r0"), live.T_map_odom("r0"), atol=1e-6)
+    cfg.basestation.db_path, cfg.zenoh.listen = str(tmp_path / "node.db"), [endpoint]
+    origins = []
+    for start in range(2):  # a node whose world gives no WGS84 origin, then its restart
+        with Bus(cfg.zenoh, cfg.fleet) as bus:
+            node = BaseStationNode(cfg, bus, None)
+            node.recover()
+            for i in range(5):  # the first five fixes' median is the origin
+                lat = 48.0 + 1e-4 * (i + 5 * start)
+                node.gnss_inbox.put(GnssFix("r0", float(i), np.array([lat, 11.0, 500.0]), sig))
+            node._take_fixes()
+            node._persist()
+            origins.append(node.gnss.origin)
+            node.db.close()
+    assert origins[0] is not None and origins[1] == origins[0]
 
 
 def test_node_resumes_epochs_paths_and_acks(tmp_path: Path, cfg: Config, endpoint: str) -> None:

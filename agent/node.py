@@ -293,11 +293,10 @@ class AgentNode:
             self._command(scan.stamp)  # a re-sent lock-step tick: answer again
             return
         self.downlink.wait()  # lock-step: the base station's paths and answers for it
-        r = np.asarray(scan.ranges, dtype=np.float64)
-        angles = scan.angle_min + scan.angle_increment * np.arange(len(r))
-        self.guard.update(angles, r, scan.range_min)
+        angles = scan.angle_min + scan.angle_increment * np.arange(len(scan.ranges))
+        self.guard.update(angles, np.asarray(scan.ranges, dtype=np.float64), scan.range_min)
         result = self.frontend.add_scan(scan)
-        if result is None:  # rejected (time going back, too few points): logged there
+        if result is None:  # rejected (time going back, an odometry jump): logged there
             self._command(scan.stamp)
             return
         self.last_scan_stamp = scan.stamp
@@ -307,7 +306,8 @@ class AgentNode:
             odometry, altitude = self.frontend.odometry_at(scan.stamp), self.frontend.altitude
             self.fresh.take(scan.stamp, odometry, altitude, result.pose)
         self._publish_control_pose(scan.stamp, result.pose)
-        if self.fresh.begun and self.selector.is_due(result.pose) and self.outbox.has_room():
+        cut = result.usable and self.fresh.begun and self.selector.is_due(result.pose)
+        if cut and self.outbox.has_room():  # (a scan seeing nothing would clear the map)
             self._send_keyframe(scan, result)
         # the state before the command: in lock-step the command releases the clock, and
         # the base station's exploration step at this stamp must see where the drone is

@@ -124,6 +124,11 @@ class Altimeter(Message):
     stamp: float
     altitude: float
 
+    def validate(self) -> None:
+        super().validate()
+        check_position("Altimeter.altitude", np.array([self.altitude]))  # (1e9 m: every
+        # state and keyframe of the drone refused downstream)
+
 
 @message
 class GnssFix(Message):

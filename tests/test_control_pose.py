@@ -119,6 +119,27 @@ def test_agent_holds_back_an_epoch_or_relay_far_ahead(cfg: Config, endpoint: str
         assert [m.stamp for m in node._neighbours] == [0.2, 0.4]
 
 
+def test_agent_cuts_no_keyframe_from_a_scan_that_sees_nothing(cfg: Config, endpoint: str) -> None:
+    """A laser dropout (all NaN) goes on with the odometry, but cuts no keyframe: its
+    scan's beams, all "no return", would have cleared the base station's walls 10 m
+    around. The keyframe after it spans the gap."""
+    with Bus(ZenohConfig(listen=[endpoint]), cfg.fleet) as bus:
+        node = AgentNode(cfg, "r0", bus, np.zeros((0, 2)), np.zeros(4), NullVehicle())
+        room = (2.0 + np.abs(np.sin(np.linspace(0.0, 9.0, 201)))).astype(np.float32)
+        for k in range(60):  # 0.5 m/s along x: a keyframe every 0.2 m
+            t = 0.1 * k
+            node.handle(Altimeter("r0", t, 1.0))
+            pose = pose4_to_pose7([0.5 * t, 0.0, 0.0, 0.0])
+            node.handle(Odometry("r0", t, pose, np.array([0.5, 0.0, 0.0, 0.0])))
+            ranges = np.full(201, np.nan, np.float32) if 20 <= k < 40 else room
+            node.handle(LaserScan("r0", t, -1.0, 0.01, 0.1, 30.0, ranges))
+        sent = [decode(p, Keyframe) for p in node.outbox._pending.values()]
+    stamps = np.array([kf.stamp for kf in sent])
+    assert np.any(stamps < 2.0) and np.any(stamps >= 4.0)
+    assert not np.any((stamps >= 2.0) & (stamps < 4.0))
+    assert node.frontend.few_point_scans == 20
+
+
 def test_agent_sends_no_keyframe_the_base_station_would_refuse(cfg: Config, endpoint: str) -> None:
     """An altimeter reading of 1e9 m put a keyframe's height out of the pose graph's
     reach: refused by the base station, it held back every later keyframe of the robot

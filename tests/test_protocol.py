@@ -237,7 +237,7 @@ def test_keyframes_the_pose_graph_cannot_take_are_refused(kf: Keyframe, reason: 
     decode(encode(_keyframe()))  # the same keyframe with sane values passes
 
 
-def test_states_and_odometry_out_of_bounds_are_refused() -> None:
+def test_states_odometry_and_heights_out_of_bounds_are_refused() -> None:
     """A state's pose of 1e308 m had poisoned the neighbours' relay (velocities NaN, every
     answer refused by the agents) and, with GNSS starts, stopped the base station; an
     odometry twist of 1e155 m/s had raised in the agent's safety guard."""
@@ -249,6 +249,8 @@ def test_states_and_odometry_out_of_bounds_are_refused() -> None:
     with pytest.raises(ProtocolError, match="Odometry.twist"):
         decode(encode(Odometry("r0", 1.0, P7, np.array([1e155, 0.0, 0.0, 0.0]))))
     decode(encode(Odometry("r0", 1.0, P7, np.array([30.0, 0.0, 0.0, 3.0]))))
+    with pytest.raises(ProtocolError, match="Altimeter.altitude"):  # (the agent's state
+        decode(encode(Altimeter("r0", 1.0, 1e9)))  # had carried it, and been refused)
 
 
 def test_positions_beyond_ten_thousand_km_are_refused() -> None:

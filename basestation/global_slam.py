@@ -38,11 +38,11 @@ from basestation.constraint_builder import (
     hypothesis_poses,
 )
 from basestation.false_matches import FalseMatches
-from basestation.gps_fixes import gnss_start
+from basestation.gps_fixes import gnss_start, node_stamp
 from basestation.keyframe_store import KeyframeScans, KeyframeStore
 from basestation.loop_closure_manager import LoopClosureManager
 from basestation.node_keys import NodeKeys
-from basestation.persistence import Batch, Fix, Recovered, StoredConstraint
+from basestation.persistence import Batch, Fix, Recovered, Start, StoredConstraint
 from basestation.pose_graph import PoseGraph
 from basestation.robot_segments import SEGMENT_START_SIGMAS, robot_of, segment_start
 from basestation.scan_archive import ScanArchive, ScanReader
@@ -102,6 +102,8 @@ class GlobalSlam:
         self._together: dict[str, frozenset[str]] = {}  # robot -> its map's robots, last search
         self._unsaved: list[Keyframe] = []  # admitted since the last take_journal()
         self._unsaved_fixes: list[Fix] = []  # GNSS fixes given since then
+        self._unsaved_starts: dict[str, Start] = {}  # chains started since then
+        self._stored_starts: dict[str, Start] = {}  # restore: as they started then
 
     # --- keyframes ----------------------------------------------------------------------
     def admit(self, kf: Keyframe, replay: bool = False) -> int:
@@ -133,8 +135,9 @@ class GlobalSlam:
         """What changed since the last call (admitted keyframes, new matches, matches
         entering or leaving the graph, GNSS fixes given), for the database."""
         constraints, changes = self.loops.take_journal()
-        batch = Batch(self._unsaved, constraints, changes, fixes=self._unsaved_fixes)
-        self._unsaved, self._unsaved_fixes = [], []
+        batch = Batch(self._unsaved, constraints, changes, fixes=self._unsaved_fixes,
+                      chain_starts=self._unsaved_starts)  # fmt: skip
+        self._unsaved, self._unsaved_fixes, self._unsaved_starts = [], [], {}
         return batch
 
     def saved(self, batch: Batch) -> None:
@@ -146,6 +149,7 @@ class GlobalSlam:
         are replayed through the same paths (admission, loop-closure manager and PCM) in
         the order they were first taken (`slam_restore`); the graph is optimized before
         each batch of matches, as it was then. Stored matches are not verified again."""
+        self._stored_starts = dict(rec.chain_starts)
         for kind, items in replay_order(rec):
             if kind == "fixes":
                 for fix in items:
@@ -186,7 +190,7 @@ class GlobalSlam:
 
     def _add_node(self, kf: Keyframe) -> None:
         rid = kf.robot_id
-        stamp = self._node_stamp(kf) if self.gps_enabled else None
+        stamp = node_stamp(self._node_stamps, kf) if self.gps_enabled else None
         if kf.seq == 0:  # a known start is T_map_odom: a chain can start on the way
             odom, start = pose7_to_pose4(kf.pose_odom)[[0, 1, 3]], self.known_starts.get(rid)
             start, start_sigmas = None if start is None else se2_compose(start, odom), None
@@ -208,6 +212,9 @@ class GlobalSlam:
                 self.known_starts[rid] = np.zeros(3)
                 start = odom
                 log.info("robot %s defines the map frame", rid)
+            if rid in self._stored_starts:  # (restore: a GNSS start used the state then)
+                start, start_sigmas = self._stored_starts.pop(rid)
+            self._unsaved_starts[rid] = (start, start_sigmas)
             self.graph.add_robot(rid, start, start_sigmas)
             self.graph.add_node(rid, 0, None, None, initial_guess=start, stamp=stamp)
             for fix in self._early_fixes.pop(rid, []):  # fixes older than the node drop
@@ -229,19 +236,6 @@ class GlobalSlam:
             return False
         chosen = self.cfg.basestation.map_frame_robot
         return rid == chosen if chosen else not self.graph.robots()
-
-    def _node_stamp(self, kf: Keyframe) -> float:
-        """The keyframe's stamp, nudged past its predecessor's if time went backwards
-        (bad input must not stop the base station; GPS needs increasing node stamps)."""
-        stamps = self._node_stamps
-        last = stamps.get(kf.robot_id) if kf.seq > 0 else None
-        stamp = float(kf.stamp)
-        if last is not None and not stamp > last:
-            log.warning("robot %s keyframe %d: stamp %.3f not after %.3f", kf.robot_id,
-                        kf.seq, stamp, last)  # fmt: skip
-            stamp = max(last + 1e-6, float(np.nextafter(last, np.inf)))  # (1e12 + 1e-6 = 1e12)
-        stamps[kf.robot_id] = stamp
-        return stamp
 
     def optimize(self) -> None:
         """One iSAM2 update. After new constraints one forced relinearization step

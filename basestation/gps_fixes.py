@@ -29,7 +29,7 @@ from numpy.typing import NDArray
 
 from basestation.gps_factor import interpolation_factor
 from common.geometry import pose7_to_pose4, se2_compose, se2_inverse
-from protocol import RobotState
+from protocol import Keyframe, RobotState
 
 logger = logging.getLogger(__name__)
 
@@ -130,3 +130,18 @@ def gnss_start(
 def local_pose(state: RobotState | None) -> np.ndarray | None:
     """A robot's local pose [x, y, yaw] in its odom frame, by its latest `RobotState`."""
     return None if state is None else pose7_to_pose4(state.pose_odom)[[0, 1, 3]]
+
+
+def node_stamp(stamps: dict[str, float], kf: Keyframe) -> float:
+    """The keyframe's stamp, nudged past its predecessor's (in `stamps`: robot -> the
+    latest node's, updated) if time went backwards (bad input must not stop the base
+    station; GPS factors need increasing node stamps; past 1e12 s, 1e-6 s more is the
+    same float: the next one up)."""
+    last = stamps.get(kf.robot_id) if kf.seq > 0 else None
+    stamp = float(kf.stamp)
+    if last is not None and not stamp > last:
+        logger.warning("robot %s keyframe %d: stamp %.3f not after %.3f", kf.robot_id,
+                       kf.seq, stamp, last)  # fmt: skip
+        stamp = max(last + 1e-6, float(np.nextafter(last, np.inf)))
+    stamps[kf.robot_id] = stamp
+    return stamp

@@ -14,7 +14,10 @@ acknowledged or published:
 - the latest exploration path per robot and the path-id counter;
 - every GNSS fix given to the graph (robot segment, stamp, east-north in `map`, sigmas)
   and the map's WGS84 origin: a restart had lost them, and its robots started from a
-  heading and a fix floated, their later fixes ignored.
+  heading and a fix floated, their later fixes ignored;
+- where each robot segment's chain started (`T_map_odom` prior and sigmas, or none: it
+  floated): a start from a GNSS fix used the robot's state then, which a restart has
+  not (placed from its first keyframe instead, tens of metres off).
 
 Durability: WAL journal with ``synchronous=FULL``: a commit returns only after
 the WAL is fsynced, so an acknowledged keyframe survives SIGKILL *and* power
@@ -80,9 +83,12 @@ CREATE TABLE IF NOT EXISTS gnss_fixes (
     sigmas BLOB NOT NULL
 );
 CREATE TABLE IF NOT EXISTS gnss_origin (lat_deg REAL, lon_deg REAL, alt_m REAL);
+CREATE TABLE IF NOT EXISTS chain_starts (robot_id TEXT PRIMARY KEY, start BLOB NOT NULL);
 """
 # a GNSS fix as the graph took it: (robot segment, stamp, east-north in map, ENU sigmas)
 Fix = tuple[str, float, np.ndarray, np.ndarray]
+# a chain's start: T_map_first [x, y, yaw] and its sigmas (None: it floats; the default)
+Start = tuple[np.ndarray | None, np.ndarray | None]
 
 
 @dataclass
@@ -105,11 +111,12 @@ class Batch:
     paths: list[tuple[str, int, bytes]] = field(default_factory=list)  # (robot, path_id, Path)
     fixes: list[Fix] = field(default_factory=list)  # given to the graph, in order
     origin: list[float] | None = None  # the map's WGS84 origin, once set: [lat, lon, alt]
+    chain_starts: dict[str, Start] = field(default_factory=dict)  # chains started
 
     def __bool__(self) -> bool:
         return bool(
             self.keyframes or self.constraints or self.in_graph or self.paths or self.fixes
-            or self.origin
+            or self.origin or self.chain_starts
         )  # fmt: skip
 
 
@@ -155,6 +162,7 @@ class Recovered:
     starts: int  # how many times a base station opened this database (this one included)
     fixes: list[tuple[int, Fix]] = field(default_factory=list)  # (batch, fix) in order
     gnss_origin: list[float] | None = None  # the map's WGS84 origin, if it was set
+    chain_starts: dict[str, Start] = field(default_factory=dict)  # where each chain began
 
     @property
     def empty(self) -> bool:
@@ -232,6 +240,10 @@ class KeyframeDatabase:
                     [(b, r, float(t), float(xy[0]), float(xy[1]),
                       np.asarray(sig, "<f8").tobytes()) for r, t, xy, sig in batch.fixes],
                 )  # fmt: skip
+                self._db.executemany(
+                    "INSERT OR REPLACE INTO chain_starts VALUES (?, ?)",
+                    [(r, _start_blob(*st)) for r, st in batch.chain_starts.items()],
+                )
                 if batch.origin is not None:
                     self._db.execute("DELETE FROM gnss_origin")
                     self._db.execute("INSERT INTO gnss_origin VALUES (?, ?, ?)", batch.origin)
@@ -288,6 +300,8 @@ class KeyframeDatabase:
             )
         ]
         origin = self._db.execute("SELECT lat_deg, lon_deg, alt_m FROM gnss_origin").fetchone()
+        rows = self._db.execute("SELECT robot_id, start FROM chain_starts").fetchall()
+        chain_starts = {r: _start_of(blob) for r, blob in rows}
         return Recovered(
             keyframes,
             constraints,
@@ -297,6 +311,7 @@ class KeyframeDatabase:
             self.starts,
             fixes,
             None if origin is None else [float(v) for v in origin],
+            chain_starts,
         )
 
     def counts(self) -> dict[str, int]:
@@ -334,6 +349,21 @@ class KeyframeDatabase:
 
     def _set_meta(self, key: str, value: int) -> None:
         self._db.execute("INSERT OR REPLACE INTO meta VALUES (?, ?)", (key, value))
+
+
+def _start_blob(start: np.ndarray | None, sigmas: np.ndarray | None) -> bytes:
+    """A chain's start as 6 float64 [x, y, yaw, sx, sy, syaw]; NaN for what is None."""
+    v = np.full(6, np.nan)
+    if start is not None:
+        v[:3] = start
+    if sigmas is not None:
+        v[3:] = sigmas
+    return v.astype("<f8").tobytes()
+
+
+def _start_of(blob: bytes) -> Start:
+    v = np.frombuffer(blob, "<f8")
+    return (None if np.isnan(v[0]) else v[:3].copy()), (None if np.isnan(v[3]) else v[3:].copy())
 
 
 class _Transaction:

@@ -6,6 +6,7 @@ latest fix), its keyframes, then its matches. Keyframes are read as it goes
 
 from __future__ import annotations
 
+from collections import deque
 from collections.abc import Iterator
 from itertools import groupby
 from operator import itemgetter
@@ -23,11 +24,11 @@ def replay_order(rec: Recovered) -> Iterator[tuple[str, list[Any]]]:
     fixes: dict[int, list[Fix]] = {}
     for b, f in rec.fixes:
         fixes.setdefault(b, []).append(f)
-    rest = sorted(set(matches) | set(fixes))  # batches with fixes or matches, in order
+    rest = deque(sorted(set(matches) | set(fixes)))  # batches with fixes or matches
 
     def batch(b: int, keyframes: list[Any] | None = None) -> Iterator[tuple[str, list[Any]]]:
         while rest and rest[0] <= b:
-            rest.pop(0)
+            rest.popleft()
         if b in fixes:
             yield "fixes", fixes.pop(b)
         if keyframes is not None:

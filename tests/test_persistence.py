@@ -235,11 +235,13 @@ def test_gnss_fixes_and_the_map_origin_are_restored(
 ) -> None:
     """A robot started from a heading at its first fix: restored without its fixes it
     floated (no GPS factors, its later fixes ignored), and a map origin taken from the
-    first fixes was set again from the next five."""
+    first fixes was set again from the next five. Its start used its state then (a
+    restart has none: its first keyframe's pose put it 20 m off)."""
     cfg.basestation.constraints.enabled = False
     cfg.basestation.gps.enabled = True
     db, headings, sig = KeyframeDatabase(tmp_path / "base.db"), {"r0": 0.3}, np.ones(3)
     live = GlobalSlam(cfg, None, headings)
+    live.odom_now = lambda r: np.array([20.0, 5.0, 0.3])  # its state then, 20 m on
     live.add_gps_fix("r0", -0.1, np.array([100.0, 50.0]), sig)
     T = np.zeros(3)
     for k in range(10):

@@ -40,6 +40,7 @@ import numpy as np
 from basestation.pcm import LoopMeasurement
 from basestation.scan_verifier import ScanVerifier, VerifiedMatch
 from common.config import ConstraintConfig
+from common.errors import CollabSlamError
 from common.geometry import (
     se2_between,
     se2_compose,
@@ -300,6 +301,9 @@ class ConstraintBuilder:
     def _try_verify(self, job: Job) -> VerifiedMatch | None:
         try:
             return self._verify(job)
+        except CollabSlamError as e:  # scans it cannot match (too few points: a 3-D
+            log.debug("verification of %s: %s", job.kind, e)  # robot's): no traceback
+            return None
         except Exception:
             log.exception("verification of %s failed", job.kind)
             return None

@@ -20,13 +20,8 @@ $(STAMP): pyproject.toml
 	$(BIN)/collabslam run --world bshape --robots 3 --max-sim-time 20 \
 		--set exploration.enabled=false --out $(VENV)/warmup > $(VENV)/warmup.log 2>&1 \
 		|| echo "warm-up failed (see $(VENV)/warmup.log); the first run compiles them instead"
-	$(BIN)/python -c "import numpy as n; from basestation.frontier_tours import minmax_tours as t; \
-		t(n.zeros(2), n.ones((2, 2)), n.ones((2, 2)))" >> $(VENV)/warmup.log 2>&1 || true
-	$(BIN)/python -c "import numpy as n; from basestation import grid_search as g; \
-		p, x, i = n.ones((3, 3), bool), n.zeros((2, 2)), n.zeros(1, n.int64); \
-		g.grid_distances(p, 0.2, i, i); g.grid_astar(p, 0.05, 0, 8, n.inf); \
-		g.polyline_free(p, 0.0, 0.0, 0.05, x); g.shortcut(p, 0.0, 0.0, 0.05, x)" \
-		>> $(VENV)/warmup.log 2>&1 || true
+	$(BIN)/python -m collabslam.warmup >> $(VENV)/warmup.log 2>&1 \
+		|| echo "kernel warm-up failed (see $(VENV)/warmup.log); the first run compiles them"
 	touch $(STAMP)
 
 run: venv

@@ -106,7 +106,10 @@ class LockstepClock:
     def verify_on_worker(self, now: float) -> bool:
         """Candidates are verified on the constraint builder's thread, except in lock-step
         simulation (or while its simulator is awaited)."""
-        return not self.active or self.answered >= 0.0 or now >= self._wall_pacing_from
+        return (
+            not self.active or self.answered >= 0.0 or now >= self._wall_pacing_from
+            or self.sim_gone  # (gone before its first request: a Ctrl-C took a minute)
+        )  # fmt: skip
 
     def wall_paced(self, now: float) -> bool:
         """No lock-step simulator (or none has asked in time): explore by the wall clock."""

@@ -13,7 +13,7 @@ from typing import Any
 
 from collabslam import __version__
 from collabslam.bench_cli import add_bench_parsers
-from collabslam.cli_options import add_common_args, load_cfg
+from collabslam.cli_options import add_common_args, json_file, load_cfg
 from common.errors import CollabSlamError, ConfigError, PersistenceError
 
 log = logging.getLogger("collabslam")
@@ -189,6 +189,8 @@ def cmd_run(args: argparse.Namespace) -> int:
 def cmd_eval_relations(args: argparse.Namespace) -> int:
     from common.relations import main_eval_relations
 
+    if args.json:
+        json_file(args.json)
     result = main_eval_relations(args.trajectory, args.relations)
     text = json.dumps(result, indent=1)
     if args.json:

@@ -8,6 +8,7 @@
 from __future__ import annotations
 
 import argparse
+import math
 import tempfile
 import tomllib
 from pathlib import Path
@@ -81,7 +82,22 @@ def load_cfg(args: argparse.Namespace) -> Config:
     cfg = load_config(args.config, overrides)
     if getattr(args, "out", None):
         writable_folder(args.out)
+    if getattr(args, "json", None):
+        json_file(args.json)
+    limit = getattr(args, "max_sim_time", None)  # (nan had run with no limit)
+    if limit is not None and not (math.isfinite(limit) and limit > 0.0):
+        raise ConfigError(f"--max-sim-time: expected a number of seconds > 0, got {limit}")
     return cfg
+
+
+def json_file(path: str) -> None:
+    """`--json` must name a .json file: a benchmark's other outputs go in a folder beside
+    it named by its stem (one without a suffix is that folder: the JSON could not be
+    written after hours of running), in a folder that can be written to."""
+    p = Path(path)
+    if p.suffix != ".json" or p.is_dir():
+        raise ConfigError(f"--json {path}: expected a file name ending in .json")
+    writable_folder(str(p.parent))
 
 
 def writable_folder(path: str) -> None:

@@ -85,3 +85,26 @@ def test_an_unusable_out_folder_is_refused_at_start(tmp_path: Path) -> None:
         load_cfg(args)
     args.out = str(tmp_path / "new" / "run")
     assert load_cfg(args).fleet == "default" and (tmp_path / "new" / "run").is_dir()
+
+
+def test_json_and_sim_time_arguments_are_checked_at_start(tmp_path: Path) -> None:
+    """`--json out/b2` (no .json): the benchmark's folder beside it took its name, and
+    its numbers could not be written after the whole run; `--max-sim-time nan` had run
+    with no limit."""
+    import argparse
+
+    from collabslam.cli import main
+    from collabslam.cli_options import load_cfg
+
+    (tmp_path / "dir.json").mkdir()
+    for bad in ("b2", "dir.json"):
+        args = argparse.Namespace(config=None, set=[], json=str(tmp_path / bad))
+        with pytest.raises(ConfigError, match="--json .*ending in .json"):
+            load_cfg(args)
+    args = argparse.Namespace(config=None, set=[], json=str(tmp_path / "b.json"))
+    assert load_cfg(args).fleet == "default"
+    for limit in (float("nan"), -5.0, 0.0):
+        args = argparse.Namespace(config=None, set=[], max_sim_time=limit)
+        with pytest.raises(ConfigError, match="--max-sim-time"):
+            load_cfg(args)
+    assert main(["eval", "relations", "t.tum", "r.relations", "--json", str(tmp_path)]) == 1

@@ -155,6 +155,16 @@ def test_a_clock_stamped_far_ahead_is_held_back() -> None:
     assert gate.timeouts == 0
 
 
+def test_a_simulator_gone_before_its_first_request_frees_the_verifier() -> None:
+    """Ctrl-C early in `collabslam run`: the simulator left before the base station had
+    answered a request, and its drain waited out the 60 s start timeout for a match."""
+    clock = LockstepClock(active=True, timeout_s=60.0)
+    now = time.monotonic()
+    assert not clock.verify_on_worker(now)
+    clock.on_sim_alive("sim", False)
+    assert clock.verify_on_worker(now)
+
+
 def test_a_fix_count_or_command_far_ahead_is_held_back() -> None:
     """A request counting 2^63 GNSS fixes had every later sync wait 10 s for them; a
     command stamped 1e300 s stayed its robot's latest for good (nothing waited for)."""

@@ -30,7 +30,7 @@ from basestation.goal_assigner import AssignmentWeights, GoalAssigner, spaced
 from basestation.goal_costs import frontier_costs
 from basestation.goal_handover import handovers
 from basestation.path_planner import PathPlanner, PlanningMap, path_length, unknown_length
-from basestation.path_schedule import points_along, schedule_conflict, turn_delay_s
+from basestation.path_schedule import nearest_leg, points_along, schedule_conflict, turn_delay_s
 from basestation.support_moves import support_move
 from basestation.travel_distance import travel_distances
 from common.map_io import GridMap
@@ -451,10 +451,10 @@ class ExplorationManager:
         return kept
 
     def _remaining(self, robot: str, pose: NDArray[np.float64]) -> NDArray[np.float64]:
-        """The part of a robot's path still ahead of it, from where it is now."""
+        """The part of a robot's path still ahead of it, from where it is now: on from the
+        leg nearest it (the nearest waypoint's had skipped a corner just ahead)."""
         path = self.tasks[robot].path
-        k = int(np.argmin(np.hypot(*(path - pose[:2]).T)))
-        return np.vstack([pose[None, :2], path[k + 1 :]])
+        return np.vstack([pose[None, :2], path[nearest_leg(path, pose[:2]) + 1 :]])
 
     def _needs_new_path(self, r: str, P: dict[str, NDArray[np.float64]], pm: PlanningMap) -> bool:
         t = self.tasks.get(r)

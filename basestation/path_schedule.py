@@ -28,6 +28,16 @@ def points_along(path: NDArray[np.float64], s: NDArray[np.float64]) -> NDArray[n
     return np.column_stack([np.interp(s, cum, path[:, 0]), np.interp(s, cum, path[:, 1])])
 
 
+def nearest_leg(path: NDArray[np.float64], xy: NDArray[np.float64]) -> int:
+    """The leg i (from waypoint i to i + 1) of a polyline nearest `xy` (0 for one point)."""
+    if len(path) < 2:
+        return 0
+    a, d = path[:-1], np.diff(path, axis=0)
+    u = np.clip(np.einsum("ij,ij->i", xy - a, d) / np.maximum(np.einsum("ij,ij->i", d, d),
+                                                              1e-12), 0.0, 1.0)  # fmt: skip
+    return int(np.argmin(np.hypot(*(a + u[:, None] * d - xy).T)))
+
+
 def schedule_conflict(
     path: NDArray[np.float64],
     start: NDArray[np.float64],
@@ -56,7 +66,9 @@ def schedule_conflict(
     t = np.arange(0.0, horizon_s, 0.1)
     mine = points_along(path, speed_mps * np.maximum(t - delay_s, 0.0))
     near_start = np.hypot(*(mine - start[:2]).T) <= clearance_m
-    near_start &= speed_mps * t < path_length(path)  # where it will hover is judged
+    # its end, where it will hover, is judged in full (turning first, it is near its
+    # start for longer, and the allowance lasts as long: it had been cut at the turn's)
+    near_start &= speed_mps * np.maximum(t - delay_s, 0.0) < path_length(path)
     keeps = [keep_m] * len(others) if np.isscalar(keep_m) else keep_m
     waits = [0.0] * len(others) if delays_s is None else delays_s
     for other, keep, wait in zip(others, keeps, waits, strict=True):

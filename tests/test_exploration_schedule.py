@@ -8,7 +8,7 @@ import numpy as np
 from basestation.exploration import ExplorationManager, _Task
 from basestation.frontiers import Frontier
 from basestation.goal_assigner import spaced
-from basestation.path_schedule import schedule_conflict, turn_delay_s
+from basestation.path_schedule import nearest_leg, schedule_conflict, turn_delay_s
 from common.map_io import GridMap
 
 AHEAD = np.array([[0.0, 0.0], [10.0, 0.0]])  # along +x from the origin
@@ -34,6 +34,31 @@ def test_a_leader_that_turns_first_is_caught_up_and_a_follower_that_does_is_not(
     follower = np.array([[-2.5, 0.0], [12.0, 0.0]])
     assert not schedule_conflict(mine, mine[0], [follower], *args)
     assert schedule_conflict(mine, mine[0], [follower], *args, delay_s=2.0)  # I turn first
+
+
+def test_a_robot_that_turns_first_keeps_its_allowance_near_its_start() -> None:
+    """A 2 m hop with another robot hovering 1.3 m from the start: no conflict facing the
+    way; turning first (1.7 s), its points near the start had been judged in full."""
+    path, other = np.array([[0.0, 0.0], [2.0, 0.0]]), np.array([0.0, 1.3])
+    args = (1.0, 15.0, 1.0, 1.5, 0.6, [0.0])  # speed, horizon, clearance, keep, lag, waits
+    for yaw in (0.0, np.pi):
+        pose = np.array([0.0, 0.0, yaw])
+        delay = turn_delay_s(pose, path, np.radians(82.5), 1.0)
+        assert not schedule_conflict(path, pose, [other], *args, delay), yaw
+
+
+def test_the_rest_of_a_path_keeps_the_corner_just_ahead() -> None:
+    """2.5 m before an L path's corner, the robot is nearer the corner than the waypoint
+    behind it: the rest had been cut from the corner on, a straight line through the
+    wall (3.9 m instead of 5.5 m)."""
+    m = ExplorationManager()
+    path = np.array([[-7.0, 0.5], [-4.0, 0.5], [-4.0, 3.0], [-1.0, 3.0]])
+    m.tasks["a"] = _Task(path[-1], path)
+    np.testing.assert_allclose(m._remaining("a", np.array([-5.2, 0.5, 0.0])), [
+        [-5.2, 0.5], [-4.0, 0.5], [-4.0, 3.0], [-1.0, 3.0]])  # fmt: skip
+    np.testing.assert_allclose(m._remaining("a", np.array([-4.0, 0.5 + 1.4, 0.0])), [
+        [-4.0, 1.9], [-4.0, 3.0], [-1.0, 3.0]])  # fmt: skip
+    assert nearest_leg(path[:1], np.array([5.0, 5.0])) == 0  # (one waypoint: its own)
 
 
 def test_the_manager_reads_the_turn_from_each_robots_heading() -> None:

@@ -44,7 +44,6 @@ class LocalSlamResult:
     matched: bool
     inserted: bool
     num_points: int
-    usable: bool = True  # False: too few points (not matched or mapped: cut no keyframe)
 
 
 class LocalTrajectoryBuilder:
@@ -233,6 +232,5 @@ class LocalTrajectoryBuilder:
         self.scans += 1
         self.pose = np.array([pose2[0], pose2[1], self.pose[2], float(wrap_angle(pose2[2]))])
         return LocalSlamResult(
-            scan.stamp, self.pose.copy(), cov, score, matched, inserted,
-            len(prep.match_points), not few,
-        )  # fmt: skip
+            scan.stamp, self.pose.copy(), cov, score, matched, inserted, len(prep.match_points)
+        )

@@ -306,8 +306,7 @@ class AgentNode:
             odometry, altitude = self.frontend.odometry_at(scan.stamp), self.frontend.altitude
             self.fresh.take(scan.stamp, odometry, altitude, result.pose)
         self._publish_control_pose(scan.stamp, result.pose)
-        cut = result.usable and self.fresh.begun and self.selector.is_due(result.pose)
-        if cut and self.outbox.has_room():  # (a scan seeing nothing would clear the map)
+        if self.fresh.begun and self.selector.is_due(result.pose) and self.outbox.has_room():
             self._send_keyframe(scan, result)
         # the state before the command: in lock-step the command releases the clock, and
         # the base station's exploration step at this stamp must see where the drone is

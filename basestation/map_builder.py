@@ -45,6 +45,10 @@ Tile = tuple[int, int]  # (column, row) of the tile lattice
 PAD = 3  # cells drawn around a tile but not pasted (see OccupancyGrid.paste)
 CHUNK = 512  # keyframes box-tested at once while redrawing a tile
 BATCH = 16  # keyframes drawn per kernel call while redrawing (the budget is checked between)
+# a keyframe's scan with fewer returns than this is not drawn: a laser that saw nothing
+# (a dropout, fog, open space beyond its range) says nothing of free space, and its
+# no-return beams would have cleared the walls around (the agent's `min_num_points`)
+MIN_SCAN_RETURNS = 20
 # A tile redraw draws the newest VIEW_KEEP keyframes of each view (VIEW_M x VIEW_M square,
 # VIEW_RAD of heading). A drone flying over mapped ground keeps cutting keyframes, so
 # drawing all would cost O(time flown): a 10-robot, 30-minute soak redrew ~14,000
@@ -126,6 +130,8 @@ class MapBuilder:
         return r, a
 
     def _reach_of(self, scan: Scan2D) -> float:
+        if np.count_nonzero(scan.ranges_mm) < MIN_SCAN_RETURNS:
+            return 0.0  # (not drawn)
         r, _ = self._beams(scan)  # no-return beams clear up to max_free_range_m
         r = np.where(r >= scan.range_max, np.minimum(r, self.cfg.max_free_range_m), r)
         return float(r.max(initial=0.0))
@@ -156,10 +162,12 @@ class MapBuilder:
             r = mm.astype(np.float32) * np.float32(1e-3)
             r[mm == 0] = np.float32(first.range_max)  # as in _beams
             _, a = self._beams(first)
-            grid.insert_scans(
-                self._pose[run].astype(np.float64), r, a, 0.0, first.range_max,
-                max_free_range=self.cfg.max_free_range_m,
-            )  # fmt: skip
+            seen = np.count_nonzero(mm, axis=1) >= MIN_SCAN_RETURNS
+            if seen.any():
+                grid.insert_scans(
+                    self._pose[run][seen].astype(np.float64), r[seen], a, 0.0,
+                    first.range_max, max_free_range=self.cfg.max_free_range_m,
+                )  # fmt: skip
             start = end
 
     def _append(self, keys: list[NodeKey], scans: list[Scan2D], poses: np.ndarray) -> None:

@@ -258,6 +258,25 @@ def _after_looks(cfg: MapConfig, k: int) -> tuple[int, int]:
     return int(mb.gridmap().sample(probe)[0]), int(mb.gridmap(free_thresh=0.49).sample(probe)[0])
 
 
+def test_a_scan_that_saw_nothing_clears_nothing() -> None:
+    """A laser dropout's keyframes (all beams "no return": the agent goes on with its
+    odometry and still cuts them) had cleared every wall 10 m around as free space."""
+    n = 181
+    wall = Scan2D.from_ranges(-np.pi / 2, np.pi / (n - 1), 8.0, np.full(n, 3.0))
+    blind = Scan2D.from_ranges(-np.pi / 2, np.pi / (n - 1), 8.0, np.full(n, np.nan))
+    few = Scan2D.from_ranges(
+        -np.pi / 2, np.pi / (n - 1), 8.0, np.r_[np.full(10, 3.0), np.full(n - 10, np.nan)]
+    )
+    mb = MapBuilder(MapConfig())
+    pose = np.array([[0.01, 0.01, 0.0]])
+    mb.update([("a", 0)], [wall], pose, budget_s=None)
+    before = mb.gridmap().occupied_mask().sum()
+    keys = [("a", i) for i in range(1, 11)]
+    mb.update([("a", 0), *keys], [wall] + [blind] * 5 + [few] * 5, np.tile(pose, (11, 1)),
+              budget_s=None)  # fmt: skip
+    assert before > 50 and mb.gridmap().occupied_mask().sum() == before
+
+
 def test_published_map_calls_a_cell_free_after_two_looks_exploration_after_one() -> None:
     """`map.free_thresh` 0.35: two keyframes that saw through a cell make it free in the
     published map; exploration reads it free after one (docs/architecture.md, "Two views

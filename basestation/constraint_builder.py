@@ -38,9 +38,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from basestation.pcm import LoopMeasurement
-from basestation.scan_verifier import ScanVerifier, VerifiedMatch
+from basestation.scan_verifier import ScanVerifier, TooFewPoints, VerifiedMatch
 from common.config import ConstraintConfig
-from common.errors import CollabSlamError
 from common.geometry import (
     se2_between,
     se2_compose,
@@ -301,8 +300,8 @@ class ConstraintBuilder:
     def _try_verify(self, job: Job) -> VerifiedMatch | None:
         try:
             return self._verify(job)
-        except CollabSlamError as e:  # scans it cannot match (too few points: a 3-D
-            log.debug("verification of %s: %s", job.kind, e)  # robot's): no traceback
+        except TooFewPoints as e:  # (a 3-D robot's scans: a traceback per candidate)
+            log.debug("verification of %s: %s", job.kind, e)
             return None
         except Exception:
             log.exception("verification of %s failed", job.kind)

@@ -94,6 +94,11 @@ logger = logging.getLogger(__name__)
 FloatArray = NDArray[np.float64]
 
 
+class TooFewPoints(CollabSlamError):
+    """A target without the points to match against (a 3-D robot's keyframes, a laser
+    that saw nothing): the match is not tried, which is no fault."""
+
+
 @dataclass(frozen=True)
 class VerifiedMatch:
     """An accepted match of a query scan (frame b) against a target (frame a).
@@ -223,7 +228,7 @@ class ScanVerifier:
         keep = voxel_mask(pts, self.resolution) if len(pts) else np.zeros(0, bool)
         pts = pts[keep]
         if len(pts) < 3:
-            raise CollabSlamError(f"a target needs >= 3 finite points, got {len(pts)}")
+            raise TooFewPoints(f"a target needs >= 3 finite points, got {len(pts)}")
         span = np.ptp(pts, axis=0) / self.resolution
         if (span[0] + 100) * (span[1] + 100) > self.max_target_cells:
             raise CollabSlamError(

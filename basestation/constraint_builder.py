@@ -38,8 +38,9 @@ from dataclasses import dataclass
 import numpy as np
 
 from basestation.pcm import LoopMeasurement
-from basestation.scan_verifier import ScanVerifier, TooFewPoints, VerifiedMatch
+from basestation.scan_verifier import ScanVerifier, VerifiedMatch
 from common.config import ConstraintConfig
+from common.errors import TooFewPoints
 from common.geometry import (
     se2_between,
     se2_compose,

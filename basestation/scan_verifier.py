@@ -86,17 +86,12 @@ from basestation.match_target import (
     icp_normal_equations,
     line_normals,
 )
-from common.errors import CollabSlamError, ConfigError
+from common.errors import CollabSlamError, ConfigError, TooFewPoints
 from common.geometry import se2_transform_points, wrap_angle
 
 logger = logging.getLogger(__name__)
 
 FloatArray = NDArray[np.float64]
-
-
-class TooFewPoints(CollabSlamError):
-    """A target without the points to match against (a 3-D robot's keyframes, a laser
-    that saw nothing): the match is not tried, which is no fault."""
 
 
 @dataclass(frozen=True)

@@ -27,3 +27,8 @@ class ProcessError(CollabSlamError):
 
 class PersistenceError(CollabSlamError):
     """The base station's database cannot be opened, read or written."""
+
+
+class TooFewPoints(CollabSlamError):
+    """A scan matcher's target without the points to match against (a 3-D robot's
+    keyframes, a laser that saw nothing): the match is not tried, which is no fault."""

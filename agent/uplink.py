@@ -47,8 +47,8 @@ class KeyframeUplink:
         self.chain = 0  # Keyframe.chain
         self.last_pose: np.ndarray | None = None  # T_odom_base of the last keyframe sent
         self.refused = 0  # failed the checks the base station makes: not sent
-        self._lost_chain = -1  # the chain an ack of -1 was about
-        self._chain_lost = threading.Event()
+        self._lost_chain = -1  # the chain an ack of -1 was about (-1: none since last)
+        self._lost_lock = threading.Lock()  # (an Event's is_set then clear had lost one)
         # this agent's run (protocol MAX_SESSION): a resumed agent goes on in its session
         self.session = secrets.randbits(32) or 1 if resume is None else resume.session
         self.other_sessions = 0  # messages for another run of this robot, dropped
@@ -97,8 +97,8 @@ class KeyframeUplink:
         if msg.chain != self.chain:  # about a chain this agent has left
             return
         if msg.acked_seq < 0 <= self.outbox.acked_seq:
-            self._lost_chain = msg.chain
-            self._chain_lost.set()
+            with self._lost_lock:
+                self._lost_chain = msg.chain
         else:
             self.outbox.ack(msg.acked_seq, msg.chain)
 
@@ -135,8 +135,9 @@ class KeyframeUplink:
     def resend(self) -> bool:
         """Resend what is due (main thread); True if a new chain started first (the
         caller forgets the old base station's correction epochs)."""
-        new = self._chain_lost.is_set() and self._lost_chain == self.chain  # not twice
-        self._chain_lost.clear()
+        with self._lost_lock:
+            lost, self._lost_chain = self._lost_chain, -1
+        new = lost == self.chain  # (not twice for one chain)
         if new:
             self.chain += 1
             self.next_seq = self.outbox.new_chain(self.chain)

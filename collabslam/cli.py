@@ -190,7 +190,7 @@ def cmd_eval_relations(args: argparse.Namespace) -> int:
     from common.relations import main_eval_relations
 
     if args.json:
-        json_file(args.json)
+        json_file(args.json, beside=False)  # (writes no folder beside it)
     result = main_eval_relations(args.trajectory, args.relations)
     text = json.dumps(result, indent=1)
     if args.json:

@@ -90,17 +90,17 @@ def load_cfg(args: argparse.Namespace) -> Config:
     return cfg
 
 
-def json_file(path: str) -> None:
-    """`--json` must name a .json file: a benchmark's other outputs go in a folder beside
-    it named by its stem (one without a suffix is that folder: the JSON could not be
-    written after hours of running), in a folder that can be written to."""
+def json_file(path: str, beside: bool = True) -> None:
+    """`--json` must name a file (with `beside`, a .json file: a benchmark's other
+    outputs go in a folder beside it named by its stem; one without a suffix is that
+    folder, and the JSON could not be written after hours of running)."""
     p = Path(path)
-    if p.suffix != ".json" or p.is_dir():
-        raise ConfigError(f"--json {path}: expected a file name ending in .json")
-    writable_folder(str(p.parent))
+    if p.is_dir() or (beside and p.suffix != ".json"):
+        raise ConfigError(f"--json {path}: expected a file name" + " ending in .json" * beside)
+    writable_folder(str(p.parent), "--json's folder")
 
 
-def writable_folder(path: str) -> None:
+def writable_folder(path: str, option: str = "--out") -> None:
     """Make `--out` and try writing in it now: found unusable only at shutdown (a file in
     its path, a read-only disk), a whole mission's outputs had been lost to a traceback."""
     try:
@@ -108,4 +108,4 @@ def writable_folder(path: str) -> None:
         with tempfile.TemporaryFile(dir=path):
             pass
     except OSError as exc:
-        raise ConfigError(f"--out {path}: not a writable folder: {exc}") from None
+        raise ConfigError(f"{option} {path}: not a writable folder: {exc}") from None

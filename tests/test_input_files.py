@@ -108,3 +108,7 @@ def test_json_and_sim_time_arguments_are_checked_at_start(tmp_path: Path) -> Non
         with pytest.raises(ConfigError, match="--max-sim-time"):
             load_cfg(args)
     assert main(["eval", "relations", "t.tum", "r.relations", "--json", str(tmp_path)]) == 1
+    (tmp_path / "afile").write_text("")
+    args = argparse.Namespace(config=None, set=[], json=str(tmp_path / "afile" / "b.json"))
+    with pytest.raises(ConfigError, match="--json's folder .*not a writable folder"):
+        load_cfg(args)

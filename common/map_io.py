@@ -398,9 +398,9 @@ def read_map(yaml_path: str | Path) -> GridMap:
 
     p = grey / 255.0 if negate else (255.0 - grey) / 255.0
     data = np.full(grey.shape, UNKNOWN, dtype=np.int8)
-    if mode == "scale":
-        ratio = (p - free_th) / (occ_th - free_th)
-        scaled = np.clip(1.0 + 98.0 * ratio, 1.0, 99.0).astype(np.int8)
+    if mode == "scale":  # the band's probability in percent, unknown to the masks (stored
+        # as map_server's place in the band, 1..99, mid-grey had read as a wall)
+        scaled = np.clip(np.rint(100.0 * p), FREE_MAX + 1, OCCUPIED_MIN - 1).astype(np.int8)
         between = (p >= free_th) & (p <= occ_th)
         if alpha is not None:
             between &= alpha >= 255.0

@@ -307,9 +307,10 @@ class OccupancyGrid:
         a = np.ascontiguousarray(angles, dtype=np.float32)
         if pose.shape != (3,) or not np.all(np.isfinite(pose)):
             raise CollabSlamError(f"T_map_sensor must be a finite [x, y, yaw], got {pose}")
-        if r.ndim != 1 or r.shape != a.shape:
+        if r.ndim != 1 or r.shape != a.shape or not np.all(np.isfinite(a)):
             raise CollabSlamError(
-                f"ranges and angles must be (N,) arrays of one length, got {r.shape}, {a.shape}"
+                f"ranges and angles must be (N,) arrays of one length, the angles finite "
+                f"(a NaN had marked cell (0, 0) free), got {r.shape}, {a.shape}"
             )
         if not 0.0 <= range_min < range_max:
             raise CollabSlamError(
@@ -350,8 +351,8 @@ class OccupancyGrid:
         poses = np.asarray(T_map_sensor, dtype=np.float64).reshape(-1, 3)
         r = np.ascontiguousarray(ranges, dtype=np.float32)
         a = np.ascontiguousarray(angles, dtype=np.float32)
-        if not np.all(np.isfinite(poses)):
-            raise CollabSlamError("T_map_sensor must be finite [x, y, yaw] rows")
+        if not np.all(np.isfinite(poses)) or not np.all(np.isfinite(a)):
+            raise CollabSlamError("T_map_sensor rows [x, y, yaw] and angles must be finite")
         if r.ndim != 2 or r.shape != (len(poses), a.size) or a.ndim != 1:
             raise CollabSlamError(
                 f"expected ranges ({len(poses)}, N) and angles (N,), got {r.shape}, {a.shape}"

@@ -90,11 +90,13 @@ def test_read_ascii_pgm_png_and_scale_mode(tmp_path: Path) -> None:
     (tmp_path / "w.yaml").write_text(YAML_OK.format(image="w.png", negate=0))
     np.testing.assert_array_equal(read_map(tmp_path / "w.yaml").data, [[100, 0, -1]])
 
-    Image.fromarray(np.array([[128]], dtype=np.uint8)).save(tmp_path / "s.png")
+    Image.fromarray(np.array([[128, 200, 254, 0]], dtype=np.uint8)).save(tmp_path / "s.png")
     text = YAML_OK.format(image="s.png", negate=0) + "mode: scale\n"
     (tmp_path / "s.yaml").write_text(text)
-    value = int(read_map(tmp_path / "s.yaml").data[0, 0])
-    assert 1 <= value <= 99  # p = 0.498 lies between the thresholds
+    grid = read_map(tmp_path / "s.yaml")  # p = 0.498 and 0.216 lie between the thresholds:
+    np.testing.assert_array_equal(grid.data, [[50, 22, 0, 100]])  # their percent, unknown
+    assert grid.free_mask().tolist() == [[False, False, True, False]]  # (mid-grey had read
+    assert grid.occupied_mask().tolist() == [[False, False, False, True]]  # as a wall)
 
 
 def test_yaml_comments_quotes_and_block_lists(tmp_path: Path) -> None:

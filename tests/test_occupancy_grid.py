@@ -119,6 +119,16 @@ def test_invalid_and_no_return_beams() -> None:
     assert grid.log_odds[2, 12] == pytest.approx(L_HIT)
 
 
+def test_a_beam_angle_not_finite_is_refused() -> None:
+    """A NaN angle had marked cell (0, 0) observed and free, with no error."""
+    grid = _grid()
+    with pytest.raises(CollabSlamError, match="finite"):
+        grid.insert_scan([2.5, 2.5, 0.0], np.ones(2, np.float32), np.array([np.nan, 0.0]), 0, 10)
+    with pytest.raises(CollabSlamError, match="finite"):
+        grid.insert_scans([[2.5, 2.5, 0.0]], np.ones((1, 2)), np.array([0.0, np.inf]), 0, 10)
+    assert not grid.observed.any()
+
+
 def test_rays_leaving_the_grid_are_clipped_without_wraparound() -> None:
     grid = _grid()
     angles = np.linspace(-math.pi, math.pi, 720, endpoint=False).astype(np.float32)

@@ -3,7 +3,8 @@
 `GridMap.data[iy, ix]` holds cell (ix, iy); row 0 is the LOWEST y (the image
 file is stored the other way round: its first row is the top). Cell values
 follow nav_msgs/OccupancyGrid: -1 unknown, 0 free, 100 occupied, 1..99 a
-probability in percent (only produced by `mode: scale` maps).
+probability in percent (only produced by `mode: scale` maps, for pixels between their
+thresholds: kept within FREE_MAX + 1..OCCUPIED_MIN - 1, unknown to the masks).
 
 `origin` is the (x, y, yaw) of the lower-left corner of cell (0, 0) in the map
 frame (metres, rad); collabslam only supports yaw == 0.

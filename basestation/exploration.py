@@ -30,9 +30,15 @@ from basestation.goal_assigner import AssignmentWeights, GoalAssigner, spaced
 from basestation.goal_costs import frontier_costs
 from basestation.goal_handover import handovers
 from basestation.path_planner import PathPlanner, PlanningMap, path_length, unknown_length
-from basestation.path_schedule import nearest_leg, points_along, schedule_conflict, turn_delay_s
+from basestation.path_schedule import (
+    comes_near,
+    nearest_leg,
+    points_along,
+    schedule_conflict,
+    turn_delay_s,
+)
 from basestation.support_moves import support_move
-from basestation.travel_distance import travel_distances
+from basestation.travel_distance import planning_order, travel_distances
 from common.map_io import GridMap
 
 log = logging.getLogger(__name__)
@@ -104,6 +110,9 @@ class ExplorationManager:
     seen_cost_m: float = 5.0  # ... and those cost this much more (0: off)
     strict_detector: FrontierDetector = field(default_factory=FrontierDetector)
     cleanup: bool = False  # the frontiers are those of the strict map (see `step`)
+    # robots gone silent (liveliness lost) that may fly on: the rest of their path from
+    # where they were last heard of, ending where they will hover (`release`)
+    silent: dict[str, NDArray[np.float64]] = field(default_factory=dict)
     _stopped: set[str] = field(default_factory=set)
     _unplanned: set[str] = field(default_factory=set)  # this step's robots still to plan
     _stopping: dict[str, NDArray[np.float64]] = field(default_factory=dict)  # see `_conflict`
@@ -139,6 +148,8 @@ class ExplorationManager:
                 if not self.give_up.given_up(f.goal)
             ]  # fmt: skip
         P = {r: np.asarray(p, dtype=np.float64)[:3] for r, p in poses.items()}
+        for r in set(self.silent) & set(P):  # heard again
+            del self.silent[r]
         self._note_stopping(P)
         pm = PlanningMap(grid, self.planner.inflation_m)
         need = [r for r in P if r in blocked or self._needs_new_path(r, P, pm)]
@@ -171,7 +182,7 @@ class ExplorationManager:
         for r in need:
             self.tasks.pop(r, None)
         goals = self._goals({r: P[r] for r in need}, grid, P)
-        need = self._planning_order(need, goals, grid, P)
+        need = planning_order(need, goals, grid, P, self.planner.robot_radius_m, self.coordinated)
         self._unplanned = set(need)
         out = {}
         for r in need:
@@ -189,7 +200,7 @@ class ExplorationManager:
                     self.tasks[r] = _Task(out[r][-1], out[r], support=True)
             self._recheck(out, grid, P)
         moving = bool(self.tasks) or any(p is not None for p in out.values())
-        self.give_up.note_progress(moving, [f.goal for f in self.frontiers])
+        self.give_up.note_progress(moving, [f.goal for f in self.frontiers], bool(self.silent))
         for r, path in out.items():
             task = self.tasks.get(r)
             log.debug(
@@ -229,26 +240,6 @@ class ExplorationManager:
                     changed = True
             if not changed:
                 return
-
-    def _planning_order(
-        self,
-        need: list[str],
-        goals: dict[str, NDArray[np.float64] | None],
-        grid: GridMap,
-        P: dict[str, NDArray[np.float64]],
-    ) -> list[str]:
-        """Robots in the order their paths are planned (each around those before it):
-        the shortest way to its goal first, so that of robots queueing for one door the
-        one that clears it soonest goes first and the others follow. Ties (and robots
-        without a goal, last) by id: the order does not depend on message arrival."""
-        with_goal = sorted(r for r in need if goals.get(r) is not None)
-        if len(with_goal) < 2 or not self.coordinated:
-            return with_goal + sorted(set(need) - set(with_goal))
-        starts = np.array([P[r][:2] for r in with_goal])
-        ends = np.array([goals[r] for r in with_goal])
-        D = travel_distances(grid, starts, ends, self.planner.robot_radius_m).diagonal()
-        order = sorted(range(len(with_goal)), key=lambda k: (D[k], with_goal[k]))
-        return [with_goal[k] for k in order] + sorted(set(need) - set(with_goal))
 
     def _approachable(self, found: list[Frontier], grid: GridMap) -> list[Frontier]:
         """Frontiers with their goal moved out of the no-collision zone (up to
@@ -324,7 +315,7 @@ class ExplorationManager:
             grid, path, None
         ):  # no detour at all: no need to know the way without the others
             return path
-        alone = self.planner.plan(grid, start, goal)
+        alone = self.planner.plan(grid, start, goal, list(self.silent.values()))
         if alone is None or not self._detour(grid, path, alone):
             return path  # the map itself makes the way that long
         in_way = [o for o in P if o != r and not self.planner.clear_of(grid, alone, [P[o][:2]])]
@@ -354,7 +345,7 @@ class ExplorationManager:
         return [
             P[o][None, :2] for o in P
             if o != r and not (self.coordinated and o in self.tasks)
-        ]  # fmt: skip
+        ] + list(self.silent.values())  # fmt: skip
 
     def _detour(
         self, grid: GridMap, path: NDArray[np.float64], way: NDArray[np.float64] | None
@@ -410,7 +401,8 @@ class ExplorationManager:
         if not self.coordinated:
             return self.assigner.nearest(poses, [f.goal for f in self.frontiers])
         flying = [r for r, t in self.tasks.items() if r not in poses and not t.support]
-        busy = [self.tasks[r].goal for r in flying] + (taken or [])
+        busy = [self.tasks[r].goal for r in flying] + [w[-1] for w in self.silent.values()]
+        busy += taken or []
         # a frontier this close to another robot's goal is that robot's to see
         near = self.busy_radius_factor * self.planner.robot_clearance_m
         candidates = [
@@ -476,7 +468,15 @@ class ExplorationManager:
         if self._conflict(r, rest, P):  # another robot would come too close
             log.debug("robot %s: its path now comes too close to another robot", r)
             return True
-        # the rest of the path, after the waypoint nearest the robot, must still be free
+        clear, escape = self.planner.robot_clearance_m, self.planner.start_escape_m
+        if comes_near(rest, list(self.silent.values()), clear, escape):
+            return True  # across a silent robot's way
+        # the rest of the path must still be free: after the next waypoint of all else,
+        # up to it of walls (a robot leaving one's inflation flies inside it there)
+        if len(rest) > 1 and path_length(rest[:2]) > 0.25:
+            ahead = np.vstack([points_along(rest[:2], np.array([0.25])), rest[1:2]])
+            if not pm.walls_free(ahead):
+                return True
         return not pm.segment_free(rest[1:] if len(rest) > 1 else rest)
 
     def restore_task(self, robot: str, path: ArrayLike) -> None:
@@ -484,7 +484,17 @@ class ExplorationManager:
         p = np.asarray(path, dtype=np.float64).reshape(-1, 2)
         self.tasks[robot] = _Task(p[-1].copy(), p)
 
-    def release(self, robot: str) -> None:
-        """Forget a robot (gone silent): its goal is free for the others."""
-        self.tasks.pop(robot, None)
+    def release(self, robot: str, pose: ArrayLike | None = None) -> None:
+        """Forget a robot's goal. `pose`: it went silent there (its link lost) and may
+        fly on: the rest of its path and its end, where it will hover, are kept clear of
+        the others (`silent`, as discs in their plans) until it is heard of again; else
+        (gone for good: a new run of it) its goal is free for the others at once."""
+        task = self.tasks.pop(robot, None)
+        self.silent.pop(robot, None)
+        if pose is not None:
+            p = np.asarray(pose, dtype=np.float64)[None, :2]
+            rest = task.path[nearest_leg(task.path, p[0]) + 1 :] if task else p[:0]
+            self.silent[robot] = np.vstack([p, rest])
+            log.warning("robot %s silent at %s: its way (%.1f m) kept clear", robot,
+                        np.round(p[0], 2), path_length(self.silent[robot]))  # fmt: skip
         self.assigner.release(robot)

@@ -13,6 +13,7 @@ from basestation.frontiers import FrontierDetector
 from basestation.goal_assigner import AssignmentWeights, GoalAssigner
 from basestation.path_planner import PathPlanner, densify
 from common.config import Config
+from common.geometry import pose7_to_pose4
 from common.metrics import percentiles
 from protocol import Path as PathMsg
 
@@ -68,6 +69,11 @@ def explorer_stats(
         "detours_refused": explorer.detours_refused,
         **percentiles("step_ms", step_ms),
     }
+
+
+def planar_pose(state: Any) -> np.ndarray:
+    """[x, y, yaw] in `map` of a robot's `RobotState`, as exploration plans from."""
+    return pose7_to_pose4(state.pose_map)[[0, 1, 3]]
 
 
 def path_message(

@@ -28,7 +28,12 @@ from typing import Any
 import numpy as np
 
 from basestation.correction_epochs import CorrectionEpochs
-from basestation.exploration_setup import explorer_stats, make_explorer, path_message
+from basestation.exploration_setup import (
+    explorer_stats,
+    make_explorer,
+    path_message,
+    planar_pose,
+)
 from basestation.global_slam import GlobalSlam
 from basestation.gnss_intake import GnssIntake
 from basestation.gps_fixes import local_pose
@@ -40,10 +45,11 @@ from basestation.map_outputs import write_map_outputs
 from basestation.neighbour_relay import NeighbourRelay
 from basestation.persistence import Batch, open_database
 from basestation.robot_segments import RobotSegments, robot_of
+from basestation.roster import Roster
 from common.bus import Bus
 from common.config import Config
 from common.errors import CollabSlamError
-from common.geometry import pose4_to_pose7, pose7_to_pose4
+from common.geometry import pose4_to_pose7
 from common.logging_setup import set_sim_clock
 from common.memory import HeapTrimmer
 from common.metrics import TIMINGS_KEPT
@@ -79,9 +85,8 @@ class BaseStationNode:
         # by matching; with GPS, at its first fix with the scenario's heading (seed 000).
         starts: dict[str, np.ndarray] = {}
         headings: dict[str, float] = {}
-        self.roster: set[str] | None = None
+        self.roster = Roster(None if scenario is None else scenario.robot_ids)
         if scenario is not None:
-            self.roster = set(scenario.robot_ids)
             starts = {r.robot_id: r.start_pose for r in scenario.robots}
             if not cfg.basestation.known_start_poses and cfg.basestation.gps.enabled:
                 headings = {rid: float(p[2]) for rid, p in starts.items()}
@@ -115,7 +120,7 @@ class BaseStationNode:
         self.segments = RobotSegments()  # each run of a robot's agent: a robot of the graph
         self.neighbours = NeighbourRelay(strictly_earlier=lockstep)
         self.epochs = CorrectionEpochs(self.db)
-        self.unknown_robot_drops = self.intake_pauses = 0
+        self.intake_pauses = 0
         self._last_map = 0.0
         self._map_dirty = False
         self._lock = threading.Lock()
@@ -123,7 +128,7 @@ class BaseStationNode:
         self.map_history = MapHistory(max_snapshots=cfg.basestation.map_history_max_snapshots)
         self.links: dict[str, dict[str, int]] = {}  # agent -> {"joins": n, "losses": n}
         self._alive: set[str] = set()  # agents whose liveliness token is up
-        self._lost: list[str] = []  # agents whose token went away, for run()'s thread
+        self._lost: list[tuple[str, Any]] = []  # (segment, pose) forgotten: run()'s thread
         self.recovered: dict[str, Any] = {}
         slam = self.slam  # per-keyframe arrays: keyframe store, pose graph, map builder
         arrays = [slam.store.arrays_nbytes, slam.graph.arrays_nbytes, self.map.arrays_nbytes]
@@ -191,12 +196,12 @@ class BaseStationNode:
         self.clock.on_fix()
 
     def _on_keyframe(self, msg: Keyframe, key: str) -> None:
-        if not self._unknown(msg.robot_id, "keyframe") and (msg := self._to_segment(msg)):
+        if not self.roster.unknown(msg.robot_id, "keyframe") and (msg := self._to_segment(msg)):
             self.inbox.put(msg)
 
     def _on_state(self, msg: RobotState, key: str) -> None:
         """(Zenoh thread) keep it; answer with where the others are (neighbour guard)."""
-        if self._unknown(msg.robot_id, "state") or not (msg := self._to_segment(msg)):
+        if self.roster.unknown(msg.robot_id, "state") or not (msg := self._to_segment(msg)):
             return
         with self._lock:  # (a run before the robot's newest: relayed, not explored for)
             if msg.robot_id == self.segments.current(robot_of(msg.robot_id)):
@@ -219,11 +224,13 @@ class BaseStationNode:
             self._forget(past)
         return msg if segment == msg.robot_id else dataclasses.replace(msg, robot_id=segment)
 
-    def _forget(self, segment: str) -> None:
+    def _forget(self, segment: str, silent: bool = False) -> None:
+        """A segment's state forgotten, its goal released on run()'s thread; `silent`:
+        its link is lost, the drone may fly on (`ExplorationManager.release`)."""
         with self._lock:
-            self.states.pop(segment, None)
+            state = self.states.pop(segment, None)
             self.neighbours.forget(segment)
-            self._lost.append(segment)
+            self._lost.append((segment, planar_pose(state) if silent and state else None))
 
     def _send(self, topic: str, msg: Any) -> None:
         """Publish `msg` of a segment (its robot_id) to that run of its robot's agent."""
@@ -240,8 +247,9 @@ class BaseStationNode:
         if alive:
             log.info("agent %s joined", name)
         else:
-            self._forget(self.segments.current(name))
-            log.warning("agent %s lost (liveliness token gone): its goal is released", name)
+            self._forget(self.segments.current(name), silent=True)
+            log.warning("agent %s lost (liveliness token gone): its goal is released, its "
+                        "way kept clear", name)  # fmt: skip
 
     # --- processing ---------------------------------------------------------------------
     def run(self, stop: threading.Event) -> None:
@@ -290,7 +298,7 @@ class BaseStationNode:
         everything the robots sent up to it, verify, optimize, map and explore, then mark
         each robot's downlink and release the clock; returns #keyframes admitted."""
         with self._lock:
-            robots = set(self._alive) if self.roster is None else set(self.roster)
+            robots = set(self._alive) if self.roster.ids is None else set(self.roster.ids)
         missing = self.clock.wait_inputs(stamp, robots, self._received, self.cfg.sim.sync_wait_s)
         if missing:
             log.warning("t=%.3f: not all in yet from %s; going on", stamp, ", ".join(missing))
@@ -330,9 +338,9 @@ class BaseStationNode:
         """Goals of agents whose liveliness token went away go back to the queue."""
         with self._lock:
             lost, self._lost = self._lost, []
-        for name in lost:
+        for name, pose in lost:
             if self.explorer is not None:
-                self.explorer.release(name)
+                self.explorer.release(name, pose)
 
     def explore(self) -> None:
         """One exploration step: new paths (map frame) for the robots that need one."""
@@ -347,7 +355,7 @@ class BaseStationNode:
             if not graph.is_anchored(rid):
                 continue
             if rid in states:
-                poses[rid] = pose7_to_pose4(states[rid].pose_map)[[0, 1, 3]]
+                poses[rid] = planar_pose(states[rid])
             elif rid in alive:  # no state yet (it may be lost at the start): its newest keyframe
                 poses[rid] = graph.pose(rid, graph.latest_index(rid))
         blocked = {rid for rid, st in states.items() if st.status == "blocked"}
@@ -378,22 +386,11 @@ class BaseStationNode:
                 fix = self.gnss_inbox.get_nowait()
             except queue.Empty:
                 return
-            if self._unknown(fix.robot_id, "GNSS fix"):
+            if self.roster.unknown(fix.robot_id, "GNSS fix"):
                 continue
             fix = dataclasses.replace(fix, robot_id=self.segments.current(fix.robot_id))
             for f, xy in self.gnss.take(fix):
                 self.slam.add_gps_fix(f.robot_id, f.stamp, xy, f.sigmas_enu)
-
-    def _unknown(self, rid: str, what: str) -> bool:
-        """Whether `rid` is off the roster: its `what` is dropped (logged: the first 20)."""
-        if self.roster is None or rid in self.roster:
-            return False
-        with self._lock:  # (Zenoh's threads too)
-            self.unknown_robot_drops = n = self.unknown_robot_drops + 1
-        if n <= 20 or n % 1000 == 0:
-            log.error("%s from unknown robot %r dropped (%d so far); known: %s",
-                      what, rid, n, sorted(self.roster))  # fmt: skip
-        return True
 
     def _take_batch(self, timeout: float) -> int:
         batch = self.inbox.take(self.cfg.basestation.batch_max, timeout)
@@ -467,7 +464,7 @@ class BaseStationNode:
     def stats(self) -> dict[str, Any]:
         return {
             **self.slam.stats(),
-            "unknown_robot_drops": self.unknown_robot_drops,
+            "unknown_robot_drops": self.roster.drops,
             "intake_pauses": self.intake_pauses,
             "inbox_drops": self.inbox.drops,  # full inbox: sent again by the agents
             "heap_trims": self.heap.trims,

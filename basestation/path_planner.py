@@ -179,6 +179,11 @@ class PlanningMap:
         p = np.ascontiguousarray(path, dtype=np.float64).reshape(-1, 2)
         return bool(polyline_free(self.blocked, *self.origin, self.resolution, p))
 
+    def walls_free(self, path: NDArray[np.float64]) -> bool:
+        """Whether no point along the polyline is in a wall (the inflation may be)."""
+        p = np.ascontiguousarray(path, dtype=np.float64).reshape(-1, 2)
+        return bool(polyline_free(self.occupied, *self.origin, self.resolution, p))
+
 
 _seeded = False
 

@@ -11,7 +11,7 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import NDArray
 
-from basestation.path_planner import path_length
+from basestation.path_planner import densify, path_length
 
 # m over the clearance that robots close at their starts keep from each other: what a
 # drone may overshoot its path by (random:1, seed 11: two drones leaving their starts
@@ -102,3 +102,19 @@ def turn_delay_s(
         return 0.0
     err = abs((np.arctan2(ahead[1], ahead[0]) - pose[2] + np.pi) % (2.0 * np.pi) - np.pi)
     return max(0.0, err - free_rad) / rate_rps
+
+
+def comes_near(
+    path: NDArray[np.float64], routes: list[NDArray[np.float64]], within_m: float, skip_m: float
+) -> bool:
+    """Whether `path` (from a robot on) comes within `within_m` of any of `routes` (points
+    or polylines), past its first `skip_m` (the robot's start allowance). Sampled every
+    0.1 m."""
+    if not routes:
+        return False
+    p = densify(path, 0.1)
+    p = p[np.hypot(*(p - path[0]).T) > skip_m]
+    q = np.vstack([densify(w, 0.1) if len(w) > 1 else w for w in routes])
+    if not len(p):
+        return False
+    return bool((((p[:, None, :] - q[None, :, :]) ** 2).sum(axis=2) < within_m**2).any())

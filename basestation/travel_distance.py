@@ -102,3 +102,25 @@ def grid_path(
     path = o + (np.column_stack([ix, iy]) + 0.5) * resolution
     path[0], path[-1] = ends
     return path
+
+
+def planning_order(
+    need: list[str],
+    goals: dict[str, NDArray[np.float64] | None],
+    grid: GridMap,
+    P: dict[str, NDArray[np.float64]],
+    robot_radius_m: float,
+    by_travel: bool = True,
+) -> list[str]:
+    """Robots in the order their paths are planned (each around those before it): with
+    `by_travel`, the shortest way to its goal first, so that of robots queueing for one
+    door the one that clears it soonest goes first and the others follow. Ties (and
+    robots without a goal, last) by id: the order does not depend on message arrival."""
+    with_goal = sorted(r for r in need if goals.get(r) is not None)
+    if len(with_goal) < 2 or not by_travel:
+        return with_goal + sorted(set(need) - set(with_goal))
+    starts = np.array([P[r][:2] for r in with_goal])
+    ends = np.array([goals[r] for r in with_goal])
+    D = travel_distances(grid, starts, ends, robot_radius_m).diagonal()
+    order = sorted(range(len(with_goal)), key=lambda k: (D[k], with_goal[k]))
+    return [with_goal[k] for k in order] + sorted(set(need) - set(with_goal))

@@ -14,7 +14,7 @@ from basestation.frontiers import Frontier, FrontierDetector
 from basestation.goal_assigner import GoalAssigner
 from basestation.path_planner import PathPlanner
 from basestation.path_schedule import points_along
-from basestation.travel_distance import travel_distances
+from basestation.travel_distance import planning_order, travel_distances
 from common.config import Config, load_config
 from common.errors import ConfigError
 from common.map_io import GridMap
@@ -287,11 +287,11 @@ def test_paths_are_planned_shortest_way_first_then_by_id() -> None:
         "r2": np.array([4.0, 1.0]),  # 3 m
         "r3": None,
     }
-    order = ex._planning_order(list(P), goals, g, P)
+    order = planning_order(list(P), goals, g, P, ex.planner.robot_radius_m)
     assert order == ["r2", "r1", "r0", "r3"]
     tie = {"r0": np.array([4.0, 4.0]), "r1": np.array([4.0, 1.0])}
     P_tie = {"r1": np.array([1.0, 1.0, 0.0]), "r0": np.array([1.0, 4.0, 0.0])}
-    assert ex._planning_order(["r1", "r0"], tie, g, P_tie) == ["r0", "r1"]
+    assert planning_order(["r1", "r0"], tie, g, P_tie, ex.planner.robot_radius_m) == ["r0", "r1"]
 
 
 def test_a_frontier_right_next_to_a_robot_is_taken_last() -> None:

@@ -42,11 +42,11 @@ from basestation.gps_fixes import gnss_start, node_stamp
 from basestation.keyframe_store import KeyframeScans, KeyframeStore
 from basestation.loop_closure_manager import LoopClosureManager
 from basestation.node_keys import NodeKeys
-from basestation.persistence import Batch, Fix, Recovered, Start, StoredConstraint
+from basestation.persistence import Batch, Fix, Recovered, Start
 from basestation.pose_graph import PoseGraph
 from basestation.robot_segments import SEGMENT_START_SIGMAS, robot_of, segment_start
 from basestation.scan_archive import ScanArchive, ScanReader
-from basestation.slam_restore import replay_order
+from basestation.slam_restore import replay_matches, replay_order
 from basestation.slam_stats import slam_stats
 from basestation.update_series import UpdateSeries
 from basestation.whole_map_search import WholeMapSearch, tie
@@ -85,6 +85,7 @@ class GlobalSlam:
         self._georeferenced = set(self.known_starts)
         self.start_headings = dict(start_headings or {}) if b.gps.enabled else {}
         self._last_fix: dict[str, np.ndarray] = {}  # robot -> latest fix [east, north]
+        self._floating_starts: dict[str, np.ndarray] = {}  # heading robot -> odom of node 0
         self._early_fixes: dict[str, list[tuple[float, np.ndarray, np.ndarray]]] = {}
         self._node_stamps: dict[str, float] = {}  # robot -> stamp of its latest node
         self.odom_now: Callable[[str], np.ndarray | None] = lambda r: None  # latest local pose
@@ -126,7 +127,7 @@ class GlobalSlam:
             early.append((stamp, enu_xy, sigmas_enu))
             del early[: -self.cfg.basestation.gps.max_pending_fixes]
             return
-        if robot_id not in self.graph.robots() or robot_id not in self._georeferenced:
+        if robot_id not in self._georeferenced and not self._late_start(robot_id, xy):
             self.gps_fixes_ignored += 1
             return
         self.graph.add_gps_fix(robot_id, stamp, enu_xy, sigmas_enu)
@@ -155,7 +156,7 @@ class GlobalSlam:
                 for fix in items:
                     self.add_gps_fix(*fix)
             elif kind == "matches":
-                self._replay_matches(items)
+                replay_matches(self, items)
             else:
                 for kf in items:
                     if self.admit(kf, replay=True) == 0:
@@ -171,22 +172,6 @@ class GlobalSlam:
         differ = sum(c.in_graph != (c.measurement.id in accepted) for c in rec.constraints)
         if differ:
             log.warning("%d restored matches changed in/out of the graph on replay", differ)
-
-    def _replay_matches(self, stored: list[StoredConstraint]) -> None:
-        """One batch's stored matches through the loop-closure manager (not verified
-        again), the graph optimized before and after, as when they were first added."""
-        self.optimize()
-        for c in stored:
-            m = c.measurement
-            try:
-                self.loops.add(
-                    (m.robot_a, m.index_a), (m.robot_b, m.index_b), m.T_a_b,
-                    m.covariance, c.kind, measurement_id=m.id,
-                )  # fmt: skip
-            except CollabSlamError as e:
-                log.error("stored match %d not restored: %s", m.id, e)
-        self._constraints_added = bool(stored)  # the forced relinearization, as when live
-        self.optimize()
 
     def _add_node(self, kf: Keyframe) -> None:
         rid = kf.robot_id
@@ -207,13 +192,17 @@ class GlobalSlam:
                 self._georeferenced.add(rid)
                 log.info("robot %s starts georeferenced at its latest GNSS fix", rid)
             elif start is None and rid in self.start_headings:
-                log.warning("robot %s: no GNSS fix before its first keyframe, it floats", rid)
+                self._floating_starts[rid] = odom  # georeferenced at its first fix
+                log.warning("robot %s: no GNSS fix before its first keyframe", rid)
             elif start is None and self._defines_map(rid):
                 self.known_starts[rid] = np.zeros(3)
                 start = odom
                 log.info("robot %s defines the map frame", rid)
             if rid in self._stored_starts:  # (restore: a GNSS start used the state then)
                 start, start_sigmas = self._stored_starts.pop(rid)
+                if start is not None and rid in self._floating_starts:  # (`_late_start`)
+                    del self._floating_starts[rid]
+                    self._georeferenced.add(rid)
             self._unsaved_starts[rid] = (start, start_sigmas)
             self.graph.add_robot(rid, start, start_sigmas)
             self.graph.add_node(rid, 0, None, None, initial_guess=start, stamp=stamp)
@@ -228,6 +217,24 @@ class GlobalSlam:
             cov = kf.delta_cov[np.ix_([0, 1, 5], [0, 1, 5])]
             self.graph.add_node(rid, kf.seq, delta, cov, stamp=stamp)
         self._new_nodes.append((rid, kf.seq))
+
+    def _late_start(self, rid: str, fix: np.ndarray) -> bool:
+        """A robot with a start heading whose first keyframe came before its first GNSS
+        fix (fixes are held until the map's WGS84 origin is set): at its first fix, its
+        chain is put where that fix and the heading say (`gnss_start`), unless matches
+        have put it on the map meanwhile. Whether it is georeferenced now."""
+        odom = self._floating_starts.get(rid)
+        if odom is None or self.graph.is_anchored(rid):
+            return False
+        g = self.cfg.basestation.gps
+        start = gnss_start(fix, self.start_headings[rid], odom, self.odom_now(rid))
+        sigmas = np.array([g.start_sigma_xy_m, g.start_sigma_xy_m, g.start_sigma_yaw_rad])
+        self.graph.georeference(rid, start, sigmas)
+        del self._floating_starts[rid]
+        self._georeferenced.add(rid)
+        self._unsaved_starts[rid] = (start, sigmas)  # (a restart starts it there)
+        log.info("robot %s georeferenced at its first GNSS fix", rid)
+        return True
 
     def _defines_map(self, rid: str) -> bool:
         """Whether a robot's first node, with no start pose known, defines `map`: without

@@ -23,9 +23,10 @@ from collections import Counter
 from typing import TYPE_CHECKING
 
 import gtsam
+import numpy as np
 
 from basestation.pose_graph_state import FloatArray, PoseGraphState, pose2
-from common.geometry import se2_compose
+from common.geometry import se2_compose, se2_inverse
 
 logger = logging.getLogger(__name__)
 
@@ -138,4 +139,24 @@ class GaugeMixin(PoseGraphState):
         )
         chain.gauge_factor = self._add_factor(prior, "gauge")
         self.update(extra_iterations=iterations)
+        return True
+
+    def georeference(
+        self, robot_id: str, start: FloatArray, start_sigmas: FloatArray, iterations: int = 30
+    ) -> bool:
+        """Give a floating chain the loose start prior it would have had (GNSS: a robot's
+        first fix came after its first keyframe): its component is first moved rigidly
+        so that the robot's first node is at `start` ([x, y, yaw]); the chain then counts
+        as anchored and the gauge prior goes. False if it is not floating."""
+        chain = self._chains[robot_id]
+        if not chain.size or self.is_anchored(robot_id):
+            return False
+        self.move_floating(robot_id, se2_compose(start, se2_inverse(self.pose(robot_id, 0))),
+                           iterations)  # fmt: skip
+        chain.T_map_first = np.array(start, dtype=np.float64)
+        chain.start_sigmas = np.array(start_sigmas, dtype=np.float64)
+        noise = gtsam.noiseModel.Diagonal.Sigmas(chain.start_sigmas)
+        prior = gtsam.PriorFactorPose2(gtsam.symbol(chain.char, 0), pose2(start), noise)
+        self._add_factor(prior, "start")
+        self._topology_changed()  # anchored now: the gauge prior goes at the next update
         return True

@@ -6,13 +6,20 @@ latest fix), its keyframes, then its matches. Keyframes are read as it goes
 
 from __future__ import annotations
 
+import logging
 from collections import deque
 from collections.abc import Iterator
 from itertools import groupby
 from operator import itemgetter
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from basestation.persistence import Fix, Recovered, StoredConstraint
+from common.errors import CollabSlamError
+
+if TYPE_CHECKING:
+    from basestation.global_slam import GlobalSlam
+
+log = logging.getLogger(__name__)
 
 
 def replay_order(rec: Recovered) -> Iterator[tuple[str, list[Any]]]:
@@ -42,3 +49,20 @@ def replay_order(rec: Recovered) -> Iterator[tuple[str, list[Any]]]:
         yield from batch(b, [kf for _, kf in group])
     while rest:
         yield from batch(rest[0])
+
+
+def replay_matches(slam: GlobalSlam, stored: list[StoredConstraint]) -> None:
+    """One batch's stored matches through the loop-closure manager (not verified again),
+    the graph optimized before and after, as when they were first added."""
+    slam.optimize()
+    for c in stored:
+        m = c.measurement
+        try:
+            slam.loops.add(
+                (m.robot_a, m.index_a), (m.robot_b, m.index_b), m.T_a_b,
+                m.covariance, c.kind, measurement_id=m.id,
+            )  # fmt: skip
+        except CollabSlamError as e:
+            log.error("stored match %d not restored: %s", m.id, e)
+    slam._constraints_added = bool(stored)  # the forced relinearization, as when live
+    slam.optimize()

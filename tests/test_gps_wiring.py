@@ -146,6 +146,41 @@ def test_a_chain_starting_on_the_way_is_placed_back_from_the_latest_fix() -> Non
     np.testing.assert_allclose(fresh.graph.poses("r0")[0], [30.0, 20.0, heading], atol=1e-6)
 
 
+def test_a_robot_whose_first_keyframe_beats_its_first_fix_is_georeferenced_then(
+    tmp_path: Path,
+) -> None:
+    """Fixes are held until the map's WGS84 origin is set (five fixes): a robot's first
+    keyframe came first, it floated, and every later fix was ignored. With every robot
+    so, nothing was ever on the map. Now its first fix puts it there, and a restart on
+    the database starts it there."""
+    from basestation.persistence import KeyframeDatabase
+
+    heading = 0.5
+    truth0 = np.array([12.0, -7.0])
+    direction = np.array([np.cos(heading), np.sin(heading)])
+    slam = GlobalSlam(_cfg(), {}, {"r0": heading})
+    db = KeyframeDatabase(tmp_path / "base.db")
+    for seq in range(60):
+        slam.admit(_keyframe(seq))  # 0.4 m/s along its heading
+        if seq >= 10:  # fixes from 5 s on
+            t = 0.5 * seq + 0.25
+            slam.add_gps_fix("r0", t, truth0 + 0.4 * t * direction, SIG)
+        slam.optimize()
+        db.commit(slam.take_journal())
+    slam.graph.flush_gps()
+    slam.optimize()
+    assert slam.graph.is_anchored("r0") and slam.gps_fixes_ignored == 0
+    assert slam.graph.gps_stats()["gps_factors"] > 40
+    est = slam.graph.poses("r0")
+    np.testing.assert_allclose(est[0, :2], truth0, atol=0.5)
+    assert abs(est[-1, 2] - heading) < 0.05
+    db.close()
+    back = GlobalSlam(_cfg(), {}, {"r0": heading})
+    back.restore(KeyframeDatabase(tmp_path / "base.db").load())
+    assert back.graph.is_anchored("r0") and back.gps_fixes_ignored == 0
+    np.testing.assert_allclose(back.graph.poses("r0")[0], est[0], atol=0.1)
+
+
 def test_time_going_backwards_does_not_stop_the_graph() -> None:
     """Keyframe 3 claims an older time, or keyframe 2 one in ms (1.7e12 s, where 1e-6 s
     more is the same float: "node stamps must increase" had stopped the base station,

@@ -308,6 +308,7 @@ class PoseGraph(EstimateMixin, GaugeMixin, GpsMixin, ReductionMixin, RebuildMixi
         try:
             # heads None: iSAM2's default, the keys of the new factors go last
             result = self._isam.update(graph, values, removals, constrainedKeys=self._heads)
+            slots = result.getNewFactorsIndices()
             iterations, reordered = 1, result.getBatchReorderTriggered()
             # a merge or a GPS batch moves whole chains: settle them within this update
             settle = merged or (
@@ -316,11 +317,10 @@ class PoseGraph(EstimateMixin, GaugeMixin, GpsMixin, ReductionMixin, RebuildMixi
             if settle or extra_iterations:
                 iterations, reordered = self._iterate(extra_iterations, settle, reordered)
         except RuntimeError as exc:  # e.g. gtsam's IndeterminantLinearSystemException
-            raise CollabSlamError(
-                f"iSAM2 update failed, the pose graph is unusable: {exc}"
-            ) from exc
+            self._refactor_with_qr(exc, values)  # (every factor gets its slot there)
+            new_ids, slots, iterations, reordered = [], [], 1, True
         solve_ms = (time.perf_counter() - t_solve) * 1e3
-        for fid, slot in zip(new_ids, result.getNewFactorsIndices(), strict=True):
+        for fid, slot in zip(new_ids, slots, strict=True):
             factors[fid].isam_index = slot
 
         # Merged into the big Values in batches, not between the update and the reads of

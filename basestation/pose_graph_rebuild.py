@@ -89,6 +89,34 @@ class RebuildMixin(PoseGraphState):
         ms = (time.perf_counter() - t0) * 1e3
         logger.debug("pose graph: a fresh iSAM2, %d factors, in %.0f ms", len(records), ms)
 
+    def _refactor_with_qr(self, exc: RuntimeError, values: gtsam.Values) -> None:
+        """iSAM2's Cholesky failed in an update (`exc`: a factor's covariance nearly
+        singular in some direction; a corridor's odometry of variances 100 and 1e-6 m^2
+        did it after 14 keyframes, and the base station stopped): a fresh iSAM2 that
+        factors by QR (slower; never failed on those) takes every factor, at the estimate
+        and the new nodes' guesses (`values`). With QR already: CollabSlamError."""
+        params = self._isam.params()
+        if params.getFactorization() == "QR":
+            raise CollabSlamError(f"iSAM2 update failed, the pose graph is unusable: {exc}")
+        logger.error("iSAM2's Cholesky failed (%s): the pose graph goes on with QR", exc)
+        estimate = self._isam.calculateEstimate()  # (with the new nodes it took)
+        estimate.insert_or_assign(values)
+        pending = set(self._pending_ids)
+        records = [
+            r for fid, r in self._factors.items()
+            if r.factor is not None and not r.dormant
+            and (r.isam_index is not None or fid in pending)
+        ]  # fmt: skip
+        graph = gtsam.NonlinearFactorGraph()
+        for record in records:
+            graph.add(record.factor)
+        params.setFactorization("QR")
+        self._isam = gtsam.ISAM2(params)
+        result = self._isam.update(graph, estimate, [], constrainedKeys=self._heads)
+        for record, slot in zip(records, result.getNewFactorsIndices(), strict=True):
+            record.isam_index = slot
+        self.num_rebuilds += 1
+
     def _sparsify(self, estimate: gtsam.Values) -> None:
         """Mark ``dormant`` the ties between settled places past ``tie_degree`` per
         variable (``pose_graph_sparsify``), chosen anew from every tie, dormant or not:

@@ -151,6 +151,11 @@ class LoopClosureManager:
             m0.robot_a in c and m0.robot_b in c for c in self.graph.components()
         )
         consistent = consistent - group.left_out
+        if separate and self.graph.is_anchored(m0.robot_a) and self.graph.is_anchored(m0.robot_b):
+            # both on `map` already (known starts): the estimate can tell a wrong alignment
+            consistent = {
+                i for i in consistent if self._misfit(group.measurements[i]) <= self.cfg.pcm_chi2
+            }
         if separate:
             outliers, T_a_b = self._far_from_the_rest([group.measurements[i] for i in consistent])
             if not self._enough_to_merge(group, consistent - outliers):

@@ -42,6 +42,11 @@ Odometry = Callable[[str, int, int], tuple[np.ndarray, np.ndarray]]
 BatchOdometry = Callable[[str, np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]]
 
 DEFAULT_THRESHOLD_CHI2 = float(chi2.ppf(0.99, 3))  # ~11.34
+MAX_CLIQUE_STEPS = 20_000  # branch-and-bound expansions before the heuristic (~1 s)
+
+
+class _OutOfBudget(Exception):
+    pass
 
 
 @dataclass(frozen=True)
@@ -238,14 +243,20 @@ def _clique_cost(clique: list[int], d2: FloatArray) -> float:
     return float(d2[np.ix_(idx, idx)].sum())
 
 
-def _maximum_clique(adj: NDArray[np.bool_], d2: FloatArray) -> list[int]:
+def _maximum_clique(
+    adj: NDArray[np.bool_], d2: FloatArray, max_steps: int = MAX_CLIQUE_STEPS
+) -> list[int]:
     """Every maximum clique by branch and bound on bitsets (Carraghan-Pardalos with a
-    greedy-colouring bound, Tomita); the one with the smallest summed d2 wins."""
+    greedy-colouring bound, Tomita); the one with the smallest summed d2 wins. Their
+    number can grow exponentially (a repetitive corridor: matches at one place that
+    contradict each other, places far apart that agree with anything; 31 s for one
+    match of 40 on the main thread): past `max_steps` expansions, PCM's heuristic."""
     n = len(adj)
     if n == 0:
         return []
     nbr = [sum(1 << int(j) for j in np.flatnonzero(adj[i])) for i in range(n)]
     best: list[list[int]] = [[0]]
+    budget = [max_steps]
 
     def colour_bound(cand: int) -> list[tuple[int, int]]:
         """Vertices of `cand` with their greedy colour number (ascending)."""
@@ -263,6 +274,9 @@ def _maximum_clique(adj: NDArray[np.bool_], d2: FloatArray) -> list[int]:
         return order
 
     def expand(clique: list[int], cand: int) -> None:
+        budget[0] -= 1
+        if budget[0] < 0:
+            raise _OutOfBudget
         order = colour_bound(cand)
         for v, colour in reversed(order):
             if len(clique) + colour < len(best[0]):
@@ -277,7 +291,10 @@ def _maximum_clique(adj: NDArray[np.bool_], d2: FloatArray) -> list[int]:
                 best.append(new)
             cand &= ~(1 << v)
 
-    expand([], (1 << n) - 1)
+    try:
+        expand([], (1 << n) - 1)
+    except _OutOfBudget:
+        return _greedy_clique(adj, d2)
     return sorted(min(best, key=lambda c: _clique_cost(c, d2)))
 
 

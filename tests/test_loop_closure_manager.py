@@ -411,3 +411,46 @@ def test_a_tie_covers_candidates_between_the_same_two_stretches_only() -> None:
     assert not manager.covered(("a", 22), ("b", 2))  # a's next lap over the same place
     manager.cfg.inter_redundant_keyframes = 0
     assert not manager.covered(("a", 2), ("b", 2))  # off
+
+
+@pytest.mark.parametrize("offset_m", [0.0, 1.2])
+def test_matches_between_robots_with_known_starts_must_fit_the_estimate(offset_m: float) -> None:
+    """Two robots with known starts (both on `map`) are two components until their first
+    match, and were joined like two maps, by PCM and the merge rules alone. In a corridor
+    whose look repeats every 1.2 m (within the verifier's window), three matches one
+    period off, 15 m apart, agree with each other and went in: robot b bent ~1.25 m.
+    The firm start priors make the estimate sure of their relative pose: a match that
+    does not fit it stays out; right ones go in."""
+    odo = np.diag([0.02**2, 0.02**2, 0.003**2])
+    rng = np.random.default_rng(1)
+    n = 81  # 40 m of corridor, 0.5 m keyframes
+    truth = {r: np.array([[0.5 * i, y, 0.0] for i in range(n)]) for r, y in (("a", 0), ("b", 0.4))}
+    g = PoseGraph()
+    for r in ("a", "b"):
+        g.add_robot(r, truth[r][0])
+        g.add_node(r, 0, None, None)
+        for i in range(1, n):
+            d = se2_between(truth[r][i - 1], truth[r][i]) + rng.normal(0, np.sqrt(np.diag(odo)))
+            g.add_node(r, i, d, odo)
+    g.update()
+
+    def error() -> float:  # of robot b (odometry drift alone: ~1.2 m at the end)
+        return float(np.hypot(*(g.poses("b")[:, :2] - truth["b"][:, :2]).T).max())
+
+    drift = error()
+
+    def chain_cov(robot, i, j):
+        k = np.abs(np.asarray(j) - np.asarray(i))[:, None, None]
+        return k * odo + (0.5 * k) ** 2 * odo[2, 2] * np.diag([1.0, 1.0, 0.0])
+
+    lcm = LoopClosureManager(g, ConstraintConfig(), chain_cov)
+    for i in (10, 40, 70):
+        T = se2_compose(se2_between(truth["a"][i], truth["b"][i]), [offset_m, 0.0, 0.0])
+        lcm.add(("a", i), ("b", i), T, np.diag([0.03**2, 0.03**2, 0.01**2]), "inter")
+        g.update(extra_iterations=5)
+    assert len(lcm.accepted) == (3 if offset_m == 0.0 else 0)
+    if offset_m:  # the graph as it was
+        assert error() == pytest.approx(drift, abs=1e-6)
+    else:  # b where a's matches put it
+        rel = se2_between(g.pose("a", 70), g.pose("b", 70))
+        assert np.allclose(rel[:2], [0.0, 0.4], atol=0.05)

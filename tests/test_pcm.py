@@ -242,6 +242,21 @@ def test_maximum_clique_matches_brute_force():
             assert all(adj[i, j] for i, j in itertools.combinations(clique, 2))
 
 
+def test_maximum_clique_with_exponentially_many_ties_falls_back_to_the_heuristic():
+    """Pairs of matches that contradict each other, every other pair consistent (a
+    repetitive corridor: at each place one right match and one a period off): 2^20
+    maximum cliques, all collected before (~10 s for 40 matches, 31 s for the 40th
+    match of a real corridor, on the base station's main thread). Past its step budget
+    the search takes PCM's heuristic, which finds one of them."""
+    n = 40
+    part = np.arange(n) // 2
+    adj = part[:, None] != part[None, :]
+    d2 = np.ones((n, n))
+    for steps in (1000, None):
+        clique = _maximum_clique(adj, d2, steps) if steps else _maximum_clique(adj, d2)
+        assert len(clique) == 20 and len(set(part[clique])) == 20
+
+
 def test_incremental_pcm_keeps_a_bounded_window(world):
     """A pair closing many loops: PCM keeps its last `window` matches and their
     window x window consistency matrix (it grew with the square of all matches);

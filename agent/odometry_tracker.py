@@ -15,6 +15,7 @@ import numpy as np
 
 from agent.local_trajectory_builder import LocalSlamResult
 from common.geometry import se2_compose, se2_inverse
+from common.stamps import JumpGate
 from protocol import LaserScan
 
 log = logging.getLogger(__name__)
@@ -33,6 +34,9 @@ class OdometryTracker:
         self.gated_matches = 0  # no scan matching here: always 0
         self._last_odom: np.ndarray | None = None
         self._last_odom_stamp = -math.inf
+        # a stamp far ahead of the last (`common.stamps`; without, one glitch of 1e9 s had
+        # every later scan and odometry refused as older: the pose froze for good)
+        self._scan_jump, self._odom_jump = JumpGate(), JumpGate()
 
     def resume(self, stamp: float, pose: np.ndarray, odometry: np.ndarray | None) -> None:
         """Go on from an agent before this one (`LocalTrajectoryBuilder.resume`)."""
@@ -47,6 +51,12 @@ class OdometryTracker:
         return None if self._last_odom is None else self._last_odom.copy()
 
     def add_odometry(self, stamp: float, pose_xyyaw: np.ndarray) -> None:
+        last = self._last_odom_stamp if self._last_odom is not None else None
+        if self._odom_jump.holds(stamp, last):
+            log.error("odometry stamp %.3f is far past the previous %.3f: dropped unless "
+                      "the next follows it", stamp, self._last_odom_stamp)  # fmt: skip
+            self.rejected_odometry += 1
+            return
         if stamp < self._last_odom_stamp:
             log.error(
                 "odometry stamp %.3f is before the previous %.3f: dropped",
@@ -71,6 +81,11 @@ class OdometryTracker:
         self.altitude = self.pose[2] = float(altitude_m)
 
     def add_scan(self, scan: LaserScan) -> LocalSlamResult | None:
+        if self._scan_jump.holds(scan.stamp, self.last_stamp):
+            log.error("scan stamp %.3f is far past the previous %.3f: dropped unless the "
+                      "next scan follows it", scan.stamp, self.last_stamp)  # fmt: skip
+            self.rejected_scans += 1
+            return None
         if self.last_stamp is not None and scan.stamp <= self.last_stamp:
             log.error(
                 "scan stamp %.3f is not after the previous %.3f: dropped",

@@ -202,11 +202,21 @@ def test_an_odometry_jump_drops_scans_instead_of_growing_a_huge_submap(cfg, capl
     assert abs(b.pose[0]) < 1.0  # still in the room, not 1e7 m away
 
 
-def test_a_stamp_far_ahead_once_does_not_freeze_the_scans_or_the_odometry(cfg, caplog) -> None:
+@pytest.mark.parametrize("frontend", ["local_slam", "odometry_only"])
+def test_a_stamp_far_ahead_once_does_not_freeze_the_scans_or_the_odometry(
+    cfg, caplog, frontend: str
+) -> None:
     """One scan and one odometry message stamped 1e9 s (a driver's glitch) had every
     later one refused as going back in time: now only they are dropped. A real jump
-    (the sensor off for 100 s) is taken once the next message follows it."""
-    b = LocalTrajectoryBuilder(cfg.agent.local_slam)
+    (the sensor off for 100 s) is taken once the next message follows it. Both of the
+    agent's frontends (`agent.local_slam.enabled` false: only odometry)."""
+    from agent.odometry_tracker import OdometryTracker
+
+    b = (
+        LocalTrajectoryBuilder(cfg.agent.local_slam)
+        if frontend == "local_slam"
+        else OdometryTracker()
+    )
     room = 3.0 + np.abs(np.sin(np.linspace(0, 6, 361)))
     caplog.set_level(logging.ERROR)
     kept = []

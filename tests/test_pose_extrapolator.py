@@ -11,7 +11,7 @@ from agent.local_trajectory_builder import LocalTrajectoryBuilder
 from agent.odometry_tracker import OdometryTracker
 from agent.pose_extrapolator import MAX_ODOMETRY, PoseExtrapolator
 from common.config import load_config
-from common.geometry import se2_compose
+from common.geometry import se2_compose, wrap_angle
 
 
 def arc(t: float) -> np.ndarray:
@@ -92,6 +92,21 @@ def test_old_odometry_is_forgotten_but_the_bracket_of_the_last_pose_is_kept() ->
     assert len(ex._odom_t) <= 11
     t_end = ex._odom_t[-1]
     assert ex.predict(t_end)[0] == pytest.approx(last_pose_t - 0.005 + t_end - last_pose_t)
+
+
+def test_a_laser_gap_longer_than_the_odometry_kept_loses_no_motion() -> None:
+    """Odometry goes on at 100 Hz while the laser is out for 7 s (a driver restart): more
+    than `MAX_ODOMETRY` messages. The oldest had been dropped with the one at the last
+    matched pose, and the next scan was predicted from the oldest kept: 0.93 m off."""
+    ex = PoseExtrapolator()
+    for k in range(101):
+        ex.add_odometry(0.01 * k, arc(0.01 * k))
+    ex.add_pose(1.0, arc(1.0))  # the last scan matched before the gap
+    for k in range(101, 801):  # 7 s
+        ex.add_odometry(0.01 * k, arc(0.01 * k))
+    assert len(ex._odom_t) <= MAX_ODOMETRY + 1
+    got, want = ex.predict(8.0), arc(8.0)
+    assert np.allclose(got[:2], want[:2], atol=1e-9) and abs(wrap_angle(got[2] - want[2])) < 1e-9
 
 
 def test_without_odometry_the_last_velocity_is_held() -> None:

@@ -18,7 +18,11 @@ CARMEN's own reader (`carmen_string_to_robot_laser_message_orig`): first beam at
 1 deg steps for 180/181 beams, 0.5 deg for 360/361, 0.25 deg for 400/401, otherwise
 180 deg spread over n-1 steps; maximum range 80 m. Note that the shipped logs contain
 range readings above 80 m (e.g. 81.91 m "no return" in MIT-CSAIL): consumers should treat
-`r >= range_max` as no return.
+`r >= range_max` as no return. ACES's laser writes 50.00 m for no return, below that
+guess: `saturation_range_m` finds such a value (the replay takes it as the range_max).
+Ranges may be inf or nan (a driver's no return); poses and stamps must be finite. The
+laser's mounting offset (ROBOTLASER1's laser pose, `robot_frontlaser_offset`) is read
+but not applied: the shipped logs' is zero.
 
 Timestamps: the `ipc_timestamp` (s). They are NOT monotonic in file order in every log
 (intel.clf: 631 FLASER records are up to 0.9 s older than the previous FLASER); records are
@@ -167,14 +171,18 @@ def _lines(path: Path) -> Iterator[tuple[int, str]]:
             raise FileFormatError(f"{path}: cannot read CARMEN log: {exc}") from exc
 
 
-def _numbers(path: Path, lineno: int, what: str, tokens: list[str]) -> NDArray[np.float64]:
-    """Parse tokens as finite floats or raise a FileFormatError naming the first bad one."""
+def _numbers(
+    path: Path, lineno: int, what: str, tokens: list[str], finite: bool = True
+) -> NDArray[np.float64]:
+    """Parse tokens as floats (`finite`: and finite) or raise a FileFormatError naming the
+    first bad one. Ranges may be inf or nan: a driver's "no return" (a ROS LaserScan
+    written to CARMEN), which the agent's preprocessing drops beam by beam."""
     try:
         values = np.array(tokens, dtype=np.float64)
     except ValueError:
         bad = next(t for t in tokens if not _is_float(t))
         raise FileFormatError(f"{path}:{lineno}: {what}: expected a number, got {bad!r}") from None
-    if not math.isfinite(values.sum()):  # a NaN or inf anywhere propagates to the sum
+    if finite and not math.isfinite(values.sum()):  # a NaN or inf anywhere propagates
         raise FileFormatError(f"{path}:{lineno}: {what}: non-finite value")
     return values
 
@@ -209,7 +217,10 @@ def _parse_flaser(path: Path, lineno: int, f: list[str], params: CarmenParams) -
             f"odom x y theta, ipc_timestamp, hostname, logger_timestamp) = {n + 9} fields "
             f"after the beam count, got {len(f) - 2}"
         )
-    v = _numbers(path, lineno, "FLASER", f[2 : 2 + n + 7])
+    v = np.concatenate([
+        _numbers(path, lineno, "FLASER ranges", f[2 : 2 + n], finite=False),
+        _numbers(path, lineno, "FLASER", f[2 + n : 2 + n + 7]),
+    ])  # fmt: skip
     angle_min, inc, range_max = params.beam_geometry(n)
     return CarmenLaser(
         stamp=float(v[n + 6]),
@@ -242,7 +253,7 @@ def _parse_robotlaser(path: Path, lineno: int, f: list[str]) -> CarmenLaser:
             f"{path}:{lineno}: {name}: expected an angular resolution and a maximum range "
             f"> 0, got {cfg[3]} and {cfg[4]}"
         )
-    ranges = _numbers(path, lineno, name, f[9 : 9 + n])
+    ranges = _numbers(path, lineno, f"{name} ranges", f[9 : 9 + n], finite=False)
     tail = _numbers(path, lineno, name, f[10 + n + m : expected - 2])
     return CarmenLaser(
         stamp=float(tail[11]),
@@ -289,6 +300,7 @@ def read_carmen(
     start: float | None = None,
     end: float | None = None,
     drop_malformed: bool = False,
+    quiet: bool = False,
 ) -> Iterator[CarmenLaser | CarmenOdometry]:
     """Yield the laser and odometry records of a CARMEN log in file order.
 
@@ -297,7 +309,7 @@ def read_carmen(
     Raises FileFormatError("path:LINE: ...") on the first malformed known message, or
     with `drop_malformed` logs it as an error and goes on with the next line (a replay
     an hour long is not stopped by one bad line; the first `MALFORMED_LOGGED` are
-    logged, then how many in all at the end).
+    logged, then how many in all at the end; none `quiet`: a pre-pass over the log).
     """
     path = Path(path)
     params = CarmenParams()
@@ -330,12 +342,12 @@ def read_carmen(
             if not drop_malformed:
                 raise
             dropped += 1
-            if dropped <= MALFORMED_LOGGED:
+            if dropped <= MALFORMED_LOGGED and not quiet:
                 logger.error("%s (line dropped)", exc)
             continue
         if lo <= record.stamp <= hi:
             yield record
-    if dropped > MALFORMED_LOGGED:
+    if dropped > MALFORMED_LOGGED and not quiet:
         logger.error("%s: %d malformed lines dropped in all", path, dropped)
 
 
@@ -375,6 +387,23 @@ def carmen_time_span(path: str | Path) -> tuple[float, float]:
     return lo, hi
 
 
+def saturation_range_m(path: str | Path, min_fraction: float = 1e-3) -> float | None:
+    """The range a log's laser writes for "no return" below its range_max, if any: the
+    largest reading, when at least `min_fraction` of all readings are exactly that (ACES:
+    50.00 m, 0.84 % of them, the next largest 49.91 m, under CARMEN's guessed 80 m; taken
+    as returns, they drew arcs of wall 50 m around the building). None if there is none."""
+    top, at_top, total = -math.inf, 0, 0
+    for rec in read_carmen(path, drop_malformed=True, quiet=True):
+        if not isinstance(rec, CarmenLaser) or not rec.ranges.size:
+            continue
+        r = rec.ranges[np.isfinite(rec.ranges) & (rec.ranges < rec.range_max)]
+        total += rec.ranges.size
+        if r.size and (m := float(r.max())) >= top:
+            at_top = (at_top if m == top else 0) + int((r == m).sum())
+            top = m
+    return top if total and at_top >= min_fraction * total else None
+
+
 def odometry_stamps_regular(
     path: str | Path,
     records: int = 200,
@@ -395,7 +424,10 @@ def odometry_stamps_regular(
     for lineno, line in _lines(path):
         if not line.startswith("ODOM"):
             continue
-        stamps.append(_parse_odom(path, lineno, line.split()).stamp)
+        try:
+            stamps.append(_parse_odom(path, lineno, line.split()).stamp)
+        except FileFormatError:  # (a torn line: the replay drops it, with a warning)
+            continue
         if len(stamps) > records:
             break
     if len(stamps) < 2:

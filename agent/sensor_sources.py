@@ -28,6 +28,7 @@ from agent.carmen_log import (
     carmen_time_span,
     odometry_stamps_regular,
     read_carmen,
+    saturation_range_m,
 )
 from common.bus import Bus
 from common.errors import ConfigError
@@ -177,6 +178,12 @@ class CarmenReplay:
             else "as logged with the scan (ODOM stamps irregular or missing)",
         )
 
+        # a laser that writes "no return" as a range below the log's range_max (ACES: 50 m)
+        self.no_return_m = saturation_range_m(self.path)
+        if self.no_return_m is not None:
+            log.info("%s: readings of %.2f m (the largest, %s) taken as no return",
+                     self.path.name, self.no_return_m, "a saturated laser's")  # fmt: skip
+
     def _lasers(self) -> Iterator[tuple[CarmenLaser, np.ndarray]]:
         """Lasers in stamp order, each with the odometry pose at its stamp."""
         heap: list[tuple[float, int, CarmenLaser]] = []
@@ -216,8 +223,11 @@ class CarmenReplay:
                 return
             x, y, th = odom_pose
             yield Odometry(rid, rec.stamp, pose4_to_pose7([x, y, 0.0, th]), np.zeros(4))
+            r_max = (
+                rec.range_max if self.no_return_m is None else min(rec.range_max, self.no_return_m)
+            )
             yield LaserScan(
-                rid, rec.stamp, rec.angle_min, rec.angle_increment, 0.0, rec.range_max, rec.ranges
+                rid, rec.stamp, rec.angle_min, rec.angle_increment, 0.0, r_max, rec.ranges
             )
             self.scans += 1
         log.info("replay of %s finished: %d scans", self.path.name, self.scans)

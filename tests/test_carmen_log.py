@@ -14,8 +14,10 @@ from agent.carmen_log import (
     CarmenOdometry,
     carmen_time_span,
     laser_odometry_trajectory,
+    odometry_stamps_regular,
     read_carmen,
     read_carmen_params,
+    saturation_range_m,
 )
 from common.errors import FileFormatError
 
@@ -215,3 +217,54 @@ def test_laser_odometry_trajectory_is_sorted(tmp_path: Path) -> None:
     traj = laser_odometry_trajectory(write_log(tmp_path, text))
     np.testing.assert_array_equal(traj.stamps, [100.01, 100.05, 100.25])
     np.testing.assert_allclose(traj.poses_se2()[0], [1.2, 2.4, 0.7])
+
+
+def test_no_return_ranges_may_be_inf_or_nan_but_poses_may_not(tmp_path: Path) -> None:
+    """A ROS LaserScan written to CARMEN keeps its "no return" as inf or nan: the whole
+    record had been refused (a converted log would not start). Ranges take them (the
+    agent's preprocessing drops such beams); poses and stamps must be finite."""
+    good = "FLASER 3 1.0 inf nan 1.0 2.0 0.5 1.0 2.0 0.5 100.3 nohost 0.3"
+    robot = (
+        "ROBOTLASER1 0 -1.0 2.0 1.0 20.0 0.01 0 3 7.0 -inf 9.0 0 1.0 1.0 0.1 1.1 1.1 0.2 "
+        "0.3 0.01 0.5 0.5 0.3 100.4 nohost 0.4"
+    )
+    bad = "FLASER 3 1.0 2.0 3.0 1.0 nan 0.5 1.0 2.0 0.5 100.5 nohost 0.5"
+    recs = list(read_carmen(write_log(tmp_path, f"{good}\n{robot}\n")))
+    assert np.isinf(recs[0].ranges[1]) and np.isnan(recs[0].ranges[2])
+    assert np.isneginf(recs[1].ranges[1])
+    with pytest.raises(FileFormatError, match="non-finite"):
+        list(read_carmen(write_log(tmp_path, f"{bad}\n", "bad.clf")))
+
+
+def test_a_torn_odom_line_does_not_stop_the_replay_from_starting(tmp_path: Path) -> None:
+    """A logger killed mid-write leaves a torn last line; the replay drops it, but the
+    pre-pass that looks at the ODOM stamps raised on it and the agent did not start."""
+    path = write_log(tmp_path, SMALL_LOG + "ODOM 1.3 2.5 0.8 0.0\n")
+    assert odometry_stamps_regular(path) is True  # (the two whole ODOM records)
+
+
+def test_a_saturated_lasers_no_return_reading_is_found(tmp_path: Path) -> None:
+    """ACES's laser writes 50.00 m for "no return", under CARMEN's guessed 80 m: taken as
+    returns they drew walls 50 m around the building. The largest reading, when at least
+    0.1 % of the readings are exactly that, is the laser's no-return value."""
+
+    def log(name: str, saturated_scans: int) -> Path:
+        lines = []
+        rng = np.random.default_rng(0)
+        for k in range(50):
+            r = rng.uniform(0.5, 30.0, 180).round(2)
+            if k < saturated_scans:
+                r[:3] = 50.0
+            lines.append(f"FLASER 180 {' '.join(map(str, r))} 0 0 0 0 0 0 {100 + k} nohost 0")
+        return write_log(tmp_path, "\n".join(lines) + "\n", name)
+
+    assert saturation_range_m(log("a.clf", 50)) == 50.0  # 1.7 % of the readings
+    assert saturation_range_m(log("b.clf", 1)) is None  # 0.03 %: a real far wall
+
+
+def test_aces_no_return_reading_is_50_m_and_intels_is_past_its_range_max() -> None:
+    for name, expected in (("aces.clf.bz2", 50.0), ("intel.clf.bz2", None)):
+        path = CARMEN / name
+        if not path.is_file():
+            pytest.skip(f"shared CARMEN data {path} is not present on this machine")
+        assert saturation_range_m(path) == expected

@@ -59,16 +59,22 @@ class ZenohSensors:
     `max_scans_before_altitude` such scans, a drone with no altimeter flies on at z = 0
     (warned once)."""
 
-    def __init__(self, bus: Bus, robot_id: str, max_scans_before_altitude: int = 5) -> None:
+    def __init__(
+        self, bus: Bus, robot_id: str, max_scans_before_altitude: int = 5, relay_gnss: bool = False
+    ) -> None:
         self._queue: queue.Queue[Any] = queue.Queue()
         self._robot_id = robot_id
+        # GnssFix from the drone's driver on to the base station (`agent.relay_gnss`): a
+        # Zenoh peer routes nothing between its links, and the base station heard none
+        self._bus = bus if relay_gnss else None
+        self._relayed = -math.inf  # stamp of the newest fix relayed (its echo: not again)
         self._scans_waiting = max_scans_before_altitude  # left to drop; 0: pass them on
         # one subscriber for all of them: Zenoh keeps a sender's samples in order per
         # subscriber, not between two (a scan overtook the altimeter's reading of its tick)
         bus.subscribe(bus.keys.robot(robot_id, "sensor/*"), SENSOR_MESSAGES, self._put)
 
     def _put(self, msg: Any, key: str) -> None:
-        if not isinstance(msg, GnssFix):  # the base station's (a wildcard brings it too)
+        if not isinstance(msg, GnssFix) or self._bus is not None:  # (else the base's only)
             self._queue.put(msg)
 
     def messages(self, stop: threading.Event) -> Iterator[Any | None]:
@@ -76,6 +82,12 @@ class ZenohSensors:
             try:
                 msg = self._queue.get(timeout=0.05)
             except queue.Empty:
+                yield None
+                continue
+            if isinstance(msg, GnssFix):
+                if self._bus is not None and msg.stamp > self._relayed:
+                    self._relayed = msg.stamp
+                    self._bus.publish(self._bus.keys.robot(self._robot_id, "sensor/gnss"), msg)
                 yield None
                 continue
             if isinstance(msg, Altimeter):

@@ -95,7 +95,7 @@ def cmd_agent(args: argparse.Namespace) -> int:
             )  # fmt: skip
             node = AgentNode(cfg, args.robot_id, bus, tour, T_map_odom, NullVehicle())
         else:
-            source = ZenohSensors(bus, args.robot_id)
+            source = ZenohSensors(bus, args.robot_id, relay_gnss=cfg.agent.relay_gnss)
             node = AgentNode(cfg, args.robot_id, bus, tour, T_map_odom)
         node.start()
         log.info("agent %s running", args.robot_id)

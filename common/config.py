@@ -140,6 +140,10 @@ class AgentConfig:
     # 5-18 % of its distance). On for exploration only, unless this is true.
     neighbour_guard_tours: bool = False
     state_period_s: float = 0.2  # s sim time between RobotState messages (and Neighbours)
+    # pass the drone driver's GnssFix on to the base station (a Zenoh peer routes nothing
+    # between its links): on for a real drone whose driver sends fixes (the systemd unit
+    # sets it); off in simulation, where the simulator reaches the base station itself
+    relay_gnss: bool = False
     drain_timeout_s: float = 15.0  # s wall: on shutdown wait this long for acks
     replay_max_unacked: int = 200  # --replay: pause the log while this many keyframes wait
     # --replay: log seconds per wall second (0: as fast as the acks allow), from the wall

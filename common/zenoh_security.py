@@ -249,7 +249,8 @@ def write_deploy_configs(
             base,
             out / "basestation.json5",
             f"collabslam base station: mTLS listener + per-robot access control.\n{made}\n"
-            "Mode and scouting come from collabslam's config (zenoh.mode, default peer).",
+            "Mode comes from collabslam's config (zenoh.mode, default peer); scouting is\n"
+            "this file's own (off).",
         ),
         write_json5(
             {"mode": "router", **base},

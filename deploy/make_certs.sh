@@ -56,6 +56,12 @@ san_list() {  # "a,1.2.3.4" -> "DNS:a,IP:1.2.3.4" (duplicates dropped)
   (IFS=','; echo "${out[*]}")
 }
 
+if [[ -f $OUT/ca.pem && ! -f $OUT/ca.key ]]; then
+  # a new CA would replace ca.pem, and no certificate signed before would verify
+  echo "$OUT/ca.key is missing (kept offline?): put it back beside ca.pem to sign new" \
+    "certificates; no new CA is made" >&2
+  exit 1
+fi
 if [[ ! -f $OUT/ca.key || ! -f $OUT/ca.pem ]]; then
   newkey "$OUT/ca.key"
   "$OPENSSL" req -x509 -new -key "$OUT/ca.key" -sha256 -days "$DAYS" -subj "/CN=$CA_NAME" \

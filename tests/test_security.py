@@ -25,7 +25,7 @@ from collabslam.cli_options import load_cfg
 from collabslam.supervisor import free_port
 from common.bus import Bus, zenoh_config
 from common.config import ZenohConfig
-from common.errors import ConfigError
+from common.errors import CollabSlamError, ConfigError
 from common.zenoh_security import basestation_config, robot_config, write_json5
 from protocol import Keyframe, KeyframeAck
 
@@ -246,3 +246,25 @@ def test_secure_base_station_refuses_a_plain_tcp_listener(
     zc = ZenohConfig(config_file=str(path), listen=[f"tcp/127.0.0.1:{free_port()}"])
     with pytest.raises(ConfigError, match="(?i)unsupported protocol: tcp"):
         Bus(zc, FLEET)
+
+
+def test_a_new_drone_with_the_ca_key_offline_makes_no_new_ca(tmp_path: Path) -> None:
+    """operations.md keeps ca.key off the base station host. Re-running make_certs.sh for
+    a new drone without it had made a new CA over ca.pem: no certificate signed before
+    verified any more, and every drone failed its handshake after the restart. It now
+    refuses; with ca.key back, the new drone's certificate is signed by the same CA."""
+    out = make_certs(tmp_path / "fleet", ["r0"])
+    ca = (out / "ca.pem").read_bytes()
+    (out / "ca.key").rename(tmp_path / "ca.key.offline")
+    with pytest.raises(CollabSlamError, match="ca.key is missing"):
+        make_certs(out, ["r0", "r1"])
+    assert (out / "ca.pem").read_bytes() == ca and not (out / "r1.pem").exists()
+    (tmp_path / "ca.key.offline").rename(out / "ca.key")
+    make_certs(out, ["r0", "r1"])
+    assert (out / "ca.pem").read_bytes() == ca
+    for name in ("r0", "r1", "basestation"):
+        res = subprocess.run(
+            ["openssl", "verify", "-CAfile", str(out / "ca.pem"), str(out / f"{name}.pem")],
+            capture_output=True, text=True,
+        )  # fmt: skip
+        assert res.returncode == 0, res.stderr

@@ -7,11 +7,16 @@ import threading
 import time
 
 import numpy as np
+import pytest
 
 from agent.sensor_sources import ZenohSensors
+from collabslam.supervisor import free_port
 from common.bus import Bus
 from common.config import ZenohConfig
-from protocol import Altimeter, LaserScan
+from protocol import Altimeter, GnssFix, LaserScan
+
+LLA = np.array([45.81, 16.01, 160.0])
+SIG = np.array([1.5, 1.5, 3.0])
 
 
 def _scan(t: float) -> LaserScan:
@@ -54,3 +59,31 @@ def test_a_drone_without_altimeter_gets_its_scans_after_a_few(endpoint: str) -> 
             _put(bus, "scan", _scan(0.1 * k))
         got = _take(source, 3)
     assert [round(m.stamp, 1) for m in got] == [0.3, 0.4, 0.5]
+
+
+@pytest.mark.parametrize("relay", [True, False])
+def test_a_drivers_gnss_fixes_reach_the_base_station_through_the_agent(relay: bool) -> None:
+    """On a drone the driver talks to the agent only (tcp/127.0.0.1:7448): a Zenoh peer
+    routes nothing between its links, so the base station heard no fix at all. With
+    `agent.relay_gnss` the agent passes each fix on, once (its own echo is not)."""
+    base_ep, agent_ep = (f"tcp/127.0.0.1:{free_port()}" for _ in range(2))
+    got: list[float] = []
+    quiet = {"gossip_scouting": False}  # as the deploy configs: only the links configured
+    with (
+        Bus(ZenohConfig(listen=[base_ep], **quiet), "default") as base,
+        Bus(ZenohConfig(listen=[agent_ep], connect=[base_ep], **quiet), "default") as agent,
+        Bus(ZenohConfig(connect=[agent_ep], **quiet), "default") as driver,
+    ):
+        base.subscribe(
+            base.keys.all_robots("sensor/gnss"), GnssFix, lambda m, k: got.append(m.stamp)
+        )
+        source = ZenohSensors(agent, "r0", relay_gnss=relay)
+        time.sleep(1.0)  # links up
+        for k in range(3):
+            driver.publish(driver.keys.sensor("r0", "gnss"), GnssFix("r0", float(k), LLA, SIG))
+        stop = threading.Event()
+        deadline = time.monotonic() + 3.0
+        for _ in source.messages(stop):
+            if time.monotonic() > deadline:
+                break
+    assert got == ([0.0, 1.0, 2.0] if relay else [])

@@ -215,3 +215,26 @@ def test_origin_from_the_first_fixes_median_and_far_fixes_dropped() -> None:
     known = GnssIntake(ORIGIN, 1000.0)  # the world's origin: fixes go at once
     ((f, xy),) = known.take(_fix(0.0, 3.0, 4.0))
     assert np.allclose(xy, [3.0, 4.0], atol=1e-6)
+
+
+def test_gps_options_reach_the_pose_graph() -> None:
+    """Every [basestation.gps] choice (weighting, a, b, huber, sigma_min_m, the antenna's
+    lever arm) reaches the graph's GPS factors: replacing the wiring with the defaults
+    had passed every test (`bench gps` builds its weighting directly)."""
+    from basestation.isam2_params import pose_graph_options
+
+    cfg = load_config(
+        overrides={
+            "basestation.gps.enabled": True,
+            "basestation.gps.weighting": "affine",
+            "basestation.gps.a": 2.0,
+            "basestation.gps.b": 0.5,
+            "basestation.gps.huber": False,
+            "basestation.gps.sigma_min_m": 0.3,
+            "basestation.gps.antenna_x_m": 0.25,
+            "basestation.gps.antenna_y_m": -0.1,
+        }
+    )
+    w = pose_graph_options(cfg.basestation)["gps_weighting"]
+    assert (w.mode, w.a, w.b, w.huber_k, w.sigma_min_m) == ("affine", 2.0, 0.5, None, 0.3)
+    assert tuple(w.lever_arm) == (0.25, -0.1)

@@ -7,6 +7,7 @@ agent/downlink_gate.py)."""
 from __future__ import annotations
 
 import json
+import signal
 import subprocess
 import sys
 from pathlib import Path
@@ -30,9 +31,19 @@ def _start(out: Path) -> subprocess.Popen[str]:
 def test_two_lockstep_missions_at_once_fly_the_same(tmp_path: Path) -> None:
     outs = [tmp_path / "a", tmp_path / "b"]
     procs = [_start(out) for out in outs]
-    for p in procs:
-        _, err = p.communicate(timeout=300)
-        assert p.returncode == 0, err[-3000:]
+    try:
+        for p in procs:
+            _, err = p.communicate(timeout=300)
+            assert p.returncode == 0, err[-3000:]
+    finally:  # a stuck or failed mission: its processes must not outlive the test
+        for p in procs:
+            if p.poll() is None:
+                p.send_signal(signal.SIGINT)  # `run` stops its children in order
+                try:
+                    p.wait(60)
+                except subprocess.TimeoutExpired:
+                    p.kill()
+                    p.wait()
     a, b = outs
     for rid in ("r0", "r1", "r2"):
         for kind in ("ground_truth", "trajectories"):  # the world's, the base station's

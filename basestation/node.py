@@ -100,9 +100,10 @@ class BaseStationNode:
         if lockstep:  # DEBUG lines say the sim time of the step they are about
             set_sim_clock(lambda: self.clock.requested if self.clock.requested >= 0 else None)
         self.slam = GlobalSlam(cfg, starts, headings, self.db.scan_reader(), threaded=not lockstep)
-        # With a scenario, map is the world frame: ENU at the world's WGS84 origin (if any).
-        origin = None
-        if scenario is not None:
+        # With a scenario, map is the world frame: ENU at its WGS84 origin (the scenario's,
+        # else the world YAML's, if any; else the first fixes' median: gnss_intake.py).
+        origin = None if scenario is None else scenario.wgs84_origin
+        if scenario is not None and origin is None:
             try:
                 origin = world_wgs84_origin(scenario.world)
             except CollabSlamError as exc:

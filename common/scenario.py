@@ -39,6 +39,9 @@ class Scenario:
     world: str  # path of the world's map_server YAML
     robots: list[RobotScenario]
     seed: int = 0
+    # the ENU origin of `map` for GNSS (None: the world YAML's, if any); `collabslam run`
+    # writes the one its simulator's fixes are made at, so both use the same
+    wgs84_origin: GeoOrigin | None = None
 
     def robot(self, robot_id: str) -> RobotScenario:
         for r in self.robots:
@@ -67,6 +70,8 @@ def write_scenario(path: str | Path, sc: Scenario) -> None:
             for r in sc.robots
         ],
     }
+    if sc.wgs84_origin is not None:
+        doc["wgs84_origin"] = sc.wgs84_origin.as_list()
     Path(path).parent.mkdir(parents=True, exist_ok=True)
     Path(path).write_text(json.dumps(doc, indent=1))
 
@@ -100,7 +105,8 @@ def read_scenario(path: str | Path) -> Scenario:
         seed = doc.get("seed", 0)
         if isinstance(seed, bool) or not isinstance(seed, int) or not 0 <= seed < 2**31:
             raise ValueError(f"seed must be an integer in 0..2**31-1, got {seed!r}")
-        return Scenario(str(doc["world"]), robots, seed)
+        given = GeoOrigin.from_sequence(doc["wgs84_origin"]) if "wgs84_origin" in doc else None
+        return Scenario(str(doc["world"]), robots, seed, given)
     except FileNotFoundError:
         raise FileFormatError(f"scenario file not found: {path}") from None
     except (OSError, UnicodeDecodeError) as exc:  # a folder, no permission, not text

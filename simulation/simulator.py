@@ -91,6 +91,7 @@ class Simulator:
         self.dt = 1.0 / s.laser.rate_hz
         q = s.quadrotor
         self.robots: dict[str, SimRobot] = {}
+        origin = scenario.wgs84_origin or world_origin(world.geo_origin, s.gnss)
         for i, r in enumerate(scenario.robots):
             x, y, yaw = (float(v) for v in r.start_pose)
             self.robots[r.robot_id] = SimRobot(
@@ -118,9 +119,7 @@ class Simulator:
                     noise_std=s.altimeter.noise_std_m, bias=s.altimeter.bias_m
                 ),
                 rng=np.random.default_rng([s.seed, i]),
-                gnss=GnssModel(s.gnss, world_origin(world.geo_origin, s.gnss), 1000 * s.seed + i)
-                if s.gnss.enabled
-                else None,
+                gnss=GnssModel(s.gnss, origin, 1000 * s.seed + i) if s.gnss.enabled else None,
             )
         self.t = 0.0
         self.ticks = 0

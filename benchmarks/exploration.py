@@ -71,14 +71,13 @@ def run_mission(
     summary = Launcher(c, world, n_robots, out, max_sim_time, log_level="WARNING").run()
     robots = summary["robots"]
     sep = summary.get("min_robot_separation_m")
-    contact = 2.0 * c.sim.quadrotor.radius_m
     return {
         "robots": n_robots,
         "seed": seed,
         "time_to_95_s": summary.get("time_to_95_s"),
         "time_to_95_free_only_s": summary.get("time_to_95_free_only_s"),
         "distance_m": [round(r["distance_m"], 2) for r in robots],
-        "collisions": sum(r["collisions"] for r in robots) + int(sep is not None and sep < contact),
+        "collisions": sum(r["collisions"] for r in robots) + int(summary["robot_contact"]),
         "min_clearance_m": min(r["min_clearance_m"] for r in robots),
         "min_robot_separation_m": sep,
         "sim_time_s": summary["sim_time_s"],

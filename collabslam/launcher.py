@@ -149,9 +149,8 @@ class Launcher:
             g.terminate_all()
         from collabslam.summary import build_summary
 
-        summary = build_summary(
-            self.out, self.world_yaml, scenario.robot_ids, time.monotonic() - t0
-        )
+        wall, contact = time.monotonic() - t0, 2.0 * self.cfg.sim.quadrotor.radius_m
+        summary = build_summary(self.out, self.world_yaml, scenario.robot_ids, wall, contact)
         (self.out / "summary.json").write_text(json.dumps(summary, indent=1))
         return summary
 

@@ -33,8 +33,10 @@ def _load(path: Path) -> dict[str, Any]:
 
 
 def build_summary(
-    out: Path, world_yaml: Path, robot_ids: list[str], wall_time_s: float
+    out: Path, world_yaml: Path, robot_ids: list[str], wall_time_s: float, contact_m: float = 0.5
 ) -> dict[str, Any]:
+    """The run's `summary.json`. A robot's `collisions` are its contacts with walls;
+    `robot_contact`: two robots came closer than `contact_m` (two drone radii)."""
     sim = _load(out / "simulator.json")
     base = _load(out / "basestation.json")
     robots = []
@@ -69,6 +71,7 @@ def build_summary(
         world, grid = read_map(world_yaml), read_map(out / "map.yaml")
         coverage, accuracy = map_coverage(grid, world), map_accuracy(grid, world)
     gts = [read_tum(p) for r in robot_ids if (p := out / "ground_truth" / f"{r}.tum").is_file()]
+    sep = min_separation(gts) if len(gts) == len(robot_ids) else None
     return {
         "robots": robots,
         "sim_time_s": sim.get("sim_time_s"),
@@ -78,7 +81,8 @@ def build_summary(
         "map_coverage": coverage,
         "map_accuracy": accuracy,
         "isam2_update_ms_p95": base.get("isam2_update_ms_p95"),
-        "min_robot_separation_m": min_separation(gts) if len(gts) == len(robot_ids) else None,
+        "min_robot_separation_m": sep,
+        "robot_contact": sep is not None and sep < contact_m,
         **_coverage_over_time(out, world_yaml, sim.get("sim_time_s")),
         "rejected_messages": base.get("rejected_messages", {}),
     }

@@ -32,7 +32,7 @@ from agent.carmen_log import (
 )
 from common.bus import Bus
 from common.errors import ConfigError
-from common.geometry import pose4_to_pose7, wrap_angle
+from common.geometry import pose4_to_pose7, se2_between, wrap_angle
 from protocol import Altimeter, ClockSync, GnssFix, Imu, LaserScan, Odometry
 
 log = logging.getLogger(__name__)
@@ -229,6 +229,11 @@ class CarmenReplay:
         for rec, odom_pose in self._lasers():
             if first is None:
                 first = rec.stamp
+                mount = se2_between(rec.odom_pose, rec.laser_pose)
+                if np.abs(mount).max() > 1e-3:  # (the shipped logs' is zero)
+                    log.warning("%s: the laser is mounted at %s from the robot (x, y, yaw): "
+                                "not applied, local SLAM tracks the laser, not the robot",
+                                self.path.name, np.round(mount, 3))  # fmt: skip
             if self.rate > 0.0:  # the log's own pace, `rate` times faster
                 stop.wait(max(0.0, start + (rec.stamp - first) / self.rate - time.time()))
             if stop.is_set():

@@ -167,3 +167,25 @@ def test_a_malformed_line_deep_in_a_log_is_dropped_and_the_replay_goes_on(
     dropped = [r.getMessage() for r in caplog.records if "line dropped" in r.getMessage()]
     assert len(dropped) == 2
     assert "damaged.clf:10:" in dropped[0] and "damaged.clf:16:" in dropped[1]
+
+
+def test_a_laser_mounted_off_the_robot_is_named(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    """The logged laser pose 0.3 m ahead of the robot's: the offset is not applied (local
+    SLAM tracks the laser), which the replay says instead of silently scoring the laser's
+    trajectory as the robot's (0.051 m against 0.003 m in the review's flight)."""
+    path = tmp_path / "mounted.clf"
+    path.write_text(
+        "".join(
+            f"FLASER 3 1.0 2.0 3.0 {0.25 * k + 0.3} 0.0 0.0 {0.25 * k} 0.0 0.0 {100 + k} nohost 0\n"
+            for k in range(3)
+        )
+    )
+    with caplog.at_level("WARNING"):
+        replayed_odometry(path)
+    assert "mounted at [0.3 0.  0. ] from the robot" in caplog.text
+    caplog.clear()
+    with caplog.at_level("WARNING"):
+        replayed_odometry(regular_log(tmp_path))
+    assert "mounted at" not in caplog.text

@@ -6,9 +6,10 @@ world's ``map`` frame is the ENU frame at the world's WGS84 origin. From the
 ground truth:
 
 - keyframes every ``agent.keyframe_distance_m`` / ``keyframe_angle_rad`` (seed 002);
-- odometry between keyframes = the true relative motion plus Gaussian noise with
-  the covariance the agent's local SLAM reports (``agent.local_slam.match_sigma_*``)
-  and a small systematic yaw drift (local SLAM without loop closing drifts);
+- odometry between keyframes = the true relative motion plus Gaussian noise of
+  ``MATCH_SIGMA_PER_M`` / ``MATCH_SIGMA_YAW_PER_M`` per metre (this benchmark's model
+  of scan matching's error, not a setting of the agent) and a small systematic yaw
+  drift (local SLAM without loop closing drifts);
 - loop closures where the drone came back (within ``loop_radius_m``, at least
   ``basestation.constraints.loop_min_index_gap`` keyframes and ``loop_min_travel_m``
   of travel apart): the true relative pose plus small scan-matching noise.
@@ -33,6 +34,8 @@ from simulation.tours import plan_tours, start_poses
 from simulation.world import World
 
 FloatArray = NDArray[np.float64]
+MATCH_SIGMA_PER_M = 0.005  # m of keyframe-delta std per metre flown
+MATCH_SIGMA_YAW_PER_M = 0.002  # rad of keyframe-delta yaw std per metre
 
 
 @dataclass
@@ -104,12 +107,12 @@ def make_flight(
     stamps, truth = fly(cfg, world_name, length_m, seed)
     kf = _keyframes(truth, cfg.agent.keyframe_distance_m, cfg.agent.keyframe_angle_rad)
     rng = np.random.default_rng(seed + 1000)
-    ls, se2 = cfg.agent.local_slam, truth[kf][:, [0, 1, 3]]
+    se2 = truth[kf][:, [0, 1, 3]]
     deltas, covs = [], []
     for k in range(1, len(kf)):
         d = se2_between(se2[k - 1], se2[k])
         dist = max(float(np.hypot(d[0], d[1])), 0.01)
-        sig = np.array([ls.match_sigma_per_m, ls.match_sigma_per_m, ls.match_sigma_yaw_per_m])
+        sig = np.array([MATCH_SIGMA_PER_M, MATCH_SIGMA_PER_M, MATCH_SIGMA_YAW_PER_M])
         sig = np.maximum(sig * dist, cfg.agent.odom_sigma_min)
         noisy = d + sig * rng.standard_normal(3)
         noisy[2] += yaw_drift_per_m * dist

@@ -76,8 +76,6 @@ class LocalSlamConfig:
     use_odometry: bool = True  # predict with odometry (else constant velocity)
     use_imu_attitude: bool = True  # project the planar scan with the IMU's roll and pitch
     floor_margin_m: float = 0.2  # m: projected points this close to the floor are dropped
-    match_sigma_per_m: float = 0.005  # m of keyframe-delta std per metre (scan matching)
-    match_sigma_yaw_per_m: float = 0.002  # rad of keyframe-delta yaw std per metre
 
 
 @dataclass

@@ -16,34 +16,13 @@ from common.config import Config, ZenohConfig
 from protocol import RobotState
 
 
-def test_lost_agent_releases_its_goal(cfg: Config, endpoint: str) -> None:
-    cfg.exploration.enabled = True
-    cfg.zenoh.listen = [endpoint]
-    with Bus(cfg.zenoh, cfg.fleet) as bus:
-        node = BaseStationNode(cfg, bus, None)
-        node.start()
-        assert node.explorer is not None
-        node.explorer.restore_task("r0", np.array([[0.0, 0.0], [3.0, 1.0]]))
-        node.explorer.restore_task("r1", np.array([[0.0, 0.0], [-3.0, 1.0]]))
-        agent = Bus(ZenohConfig(connect=[endpoint]), cfg.fleet)
-        agent.declare_alive("agent", "r0")
-        assert poll_until(lambda: node.links.get("r0", {}).get("joins") == 1)
-        node.step()
-        assert "r0" in node.explorer.tasks  # alive: keeps its goal
-        agent.close()
-        assert poll_until(lambda: node.links["r0"]["losses"] == 1)
-        node.step()
-        assert "r0" not in node.explorer.tasks and "r1" in node.explorer.tasks
-        assert "r0" not in node.explorer.silent  # never said where it was: not held
-        assert node.stats()["links"]["r0"] == {"joins": 1, "losses": 1}
-        node.drain(1.0)
-
-
-def test_a_lost_agent_that_said_where_it_was_keeps_its_way_clear(
-    cfg: Config, endpoint: str
+@pytest.mark.parametrize("said_where", [False, True])
+def test_a_lost_agents_goal_is_released_and_its_way_kept_clear(
+    cfg: Config, endpoint: str, said_where: bool
 ) -> None:
-    """An agent that loses its link flies on along its path: the base station keeps the
-    rest of that path, from where its last state put it, out of the others' plans."""
+    """A lost agent's goal goes back to the queue. One that said where it was flies on
+    along its path: the rest of that path, from where its last state put it, stays out
+    of the others' plans (`ExplorationManager.silent`)."""
     cfg.exploration.enabled = True
     cfg.zenoh.listen = [endpoint]
     with Bus(cfg.zenoh, cfg.fleet) as bus:
@@ -51,16 +30,26 @@ def test_a_lost_agent_that_said_where_it_was_keeps_its_way_clear(
         node.start()
         assert node.explorer is not None
         node.explorer.restore_task("r0", np.array([[0.0, 0.0], [1.0, 0.0], [3.0, 1.0]]))
-        pose = np.array([0.5, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0])
+        node.explorer.restore_task("r1", np.array([[0.0, 0.0], [-3.0, 1.0]]))
         agent = Bus(ZenohConfig(connect=[endpoint]), cfg.fleet)
         agent.declare_alive("agent", "r0")
         assert poll_until(lambda: node.links.get("r0", {}).get("joins") == 1)
-        node._on_state(RobotState("r0", 1.0, "flying", -1, 0, 0, 0, pose, pose), "")
+        node.step()
+        assert "r0" in node.explorer.tasks  # alive: keeps its goal
+        if said_where:
+            pose = np.array([0.5, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0])
+            node._on_state(RobotState("r0", 1.0, "flying", -1, 0, 0, 0, pose, pose), "")
         agent.close()
         assert poll_until(lambda: node.links["r0"]["losses"] == 1)
         node.step()
-        assert "r0" not in node.explorer.tasks and "r0" not in node.states
-        assert np.allclose(node.explorer.silent["r0"], [[0.5, 0.0], [1.0, 0.0], [3.0, 1.0]])
+        assert "r0" not in node.explorer.tasks and "r1" in node.explorer.tasks
+        assert "r0" not in node.states
+        if said_where:
+            way = [[0.5, 0.0], [1.0, 0.0], [3.0, 1.0]]
+            assert np.allclose(node.explorer.silent["r0"], way)
+        else:  # never said where it was: nothing held
+            assert "r0" not in node.explorer.silent
+        assert node.stats()["links"]["r0"] == {"joins": 1, "losses": 1}
         node.drain(1.0)
 
 

@@ -10,7 +10,7 @@ from __future__ import annotations
 import numpy as np
 
 from common.config import AgentConfig
-from common.geometry import pose4_compose, pose4_inverse, wrap_angle
+from common.geometry import pose4_compose, pose4_inverse, se2_rotate_covariance, wrap_angle
 
 
 class KeyframeSelector:
@@ -27,14 +27,24 @@ class KeyframeSelector:
             or abs(wrap_angle(d[3])) >= self.cfg.keyframe_angle_rad
         )
 
-    def cut(self, T_odom_base: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Accept a keyframe at T_odom_base: (delta [x, y, z, yaw], 6x6 covariance)."""
+    def cut(
+        self, T_odom_base: np.ndarray, match_cov: np.ndarray | None = None
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Accept a keyframe at T_odom_base: (delta [x, y, z, yaw], 6x6 covariance).
+        `match_cov`: the scan match's 3x3 [x, y, yaw] covariance (odom frame), added
+        turned into the keyframe's own frame, the delta's (it carries a corridor's
+        degenerate direction to the graph; added unturned, a corridor along y in odom
+        had swapped its sigmas along and across)."""
         if self.last_pose is None:
             delta = np.zeros(4)
         else:
             delta = pose4_compose(pose4_inverse(self.last_pose), T_odom_base)
         self.last_pose = np.asarray(T_odom_base, dtype=np.float64).copy()
-        return delta, self.covariance(delta)
+        cov = self.covariance(delta)
+        if match_cov is not None:
+            turned = se2_rotate_covariance(match_cov, -float(T_odom_base[3]))
+            cov[np.ix_([0, 1, 5], [0, 1, 5])] += turned
+        return delta, cov
 
     def covariance(self, delta: np.ndarray) -> np.ndarray:
         c = self.cfg

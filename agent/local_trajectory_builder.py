@@ -25,7 +25,13 @@ from agent.scan_matcher import MatchResult, ScanMatcher
 from agent.scan_preprocessor import ScanPreprocessor
 from agent.submaps import ActiveSubmaps, Submap
 from common.config import LocalSlamConfig
-from common.geometry import quat_to_rpy, se2_compose, se2_inverse, wrap_angle
+from common.geometry import (
+    quat_to_rpy,
+    se2_compose,
+    se2_inverse,
+    se2_rotate_covariance,
+    wrap_angle,
+)
 from common.stamps import JumpGate
 from protocol import LaserScan
 
@@ -212,9 +218,7 @@ class LocalTrajectoryBuilder:
             good = found and m.score >= self.cfg.min_match_score
             if good and not self._gated(m, submap, predicted):
                 pose2, score, matched = submap.to_local(m.pose), m.score, True
-                c, s = math.cos(submap.T_local_submap[2]), math.sin(submap.T_local_submap[2])
-                R = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
-                cov = R @ m.covariance @ R.T
+                cov = se2_rotate_covariance(m.covariance, submap.T_local_submap[2])
                 self.matched += 1
             else:
                 log.debug(

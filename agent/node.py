@@ -323,9 +323,7 @@ class AgentNode:
 
     def _send_keyframe(self, scan: LaserScan, result: LocalSlamResult) -> None:
         pose, last = result.pose, self.selector.last_pose
-        delta, cov = self.selector.cut(pose)
-        # The match covariance carries degenerate directions (a corridor) to the graph.
-        cov[np.ix_([0, 1, 5], [0, 1, 5])] += result.covariance
+        delta, cov = self.selector.cut(pose, result.covariance)
         scan2d = Scan2D.from_ranges(
             scan.angle_min, scan.angle_increment, scan.range_max, scan.ranges
         )

@@ -10,6 +10,8 @@ All functions accept a single pose (shape (3,)) or a stack (shape (N, 3)).
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
@@ -57,6 +59,14 @@ def se2_transform_points(T_a_b: ArrayLike, points_b: ArrayLike) -> FloatArray:
     c, s = np.cos(T[2]), np.sin(T[2])
     R = np.array([[c, -s], [s, c]])
     return p @ R.T + T[:2]
+
+
+def se2_rotate_covariance(cov: ArrayLike, yaw: float) -> FloatArray:
+    """A 3x3 [x, y, yaw] covariance in a frame turned by `yaw`: R cov R^T (from a
+    frame b to a, with T_a_b's rotation `yaw`)."""
+    c, s = math.cos(yaw), math.sin(yaw)
+    R = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+    return R @ np.asarray(cov, dtype=np.float64) @ R.T
 
 
 def se2_to_matrix(T: ArrayLike) -> FloatArray:

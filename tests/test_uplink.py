@@ -184,6 +184,19 @@ def test_keyframe_selector_thresholds(cfg) -> None:
     assert np.all(np.linalg.eigvalsh(cov) > 0)
 
 
+def test_a_matchs_covariance_is_turned_into_the_keyframes_frame(cfg) -> None:
+    """The scan match's covariance is in `odom`, the keyframe's delta in its own frame:
+    added unturned, a corridor along y in odom (certain across it, x; unsure along it, y)
+    told the graph the opposite about a drone flying the corridor nose first."""
+    sel = KeyframeSelector(cfg.agent)
+    sel.cut(np.array([0.0, 0.0, 1.0, np.pi / 2]))
+    along_y = np.diag([1e-6, 1e-2, 1e-6])  # odom: unsure along y
+    _, cov = sel.cut(np.array([0.0, 0.3, 1.0, np.pi / 2]), along_y)
+    odo = sel.covariance(np.array([0.3, 0.0, 0.0, 0.0]))
+    assert cov[0, 0] - odo[0, 0] == pytest.approx(1e-2)  # along the nose: x of the body
+    assert cov[1, 1] - odo[1, 1] == pytest.approx(1e-6)
+
+
 def _kf(seq: int, robot: str = "r0") -> Keyframe:
     p = pose4_to_pose7([0.2 * seq, 0, 1, 0])
     scan = Scan2D.from_ranges(0.0, 0.1, 30.0, np.ones(3))

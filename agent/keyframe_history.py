@@ -11,8 +11,11 @@ mission so far and not only what comes next. An agent restarted on its state fol
 
 Payloads are appended, each after its length, to files of up to `max_keyframes / 2`
 keyframes each, named by their first seq: unnamed temporary files (deleted by the
-operating system when the process ends), or files in `directory`, flushed to the
-operating system at each keyframe (a killed process loses none). When a third file
+operating system when the process ends), or files in `directory`, written to the disk
+itself at each keyframe before it is sent (a killed process loses none, nor a power
+cut: a reboot whose files were a few keyframes behind what the base station had
+acknowledged re-cut those seqs, and the base station froze the robot out as another
+source; ~0.2 ms a keyframe here). When a third file
 starts the oldest is deleted (unless it holds keyframes not acknowledged yet), so the
 latest `max_keyframes / 2` at least are always there (2D keyframes of 1081 beams:
 ~2.8 kB each, 20,000 ~55 MB). The process holds 8 bytes per keyframe (where it starts
@@ -80,6 +83,8 @@ class _Segment:
     def append(self, payload: bytes) -> None:
         self._file.write(_LEN.pack(len(payload)) + payload)
         self._file.flush()
+        if self.path is not None:  # on the disk itself before it is sent (docs: state)
+            os.fdatasync(self._file.fileno())
         self.starts.append(self.starts[-1] + _LEN.size + len(payload))
 
     def payloads(self, skip: int = 0) -> Iterator[bytes]:

@@ -93,7 +93,10 @@ def save(directory: Path, point: ResumePoint) -> bool:
     point.saved_unix = time.time()
     tmp = directory / (STATE_FILE + ".tmp")
     try:
-        tmp.write_text(json.dumps(asdict(point)))
+        with open(tmp, "w") as f:  # on the disk itself, then in place (a power cut)
+            f.write(json.dumps(asdict(point)))
+            f.flush()
+            os.fdatasync(f.fileno())
         os.replace(tmp, directory / STATE_FILE)
     except OSError as exc:
         if not _failing:

@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import logging
 import sqlite3
+import time
 from collections.abc import Iterator
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -47,6 +48,8 @@ from protocol import Keyframe, decode, encode
 log = logging.getLogger(__name__)
 
 SCHEMA_VERSION = 1
+# s the base station waits for another program's write lock on its database before it gives up
+LOCK_WAIT_S = 600.0
 READ_PAGE = 1000  # stored keyframes decoded at a time while recovering
 EPOCH_BLOCK = 1000  # correction epochs reserved per write
 
@@ -374,10 +377,23 @@ class _Transaction:
         self._path = path
 
     def __enter__(self) -> None:
-        try:
-            self._db.execute("BEGIN IMMEDIATE")
-        except sqlite3.Error as exc:
-            raise PersistenceError(f"{self._path}: cannot write: {exc}") from None
+        """Waits while another program holds the file's write lock (an operator's sqlite3
+        shell in a transaction, a VACUUM), up to `LOCK_WAIT_S`, with a warning now and
+        then: a lock held past SQLite's 5 s had ended the base station. Nothing waiting
+        is acknowledged yet, so waiting loses nothing."""
+        t0 = time.monotonic()
+        while True:
+            try:
+                self._db.execute("BEGIN IMMEDIATE")  # (each try waits 5 s for the lock)
+                return
+            except sqlite3.OperationalError as exc:
+                waited = time.monotonic() - t0
+                if "locked" not in str(exc) or waited > LOCK_WAIT_S:
+                    raise PersistenceError(f"{self._path}: cannot write: {exc}") from None
+                log.warning("%s is locked by another program for %.0f s: waiting to write "
+                            "(nothing is acknowledged meanwhile)", self._path, waited)  # fmt: skip
+            except sqlite3.Error as exc:
+                raise PersistenceError(f"{self._path}: cannot write: {exc}") from None
 
     def __exit__(self, exc_type: type[BaseException] | None, exc: object, tb: object) -> None:
         """A write that fails (disk full, file made read-only) is a PersistenceError: it

@@ -183,3 +183,26 @@ def test_a_state_that_cannot_be_written_is_logged_and_flown_on(tmp_path: Path, c
         assert not save(tmp_path / "file", point) and not save(tmp_path / "file", point)
         assert caplog.text.count("state not saved") == 1  # once, until one succeeds
         assert save(tmp_path, point) and (tmp_path / STATE_FILE).exists()
+
+
+def test_keyframes_and_state_are_on_the_disk_itself_before_the_agent_goes_on(
+    tmp_path: Path, monkeypatch
+) -> None:
+    """Flushed to the operating system only, a power cut and reboot within
+    `agent.resume_within_s` left the files a few keyframes behind what the base station
+    had acknowledged: the agent re-cut those seqs and the base station froze the robot
+    out as another source. Each keyframe (in a state folder) and each state are now
+    synced to the disk before the agent sends it on; temporary history files are not."""
+    import os
+
+    synced: list[int] = []
+    real = os.fdatasync
+    monkeypatch.setattr(os, "fdatasync", lambda fd: (synced.append(fd), real(fd))[1])
+    kept = KeyframeHistory(10, tmp_path)
+    kept.add(0, b"a")
+    kept.add(1, b"b")
+    assert len(synced) == 2
+    KeyframeHistory(10).add(0, b"a")  # no folder: nothing to keep across a reboot
+    assert len(synced) == 2
+    save(tmp_path, ResumePoint(0, 2, 1, session=7, keyframe_pose=[0, 0, 1, 0], stamp=1.0))
+    assert len(synced) == 3 and load(tmp_path, 60.0).session == 7

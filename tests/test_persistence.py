@@ -95,6 +95,27 @@ def test_a_full_disk_is_a_persistence_error_and_nothing_is_half_written(
     assert KeyframeDatabase(tmp_path / "base.db").counts() == {"r0": 3}
 
 
+def test_a_write_lock_held_by_another_program_is_waited_for(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    """An operator's sqlite3 shell inside a transaction (or a VACUUM) holding the write
+    lock past SQLite's busy timeout (5 s) had ended the base station: "cannot write:
+    database is locked". It now waits, with a warning, and writes once it is free."""
+    import sqlite3
+    import threading
+
+    db = KeyframeDatabase(tmp_path / "base.db")
+    db._db.execute("PRAGMA busy_timeout = 100")  # (each try: 0.1 s instead of 5 s)
+    other = sqlite3.connect(tmp_path / "base.db", isolation_level=None, check_same_thread=False)
+    other.execute("BEGIN IMMEDIATE")  # holds the write lock
+    threading.Timer(1.0, lambda: other.execute("COMMIT")).start()
+    with caplog.at_level("WARNING"):
+        db.commit(Batch(_square_keyframes("r0", np.zeros(3), 3)))
+    assert db.counts() == {"r0": 3} and "locked by another program" in caplog.text
+    other.close()
+    db.close()
+
+
 def test_a_batch_is_one_transaction(tmp_path: Path) -> None:
     db = KeyframeDatabase(tmp_path / "base.db")
     kfs = _square_keyframes("r0", np.zeros(3), 3)

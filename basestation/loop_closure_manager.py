@@ -70,6 +70,7 @@ class LoopClosureManager:
         self.chain_covariance = chain_covariance
         self.groups: dict[tuple[str, str], _Group] = {}
         self._next_id = 0
+        self._start_misfit_pairs: set[tuple[str, str]] = set()  # (warned once a pair)
         self.accepted: set[int] = set()
         self.offered: Counter[str] = Counter()  # matches offered, by kind
         self.accepted_kinds: Counter[str] = Counter()  # of them in the graph now
@@ -152,10 +153,17 @@ class LoopClosureManager:
         )
         consistent = consistent - group.left_out
         if separate and self.graph.is_anchored(m0.robot_a) and self.graph.is_anchored(m0.robot_b):
-            # both on `map` already (known starts): the estimate can tell a wrong alignment
-            consistent = {
+            # both on `map` already (known starts, as sure as `basestation.prior_sigma_*`
+            # say): the estimate can tell a wrong alignment (a corridor's period)
+            fit = {
                 i for i in consistent if self._misfit(group.measurements[i]) <= self.cfg.pcm_chi2
             }
+            if consistent - fit and (m0.robot_a, m0.robot_b) not in self._start_misfit_pairs:
+                self._start_misfit_pairs.add((m0.robot_a, m0.robot_b))
+                log.warning("matches between %s and %s disagree with their known starts: left "
+                            "out (starts measured by hand: set basestation.prior_sigma_xy_m and "
+                            "prior_sigma_yaw_rad to how well)", m0.robot_a, m0.robot_b)  # fmt: skip
+            consistent = fit
         if separate:
             outliers, T_a_b = self._far_from_the_rest([group.measurements[i] for i in consistent])
             if not self._enough_to_merge(group, consistent - outliers):

@@ -454,3 +454,40 @@ def test_matches_between_robots_with_known_starts_must_fit_the_estimate(offset_m
     else:  # b where a's matches put it
         rel = se2_between(g.pose("a", 70), g.pose("b", 70))
         assert np.allclose(rel[:2], [0.0, 0.4], atol=0.05)
+
+
+@pytest.mark.parametrize("prior", [(0.01, 0.01, 0.001), (0.2, 0.2, 0.035)])
+def test_starts_measured_by_hand_take_right_matches_with_their_sigmas(
+    prior: tuple[float, float, float], caplog: pytest.LogCaptureFixture
+) -> None:
+    """Known starts 0.2 m and 2 deg off (a fleet.json measured by hand): with the default
+    firm start prior (`basestation.prior_sigma_*`, 0.01 m / 0.001 rad) the right matches
+    disagree with them and stay out, with a warning that says what to set; with sigmas
+    as large as the error they go in."""
+    odo = np.diag([0.002**2, 0.002**2, 0.001**2])  # the agent's: 0.2 m keyframes
+    rng = np.random.default_rng(1)
+    n = 201  # 40 m of corridor
+    truth = {r: np.array([[0.2 * i, y, 0.0] for i in range(n)]) for r, y in (("a", 0), ("b", 0.4))}
+    g = PoseGraph(prior_sigmas=prior)
+    for r in ("a", "b"):
+        off = [0.2, 0.0, np.radians(2.0)] if r == "b" else [0.0, 0.0, 0.0]
+        g.add_robot(r, se2_compose(truth[r][0], off))
+        g.add_node(r, 0, None, None)
+        for i in range(1, n):
+            d = se2_between(truth[r][i - 1], truth[r][i]) + rng.normal(0, np.sqrt(np.diag(odo)))
+            g.add_node(r, i, d, odo)
+    g.update()
+
+    def chain_cov(robot, i, j):
+        k = np.abs(np.asarray(j) - np.asarray(i))[:, None, None]
+        return k * odo + (0.2 * k) ** 2 * odo[2, 2] * np.diag([1.0, 1.0, 0.0])
+
+    lcm = LoopClosureManager(g, ConstraintConfig(), chain_cov)
+    with caplog.at_level("WARNING"):
+        for i in (25, 60, 100, 140, 180):
+            T = se2_between(truth["a"][i], truth["b"][i])
+            lcm.add(("a", i), ("b", i), T, np.diag([0.03**2, 0.03**2, 0.01**2]), "inter")
+            g.update(extra_iterations=5)
+    firm = prior[0] < 0.1
+    assert len(lcm.accepted) == (0 if firm else 5)
+    assert ("prior_sigma_xy_m" in caplog.text) == firm

@@ -111,7 +111,8 @@ def robot_rules(fleet: str, robot_id: str) -> list[dict[str, Any]]:
             f"{robot_id}-out-base-subs",
             "egress",
             ["declare_subscriber"],
-            [keys.all_robots("keyframe"), keys.all_robots("state")],
+            # (GNSS: a drone's fixes its agent passes on, `agent.relay_gnss`)
+            [keys.all_robots("keyframe"), keys.all_robots("state"), keys.all_robots("sensor/gnss")],
         ),
         _rule(
             f"{robot_id}-out-liveliness",

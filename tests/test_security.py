@@ -13,9 +13,11 @@ import json
 import subprocess
 import sys
 import threading
+import time
 from contextlib import ExitStack
 from pathlib import Path
 
+import numpy as np
 import pytest
 import zenoh
 
@@ -27,7 +29,7 @@ from common.bus import Bus, zenoh_config
 from common.config import ZenohConfig
 from common.errors import CollabSlamError, ConfigError
 from common.zenoh_security import basestation_config, robot_config, write_json5
-from protocol import Keyframe, KeyframeAck
+from protocol import GnssFix, Keyframe, KeyframeAck
 
 REPO = Path(__file__).resolve().parents[1]
 FLEET = "default"
@@ -268,3 +270,33 @@ def test_a_new_drone_with_the_ca_key_offline_makes_no_new_ca(tmp_path: Path) -> 
             capture_output=True, text=True,
         )  # fmt: skip
         assert res.returncode == 0, res.stderr
+
+
+@pytest.mark.parametrize("topology", ["peer", "router"])
+def test_a_drones_relayed_gnss_fixes_reach_the_base_station_under_the_acl(
+    tmp_path: Path, certs: tuple[Path, Path], topology: str
+) -> None:
+    """`agent.relay_gnss` puts a drone's fixes on robot/<id>/sensor/gnss; the base
+    station's subscription to robot/*/sensor/gnss must be declared to the robot (an
+    egress rule: a wildcard is never under robot/<id>/**), or none reaches it."""
+    fleet = certs[0]
+    fixes: list[float] = []
+    kfs: list[int] = []
+    with ExitStack() as stack:
+        base, ep = _secure_base(stack, tmp_path, fleet, topology)
+        base.subscribe(
+            base.keys.all_robots("sensor/gnss"), GnssFix, lambda m, k: fixes.append(m.stamp)
+        )
+        base.subscribe(base.keys.all_robots("keyframe"), Keyframe, lambda m, k: kfs.append(m.seq))
+        r0 = stack.enter_context(_robot(tmp_path, fleet, "r0", ep))
+        time.sleep(1.0)
+        for k in range(5):
+            r0.publish(
+                r0.keys.robot("r0", "sensor/gnss"),
+                GnssFix("r0", float(k), np.array([45.81, 16.01, 160.0]), np.array([1.5, 1.5, 3.0])),
+            )
+            r0.publish(r0.keys.robot("r0", "keyframe"), make_keyframe("r0", k))
+            time.sleep(0.1)
+        wait_for(lambda: len(fixes) == 5 and len(kfs) == 5, 5.0)
+    assert len(kfs) == 5, kfs  # control
+    assert fixes == [0.0, 1.0, 2.0, 3.0, 4.0], fixes

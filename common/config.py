@@ -9,6 +9,7 @@ ranges (`common.config_validation.validate`). `dump_config()` writes the config 
 from __future__ import annotations
 
 import dataclasses
+import logging
 import math
 import tomllib
 import typing
@@ -22,6 +23,8 @@ from common.config_constraints import ConstraintConfig
 from common.config_sim import SimConfig
 from common.config_validation import validate
 from common.errors import ConfigError
+
+log = logging.getLogger(__name__)
 
 
 @dataclass
@@ -367,11 +370,23 @@ def load_config(path: str | Path | None = None, overrides: dict[str, Any] | None
     return cfg
 
 
+# keys that did something in an earlier version: a config written then (a run's
+# config.toml copied to /etc/collabslam) is taken with a warning, not refused
+RETIRED_KEYS = frozenset({
+    "agent.local_slam.match_sigma_per_m",  # bench gps's own noise model (69th session)
+    "agent.local_slam.match_sigma_yaw_per_m",
+})  # fmt: skip
+
+
 def _build(cls: type, data: Any, prefix: str) -> Any:
     if not isinstance(data, dict):
         raise ConfigError(f"{prefix.rstrip('.') or 'config'}: expected a table")
     hints = typing.get_type_hints(cls)
     names = {f.name for f in dataclasses.fields(cls)}
+    retired = {k[len(prefix) :] for k in RETIRED_KEYS if k.rpartition(".")[0] + "." == prefix}
+    for old in sorted(set(data) & retired):
+        log.warning("config key %s%s is no longer used: ignored", prefix, old)
+    data = {k: v for k, v in data.items() if k not in retired}
     unknown = sorted(set(data) - names)
     if unknown:
         raise ConfigError(

@@ -85,3 +85,23 @@ def test_no_number_takes_a_negative_unless_signed() -> None:
         if isinstance(value, int):
             with pytest.raises(ConfigError, match=key.replace(".", r"\.") + ": expected at most"):
                 load_config(overrides={key: 2**70})
+
+
+def test_a_config_written_by_an_earlier_version_is_taken(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    """A run's config.toml (copied to /etc/collabslam as operations.md says) lists every
+    key of its version: one retired since (it did nothing) had every unit refuse to
+    start. It is ignored with a warning; a key that never was stays an error."""
+    path = tmp_path / "old.toml"
+    dump_config(Config(), path)
+    text = path.read_text().replace(
+        "[agent.local_slam]\n", "[agent.local_slam]\nmatch_sigma_per_m = 0.005\n"
+    )
+    path.write_text(text)
+    with caplog.at_level("WARNING"):
+        assert load_config(path) == Config()
+    assert "agent.local_slam.match_sigma_per_m is no longer used" in caplog.text
+    path.write_text(text.replace("match_sigma_per_m", "match_sigma_typo"))
+    with pytest.raises(ConfigError, match="unknown config key agent.local_slam.match_sigma_typo"):
+        load_config(path)

@@ -16,6 +16,7 @@ import math
 import queue
 import threading
 import time
+from collections import deque
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any, Protocol
@@ -67,7 +68,9 @@ class ZenohSensors:
         # GnssFix from the drone's driver on to the base station (`agent.relay_gnss`): a
         # Zenoh peer routes nothing between its links, and the base station heard none
         self._bus = bus if relay_gnss else None
-        self._relayed = -math.inf  # stamp of the newest fix relayed (its echo: not again)
+        # the fixes relayed whose echo (its own subscriber hears them) has not come yet:
+        # matched exactly (a stamp limit had stopped the relay for good at a glitch)
+        self._relayed: deque[tuple[float, bytes]] = deque(maxlen=64)
         self._scans_waiting = max_scans_before_altitude  # left to drop; 0: pass them on
         # one subscriber for all of them: Zenoh keeps a sender's samples in order per
         # subscriber, not between two (a scan overtook the altimeter's reading of its tick)
@@ -85,8 +88,11 @@ class ZenohSensors:
                 yield None
                 continue
             if isinstance(msg, GnssFix):
-                if self._bus is not None and msg.stamp > self._relayed:
-                    self._relayed = msg.stamp
+                fix = (msg.stamp, msg.lla.tobytes())
+                if fix in self._relayed:  # its own echo
+                    self._relayed.remove(fix)
+                elif self._bus is not None:
+                    self._relayed.append(fix)
                     self._bus.publish(self._bus.keys.robot(self._robot_id, "sensor/gnss"), msg)
                 yield None
                 continue

@@ -221,19 +221,19 @@ class GlobalSlam:
     def _late_start(self, rid: str, fix: np.ndarray) -> bool:
         """A robot with a start heading whose first keyframe came before its first GNSS
         fix (fixes are held until the map's WGS84 origin is set): at its first fix, its
-        chain is put where that fix and the heading say (`gnss_start`), unless matches
-        have put it on the map meanwhile. Whether it is georeferenced now."""
-        odom = self._floating_starts.get(rid)
-        if odom is None or self.graph.is_anchored(rid):
+        chain is put where that fix and the heading say (`gnss_start`); if matches have
+        put it on the map meanwhile (ENU: every start here is), its fixes count as they
+        are (they had all been ignored). Whether it is georeferenced now."""
+        if (odom := self._floating_starts.pop(rid, None)) is None:
             return False
-        g = self.cfg.basestation.gps
-        start = gnss_start(fix, self.start_headings[rid], odom, self.odom_now(rid))
-        sigmas = np.array([g.start_sigma_xy_m, g.start_sigma_xy_m, g.start_sigma_yaw_rad])
-        self.graph.georeference(rid, start, sigmas)
-        del self._floating_starts[rid]
         self._georeferenced.add(rid)
-        self._unsaved_starts[rid] = (start, sigmas)  # (a restart starts it there)
-        log.info("robot %s georeferenced at its first GNSS fix", rid)
+        if not self.graph.is_anchored(rid):
+            g = self.cfg.basestation.gps
+            start = gnss_start(fix, self.start_headings[rid], odom, self.odom_now(rid))
+            sigmas = np.array([g.start_sigma_xy_m, g.start_sigma_xy_m, g.start_sigma_yaw_rad])
+            self.graph.georeference(rid, start, sigmas)
+            self._unsaved_starts[rid] = (start, sigmas)  # (a restart starts it there)
+            log.info("robot %s georeferenced at its first GNSS fix", rid)
         return True
 
     def _defines_map(self, rid: str) -> bool:

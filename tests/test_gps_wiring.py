@@ -238,3 +238,29 @@ def test_gps_options_reach_the_pose_graph() -> None:
     w = pose_graph_options(cfg.basestation)["gps_weighting"]
     assert (w.mode, w.a, w.b, w.huber_k, w.sigma_min_m) == ("affine", 2.0, 0.5, None, 0.3)
     assert tuple(w.lever_arm) == (0.25, -0.1)
+
+
+def test_a_heading_robot_matched_onto_the_map_before_its_first_fix_keeps_its_fixes() -> None:
+    """Two robots started from a heading, their first keyframes before any fix, joined
+    by matches while floating: at r0's first fix the map is put in ENU, r1 with it. r1's
+    fixes had then all been ignored for the rest of the mission."""
+    import dataclasses
+
+    slam = GlobalSlam(_cfg(), {}, {"r0": 0.0, "r1": 0.0})
+    for seq in range(10):  # both fly along x, r1 2 m to the left; no fix yet
+        for rid in ("r0", "r1"):
+            slam.admit(dataclasses.replace(_keyframe(seq), robot_id=rid))
+        slam.optimize()
+    for k in (3, 6, 9):  # matches join their maps (as the loop-closure manager would)
+        slam.graph.add_constraint(("r0", k), ("r1", k), [0.0, 2.0, 0.0], np.eye(3) * 1e-4)
+    slam.graph.update()
+    for seq in range(10, 40):
+        t = 0.5 * seq + 0.25
+        for rid, y in (("r0", 0.0), ("r1", 2.0)):
+            slam.admit(dataclasses.replace(_keyframe(seq), robot_id=rid))
+            slam.add_gps_fix(rid, t, np.array([0.2 * seq + 10.0, y - 5.0]), SIG)
+        slam.optimize()
+    slam.graph.flush_gps()
+    slam.optimize()
+    assert slam.graph.is_anchored("r1") and slam.gps_fixes_ignored == 0
+    assert np.allclose(slam.graph.poses("r1")[-1, :2], [0.2 * 39 + 10.0, -3.0], atol=0.5)

@@ -206,3 +206,5 @@ def test_keyframes_and_state_are_on_the_disk_itself_before_the_agent_goes_on(
     assert len(synced) == 2
     save(tmp_path, ResumePoint(0, 2, 1, session=7, keyframe_pose=[0, 0, 1, 0], stamp=1.0))
     assert len(synced) == 3 and load(tmp_path, 60.0).session == 7
+    kept.replace([b"%d" % k for k in range(12)])  # a new chain: once a file, not a keyframe
+    assert len(synced) == 3 + 3 and len(list(kept.payloads())) == 12

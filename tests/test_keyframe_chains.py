@@ -196,11 +196,11 @@ def test_a_new_chain_replaces_the_files_whole_or_not_at_all(tmp_path: Path) -> N
     real_append = kh._Segment.append
     calls = {"n": 0}
 
-    def dying_append(seg: kh._Segment, payload: bytes) -> None:
+    def dying_append(seg: kh._Segment, payload: bytes, sync: bool = True) -> None:
         calls["n"] += 1
         if calls["n"] == 4:  # killed with 3 of 5 written
             raise Killed
-        real_append(seg, payload)
+        real_append(seg, payload, sync)
 
     kh._Segment.append = dying_append  # type: ignore[method-assign]
     try:

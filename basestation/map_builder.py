@@ -75,6 +75,11 @@ class _TileJob:
     stale: float = 0.0  # > 0: keyframes drawn into it moved again (redraw it again)
 
 
+# beam geometries whose angles are kept (a fleet has a few lasers; a driver whose
+# angle_min jitters had made one per keyframe, 430 MB at 100,000)
+ANGLE_GEOMETRIES_KEPT = 64
+
+
 class MapBuilder:
     def __init__(self, cfg: MapConfig, scan_source: ScanSource | None = None) -> None:
         """`scan_source`: reads keyframes' scans again for tile redraws (called on the
@@ -88,10 +93,10 @@ class MapBuilder:
         self._key_index = empty((), np.int32)  # row -> keyframe index
         self._source = scan_source
         self._held: list[Scan2D] = []  # row -> scan, without a scan_source
-        self._pose = empty((3,), np.float32)  # latest pose given, [x, y, yaw] in map
-        # pose it was last drawn (or marked) at; float32: only compared with the pose (moves
-        # of a centimetre and more), and a box around it redrawn
-        self._drawn = empty((3,), np.float32)
+        # latest pose given, [x, y, yaw] in map, and the pose it was last drawn (or marked)
+        # at; float64: float32 rounds a UTM-sized northing to 0.5 m (walls drawn double)
+        self._pose = empty((3,), np.float64)
+        self._drawn = empty((3,), np.float64)
         self._reach = empty((), np.float32)  # farthest ray end (m)
         self._n = 0
         self._angles: dict[tuple[float, float, int], np.ndarray] = {}
@@ -125,7 +130,9 @@ class MapBuilder:
         r[mm == 0] = np.float32(scan.range_max)
         geom = (scan.angle_min, scan.angle_increment, mm.size)
         a = self._angles.get(geom)
-        if a is None:
+        if a is None:  # (a driver whose angle_min jitters: one each; the oldest go)
+            while len(self._angles) >= ANGLE_GEOMETRIES_KEPT:
+                del self._angles[next(iter(self._angles))]
             a = self._angles.setdefault(geom, scan.angles())
         return r, a
 
@@ -229,7 +236,15 @@ class MapBuilder:
             self._anchor = np.array(self.grid.origin_xy)
         elif len(lo):
             self.grid.grow_to_include(lo.min(axis=0), hi.max(axis=0), 1.0)
-        moved = self._mark_moved(idx[idx < n_old])
+        old = idx[idx < n_old]
+        if self.grid is not None and len(old):  # moved ones may now reach past the grid
+            lo_o, hi_o = self._boxes(old)
+            ctr, rad = self._center, self.cfg.max_radius_m
+            lo_o, hi_o = np.maximum(lo_o, ctr - rad), np.minimum(hi_o, ctr + rad)
+            ok = np.all(lo_o <= hi_o, axis=1)
+            if ok.any():
+                self.grid.grow_to_include(lo_o[ok].min(axis=0), hi_o[ok].max(axis=0), 1.0)
+        moved = self._mark_moved(old)
         last_new = self._n if self.grid is not None else n_old  # none drawn without a grid
         for k, i in enumerate(range(n_old, last_new, CHUNK)):  # bounded after a recovery
             last = k == len(parts) - 1  # its scans are still at hand
@@ -282,12 +297,16 @@ class MapBuilder:
         c = self.cfg
         d_xy = np.hypot(*(self._pose[idx, :2] - self._drawn[idx, :2]).T)
         d_th = np.abs(wrap_angle(self._pose[idx, 2] - self._drawn[idx, 2]))
-        is_moved = (d_xy > c.pose_moved_m) | (d_th > c.pose_moved_rad)
+        # a turn under pose_moved_rad still moves far walls (0.0045 rad: 0.2 m at 50 m): so
+        # does a farthest ray end moved by two cells
+        reach_moved = d_xy + d_th * self._reach[idx]
+        far = reach_moved > 2.0 * c.resolution_m
+        is_moved = (d_xy > c.pose_moved_m) | (d_th > c.pose_moved_rad) | far
         moved = idx[is_moved]
         if len(moved) == 0:
             return 0
         # how far its farthest ray end moved (m): the tile's priority
-        size = d_xy[is_moved] + d_th[is_moved] * self._reach[moved]
+        size = reach_moved[is_moved]
         m = (PAD + 2) * c.resolution_m  # rays may reach a cell beyond their box
         span = self._tile_cells * c.resolution_m
         for poses in (self._drawn[moved], self._pose[moved]):
@@ -360,7 +379,8 @@ class MapBuilder:
         sub = self.grid.empty_like_region(
             slice(r0 - PAD, r0 + t + PAD), slice(c0 - PAD, c0 + t + PAD)
         )
-        reaching = np.flatnonzero(self._reaches(tile, slice(0, self._n)))
+        drawn = self._reach[: self._n] > 0.0  # blank scans take no place among a view's newest
+        reaching = np.flatnonzero(self._reaches(tile, slice(0, self._n)) & drawn)
         todo = self._newest_per_view(reaching)
         self.rerender_skipped += len(reaching) - len(todo)
         return _TileJob(tile, sub, todo, next=self._n)

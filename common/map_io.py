@@ -242,7 +242,11 @@ def _next_token(buf: bytes, pos: int) -> tuple[bytes, int]:
     return buf[start:pos], pos
 
 
-def _read_pgm(path: Path, buf: bytes) -> tuple[NDArray[np.float64], None]:
+# a map image's grey level, its alpha (None: none) and the mean of all its channels
+_Pixels = tuple[NDArray[np.float64], NDArray[np.float64] | None, NDArray[np.float64]]
+
+
+def _read_pgm(path: Path, buf: bytes) -> _Pixels:
     """Pixels of a P5/P2 PGM scaled to [0, 255] (top row first); no alpha."""
     magic, pos = _next_token(buf, 0)
     header: list[int] = []
@@ -285,11 +289,12 @@ def _read_pgm(path: Path, buf: bytes) -> tuple[NDArray[np.float64], None]:
     if pixels.size and (pixels.min() < 0 or pixels.max() > maxval):
         raise FileFormatError(f"{path}: PGM pixel values must lie in [0, {maxval}]")
     scaled = pixels.astype(np.float64).reshape(height, width) * (255.0 / maxval)
-    return scaled, None
+    return scaled, None, scaled
 
 
-def _read_with_pil(path: Path) -> tuple[NDArray[np.float64], NDArray[np.float64] | None]:
-    """Grey level in [0, 255] (mean of the colour channels) and alpha, top row first."""
+def _read_with_pil(path: Path) -> _Pixels:
+    """Grey level in [0, 255] (mean of the colour channels), alpha, and the mean of all
+    channels (alpha too: map_server's trinary mode), top row first."""
     from PIL import Image, UnidentifiedImageError
 
     try:
@@ -298,7 +303,7 @@ def _read_with_pil(path: Path) -> tuple[NDArray[np.float64], NDArray[np.float64]
             img.load()
             if img.mode.startswith("I;16"):
                 arr = np.asarray(img, dtype=np.float64) * (255.0 / 65535.0)
-                return arr, None
+                return arr, None, arr
             if img.mode not in ("L", "LA", "RGB", "RGBA"):
                 has_alpha = "transparency" in img.info or img.mode in ("PA", "La", "RGBa")
                 img = img.convert("RGBA" if has_alpha else "RGB")
@@ -313,10 +318,11 @@ def _read_with_pil(path: Path) -> tuple[NDArray[np.float64], NDArray[np.float64]
     ) as exc:
         raise FileFormatError(f"{path}: cannot decode map image: {exc}") from exc
     if arr.ndim == 2:
-        return arr, None
+        return arr, None, arr
     if mode in ("LA", "RGBA"):
-        return arr[..., :-1].mean(axis=-1), arr[..., -1]
-    return arr.mean(axis=-1), None
+        return arr[..., :-1].mean(axis=-1), arr[..., -1], arr.mean(axis=-1)
+    grey = arr.mean(axis=-1)
+    return grey, None, grey
 
 
 def _check_size(path: Path, width: int, height: int) -> None:
@@ -328,7 +334,7 @@ def _check_size(path: Path, width: int, height: int) -> None:
         )
 
 
-def _read_image(path: Path) -> tuple[NDArray[np.float64], NDArray[np.float64] | None]:
+def _read_image(path: Path) -> _Pixels:
     try:
         buf = path.read_bytes()
     except OSError as exc:
@@ -395,7 +401,9 @@ def read_map(yaml_path: str | Path) -> GridMap:
     image_path = yaml_path.parent / image
     if not image_path.is_file():
         raise FileFormatError(f"{yaml_path}: map image {image_path} does not exist")
-    grey, alpha = _read_image(image_path)
+    grey, alpha, all_channels = _read_image(image_path)
+    if mode == "trinary":  # map_server averages alpha in with the colours there
+        grey = all_channels
 
     p = grey / 255.0 if negate else (255.0 - grey) / 255.0
     data = np.full(grey.shape, UNKNOWN, dtype=np.int8)

@@ -201,3 +201,19 @@ def test_gridmap_validates() -> None:
         GridMap(np.zeros((2, 2), dtype=np.int8), 0.0, (0.0, 0.0, 0.0))
     grid = GridMap(np.array([[0, 100]]), 0.1, (0.0, 0.0, 0.0))  # other ints are converted
     assert grid.data.dtype == np.int8
+
+
+def test_an_rgba_map_in_trinary_mode_reads_as_map_server_reads_it(tmp_path: Path) -> None:
+    """map_server (ROS 1 image_loader, Nav2 map_io) averages alpha in with the colour
+    channels in trinary mode: an opaque RGBA export's 205-grey reads free and its
+    80-grey unknown there. read_map had left alpha out ([-1, 100, 0, 100])."""
+    from PIL import Image
+
+    px = np.array([[205, 80, 254, 0]], dtype=np.uint8)
+    rgba = np.dstack([px, px, px, np.full_like(px, 255)])
+    Image.fromarray(rgba, "RGBA").save(tmp_path / "w.png")
+    meta = "resolution: 0.05\norigin: [0.0, 0.0, 0.0]\nnegate: 0\noccupied_thresh: 0.65\n"
+    (tmp_path / "w.yaml").write_text(f"image: w.png\n{meta}free_thresh: 0.196\n")
+    assert read_map(tmp_path / "w.yaml").data[0].tolist() == [0, -1, 0, 100]
+    (tmp_path / "s.yaml").write_text(f"image: w.png\n{meta}free_thresh: 0.196\nmode: scale\n")
+    assert read_map(tmp_path / "s.yaml").data[0].tolist()[3] == 100  # scale: alpha apart

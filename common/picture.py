@@ -20,7 +20,7 @@ from mpl_toolkits.axes_grid1.anchored_artists import AnchoredSizeBar
 from numpy.typing import ArrayLike, NDArray
 
 from common.errors import CollabSlamError
-from common.map_io import GridMap
+from common.map_io import FREE_MAX, OCCUPIED_MIN, GridMap
 
 logger = logging.getLogger(__name__)
 
@@ -52,28 +52,38 @@ MAX_RASTER_PX = 800
 VIEW_MARGIN_M = 1.0
 
 
+def map_grey(data: NDArray[np.int8]) -> NDArray[np.uint8]:
+    """Grey levels of grid values (row 0 = lowest y): unknown grey, free white, occupied
+    black, in-between probabilities (scale-mode maps) as shades of grey."""
+    shade = np.clip(1.0 - data.astype(np.float32) / 100.0, 0.0, 1.0)
+    shade[data < 0] = GREY_UNKNOWN
+    shade[(data >= 0) & (data <= FREE_MAX)] = 1.0
+    shade[data >= OCCUPIED_MIN] = 0.0
+    return (shade * 255.0).astype(np.uint8)
+
+
 def map_rgb(grid: GridMap) -> NDArray[np.uint8]:
-    """(H, W, 3) image of the grid (row 0 = lowest y): unknown grey, free white,
-    occupied black, in-between probabilities (scale-mode maps) as shades of grey."""
-    shade = np.clip(1.0 - grid.data.astype(np.float32) / 100.0, 0.0, 1.0)
-    shade[grid.data < 0] = GREY_UNKNOWN
-    shade[grid.free_mask()] = 1.0
-    shade[grid.occupied_mask()] = 0.0
-    grey = (shade * 255.0).astype(np.uint8)
-    return np.repeat(grey[..., None], 3, axis=2)
+    """(H, W, 3) image of the grid (`map_grey`)."""
+    return np.repeat(map_grey(grid.data)[..., None], 3, axis=2)
 
 
 def _raster(grid: GridMap) -> tuple[NDArray[np.uint8], tuple[float, float, float, float]]:
-    """`map_rgb` as opaque RGBA in blocks of k x k cells (k so it fits `MAX_RASTER_PX`;
-    the darkest cell of each, so a wall one cell thick stays), with its extent (m)."""
-    grey = map_rgb(grid)[..., 0]
+    """The grid's grey as opaque RGBA in blocks of k x k cells (k so it fits
+    `MAX_RASTER_PX`; the darkest cell of each, so a wall one cell thick stays), with its
+    extent (m). Made a strip of blocks at a time: the whole grid in floats and RGB had
+    peaked at 9 times its size (225 MB for 5000 x 5000 cells)."""
     x0, _, y0, _ = grid.extent
-    k = max(1, math.ceil(max(grey.shape) / MAX_RASTER_PX))
-    h, w = -(-grey.shape[0] // k), -(-grey.shape[1] // k)  # blocks, the last ones padded
-    if k > 1:
-        grey = np.pad(grey, ((0, h * k - grey.shape[0]), (0, w * k - grey.shape[1])), "edge")
-        grey = grey.reshape(h, k, w, k).min(axis=(1, 3))
-    rgba = np.dstack([grey, grey, grey, np.full_like(grey, 255)])
+    rows, cols = grid.data.shape
+    k = max(1, math.ceil(max(rows, cols) / MAX_RASTER_PX))
+    h, w = -(-rows // k), -(-cols // k)  # blocks, the last ones padded
+    out = np.empty((h, w), dtype=np.uint8)
+    step = max(1, (1 << 20) // max(1, cols * k))  # block rows a strip (~1 M cells)
+    for b0 in range(0, h, step):
+        strip = map_grey(grid.data[b0 * k : (b0 + step) * k])
+        pad = ((0, min(step, h - b0) * k - strip.shape[0]), (0, w * k - cols))
+        strip = np.pad(strip, pad, "edge")
+        out[b0 : b0 + step] = strip.reshape(-1, k, w, k).min(axis=(1, 3))
+    rgba = np.dstack([out, out, out, np.full_like(out, 255)])
     res = grid.resolution * k
     return rgba, (x0, x0 + w * res, y0, y0 + h * res)
 

@@ -18,10 +18,13 @@ def write_map_outputs(
     on_map: Callable[[str], bool],
     wgs84_origin: GeoOrigin | None,
 ) -> None:
-    """trajectories/<id>.tum (map frame), map.yaml + map.pgm and map.png (the grid with
-    the trajectories of the robots `on_map`); with a WGS84 origin, both say where map is."""
+    """trajectories/<id>.tum (map frame; a robot not `on_map`, never joined: its own
+    floating frame), map.yaml + map.pgm and map.png (the grid with the trajectories of
+    the robots on the map); with a WGS84 origin, both say where map is (not a floating
+    robot's file: its frame is not that ENU frame)."""
     for rid, traj in trajectories.items():
-        write_tum(out / "trajectories" / f"{rid}.tum", traj, wgs84_origin=wgs84_origin)
+        geo = wgs84_origin if on_map(rid) else None
+        write_tum(out / "trajectories" / f"{rid}.tum", traj, wgs84_origin=geo)
     if grid is None:
         return
     shown = {rid: t for rid, t in trajectories.items() if on_map(rid)}

@@ -162,3 +162,14 @@ def test_the_scenarios_origin_is_the_base_stations_map_origin(
         node.db.close()
     cfg.sim.gnss.enabled = False  # no simulated fixes: nothing to agree on
     assert with_gnss_origin(cfg, plain).wgs84_origin is None
+
+
+def test_a_robot_never_on_the_map_has_no_wgs84_header(tmp_path: Path) -> None:
+    """A robot that never joined the map is written in its own floating frame: the
+    `# wgs84_origin` line had said it was in the map's ENU frame."""
+    from basestation.map_outputs import write_map_outputs
+
+    traj = Trajectory.from_pose4([0.0, 1.0], [[1.0, 2.0, 3.0, 0.1], [2.0, 2.5, 3.0, 0.2]])
+    write_map_outputs(tmp_path, {"r0": traj, "r1": traj}, None, lambda r: r == "r0", ORIGIN)
+    assert read_tum(tmp_path / "trajectories" / "r0.tum").wgs84_origin == ORIGIN
+    assert read_tum(tmp_path / "trajectories" / "r1.tum").wgs84_origin is None

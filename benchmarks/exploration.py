@@ -100,11 +100,21 @@ def failed_row(n_robots: int, seed: int, error: ProcessError, out: Path) -> dict
             "coverage_curve": [], "out": str(out)}  # fmt: skip
 
 
-def _times(rows: list[dict[str, Any]], n: int, max_sim_time: float) -> list[float]:
+def _times(
+    rows: list[dict[str, Any]], n: int, max_sim_time: float, seeds: set[Any] | None = None
+) -> list[float]:
     """Times to 95 % of the n-robot runs (a run that never got there counts as max time;
-    one that failed is no measurement)."""
-    ok = [r for r in rows if r["robots"] == n and "error" not in r]
+    one that failed is no measurement), of `seeds` only if given."""
+    ok = [r for r in _ok(rows, n) if seeds is None or r.get("seed") in seeds]
     return [r["time_to_95_s"] or max_sim_time for r in ok]
+
+
+def _ok(rows: list[dict[str, Any]], n: int) -> list[dict[str, Any]]:
+    return [r for r in rows if r["robots"] == n and "error" not in r]
+
+
+def _seeds(rows: list[dict[str, Any]], n: int) -> set[Any]:
+    return {r.get("seed") for r in _ok(rows, n)}
 
 
 def speedups(
@@ -112,25 +122,32 @@ def speedups(
 ) -> dict[str, Any]:
     """Team speed-ups over one drone (same strategy) and ours over the baseline, on the
     means over the seeds and on the medians (one run that got stuck, a baseline's
-    deadlock, moves the mean by its whole max time)."""
+    deadlock, moves the mean by its whole max time), each ratio over the seeds both of
+    its sides measured (a failed run had left one side's mean over fewer seeds)."""
     out: dict[str, Any] = {}
     for stat, f in (("mean", np.mean), ("median", np.median)):
         sep = "" if stat == "mean" else "median_"
+
+        def stat_of(
+            rows: list[dict[str, Any]], n: int, seeds: set[Any] | None, f: Any = f
+        ) -> float | None:
+            ts = _times(rows, n, max_sim_time, seeds)
+            return float(f(ts)) if ts else None
+
         for name, rows in result.items():
-            t = {n: float(f(ts)) if (ts := _times(rows, n, max_sim_time)) else None for n in counts}
-            t1 = _times(rows, 1, max_sim_time)
-            t1 = float(f(t1)) if t1 else None
             for n in counts:
-                out[f"{name}_{stat}_time_to_95_s_{n}"] = t[n]
-                if t1 and t[n] and n > 1:
-                    out[f"{name}_{sep}speedup_{n}"] = round(t1 / t[n], 3)
-        for n in counts:
-            a, b = (
-                out.get(f"ours_{stat}_time_to_95_s_{n}"),
-                out.get(f"baseline_{stat}_time_to_95_s_{n}"),
-            )
-            if a and b:
-                out[f"ours_faster_than_baseline_{sep}pct_{n}"] = round(100.0 * (b - a) / b, 1)
+                out[f"{name}_{stat}_time_to_95_s_{n}"] = stat_of(rows, n, None)
+                if n > 1:  # the ratio over the seeds both team sizes measured
+                    both = _seeds(rows, 1) & _seeds(rows, n)
+                    t1, tn = stat_of(rows, 1, both), stat_of(rows, n, both)
+                    if t1 and tn:
+                        out[f"{name}_{sep}speedup_{n}"] = round(t1 / tn, 3)
+        if "ours" in result and "baseline" in result:
+            for n in counts:
+                both = _seeds(result["ours"], n) & _seeds(result["baseline"], n)
+                a, b = stat_of(result["ours"], n, both), stat_of(result["baseline"], n, both)
+                if a and b:
+                    out[f"ours_faster_than_baseline_{sep}pct_{n}"] = round(100.0 * (b - a) / b, 1)
     out["failed_runs"] = sum("error" in r for rows in result.values() for r in rows)
     return out
 

@@ -18,6 +18,7 @@ from common.metrics import (
     coverage_curve,
     map_accuracy,
     map_coverage,
+    map_walls_found,
     min_separation,
     reachable_free,
     time_to_coverage,
@@ -36,7 +37,9 @@ def build_summary(
     out: Path, world_yaml: Path, robot_ids: list[str], wall_time_s: float, contact_m: float = 0.5
 ) -> dict[str, Any]:
     """The run's `summary.json`. A robot's `collisions` are its contacts with walls;
-    `robot_contact`: two robots came closer than `contact_m` (two drone radii)."""
+    `robot_contact`: two robots came closer than `contact_m` (two drone radii). A
+    robot's `ate_rmse_m` is horizontal (its height is the altimeter's, not SLAM's: it
+    had been most of the figure), over its segments on the map (`on_map`: all were)."""
     sim = _load(out / "simulator.json")
     base = _load(out / "basestation.json")
     robots = []
@@ -47,9 +50,10 @@ def build_summary(
         ate = None
         gt_path = out / "ground_truth" / f"{rid}.tum"
         try:  # (a file cut short: no ATE, the rest of the summary stands)
-            est = _segments_trajectory(out, rid)
+            # only segments on the map: a floating one's poses are in its own frame
+            est = _segments_trajectory(out, rid, base)
             if est is not None and gt_path.is_file():
-                ate = ate_rmse(est, read_tum(gt_path))
+                ate = ate_rmse(est, read_tum(gt_path), with_z=False)
         except CollabSlamError as exc:
             log.warning("no ATE for %s: %s", rid, exc)
         sim_r = sim.get("robots", {}).get(rid, {})
@@ -64,12 +68,14 @@ def build_summary(
                 "collisions": sim_r.get("collisions", 0),
                 "min_clearance_m": sim_r.get("min_clearance_m"),
                 "ate_rmse_m": ate,
+                "on_map": all(r.get("anchored", True) for r in segments.values()),
             }
         )
-    coverage = accuracy = None
+    coverage = accuracy = walls = None
     if (out / "map.yaml").is_file():
         world, grid = read_map(world_yaml), read_map(out / "map.yaml")
         coverage, accuracy = map_coverage(grid, world), map_accuracy(grid, world)
+        walls = map_walls_found(grid, world)
     gts = [read_tum(p) for r in robot_ids if (p := out / "ground_truth" / f"{r}.tum").is_file()]
     sep = min_separation(gts) if len(gts) == len(robot_ids) else None
     return {
@@ -80,6 +86,7 @@ def build_summary(
         "sim_realtime_factor": sim.get("realtime_factor"),
         "map_coverage": coverage,
         "map_accuracy": accuracy,
+        "map_walls_found": walls,
         "isam2_update_ms_p95": base.get("isam2_update_ms_p95"),
         "min_robot_separation_m": sep,
         "robot_contact": sep is not None and sep < contact_m,
@@ -91,10 +98,13 @@ def build_summary(
 _POSE_FIELDS = ("positions", "quats_xyzw")
 
 
-def _segments_trajectory(out: Path, rid: str) -> Trajectory | None:
+def _segments_trajectory(out: Path, rid: str, base: dict[str, Any]) -> Trajectory | None:
     """The robot's trajectory in `map`: its segments' (one per run of its agent,
-    basestation/robot_segments.py) in time order; None if none was written."""
+    basestation/robot_segments.py) in time order, those the base station had anchored;
+    None if none was written."""
     paths = [out / "trajectories" / f"{rid}.tum", *(out / "trajectories").glob(f"{rid}~*.tum")]
+    robots = base.get("robots", {})
+    paths = [p for p in paths if robots.get(p.stem, {}).get("anchored", True)]
     parts = [read_tum(p) for p in paths if p.is_file()]
     if not parts:
         return None

@@ -390,7 +390,8 @@ class AgentNode:
             if self._new_correction or self._new_path:
                 pts = np.column_stack([self.tour_map, np.zeros((len(self.tour_map), 2))])
                 tour_odom = map_to_odom(self.T_map_odom, pts) if len(pts) else pts
-                self.follower.set_path(tour_odom[:, :2], keep_progress=not self._new_path)
+                here = self.frontend.pose[:2] if self._new_path else None  # (catch up)
+                self.follower.set_path(tour_odom[:, :2], not self._new_path, here)
                 self._new_correction = self._new_path = False
 
     def _command(self, stamp: float) -> None:

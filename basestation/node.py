@@ -370,8 +370,9 @@ class BaseStationNode:
             self._path_id += 1
             over = path is None and self.explorer.done  # path_id 0: the mission is over
             what = "hold" if path is None else f"{len(path)} points to {path[-1].round(1)}"
-            log.info("t=%.1f s: path %d for %s from (%.1f, %.1f): %s", self.clock.answered,
-                     self._path_id, rid, *poses[rid][:2], what)  # fmt: skip
+            t = states[rid].stamp if rid in states else -1.0  # (its state's: real time too)
+            log.info("t=%.1f s: path %d for %s from (%.1f, %.1f): %s", t, self._path_id,
+                     rid, *poses[rid][:2], what)  # fmt: skip
             msg = path_message(rid, 0 if over else self._path_id, path, z, self.epochs.current)
             out.append((rid, encode(self.segments.address(msg))))
             batch.paths.append((rid, self._path_id, out[-1][1]))

@@ -68,7 +68,8 @@ def build_summary(
                 "collisions": sim_r.get("collisions", 0),
                 "min_clearance_m": sim_r.get("min_clearance_m"),
                 "ate_rmse_m": ate,
-                "on_map": all(r.get("anchored", True) for r in segments.values()),
+                "on_map": bool(segments)
+                and all(r.get("anchored", True) for r in segments.values()),
             }
         )
     coverage = accuracy = walls = None

@@ -223,15 +223,17 @@ def map_accuracy(map_: GridMap, world: GridMap, tolerance_m: float = WALL_TOLERA
     return (free_ok + occ_ok) / (free_n + occ_n)
 
 
-def map_walls_found(map_: GridMap, world: GridMap, tolerance_m: float = WALL_TOLERANCE_M) -> float:
+def map_walls_found(
+    map_: GridMap, world: GridMap, tolerance_m: float = WALL_TOLERANCE_M
+) -> float | None:
     """Fraction of the world's wall surface (its occupied cells next to free ones) that
     `map_` draws: an occupied map cell within `tolerance_m`. What `map_accuracy` cannot
-    see: a map with no wall at all scores 0.96-0.99 there. Raises CollabSlamError if the
-    world has no wall surface."""
+    see: a map with no wall at all scores 0.96-0.99 there. None if the world has no wall
+    surface (an open field)."""
     surface = world.occupied_mask() & ndimage.binary_dilation(world.free_mask())
     iy, ix = np.nonzero(surface)
     if not len(iy):
-        raise CollabSlamError("map_walls_found: the world has no wall next to free space")
+        return None
     cells, inside = _world_cells_of(map_, world)
     drawn = np.zeros(world.data.shape, dtype=bool)
     hit = cells[map_.occupied_mask().ravel() & inside]

@@ -204,6 +204,8 @@ def test_walls_found_sees_a_map_without_walls() -> None:
     no_walls = GridMap(np.where(world.data == 100, 0, world.data).astype(np.int8), RES,
                        world.origin)  # fmt: skip
     assert map_accuracy(no_walls, world) > 0.9 and map_walls_found(no_walls, world) == 0.0
+    field = GridMap(np.zeros((40, 40), np.int8), RES, (0.0, 0.0, 0.0))  # an open field
+    assert map_walls_found(field, field) is None  # (the summary had raised after the mission)
 
 
 def test_speedups_are_over_the_seeds_both_sides_measured() -> None:

@@ -24,7 +24,8 @@ def test_a_robot_that_never_joined_the_map_has_no_ate(tmp_path: Path) -> None:
         write_tum(tmp_path / "trajectories" / f"{rid}.tum", est)
     robots = {"r0": {"anchored": True, "keyframes_in_graph": 20}, "r1": {"anchored": False}}
     (tmp_path / "basestation.json").write_text(json.dumps({"robots": robots}))
-    summary = build_summary(tmp_path, resolve_world("bshape"), ["r0", "r1"], 1.0)
-    r0, r1 = summary["robots"]
+    summary = build_summary(tmp_path, resolve_world("bshape"), ["r0", "r1", "r2"], 1.0)
+    r0, r1, r2 = summary["robots"]
     assert r0["on_map"] and r0["ate_rmse_m"] == 0.0
     assert not r1["on_map"] and r1["ate_rmse_m"] is None
+    assert not r2["on_map"] and r2["keyframes_in_graph"] == 0  # never heard of

@@ -18,9 +18,11 @@ sigma still matters for eq. 6 (the isotropic weight is the worst of all three);
 altitude itself is handled by the GNSS model and ENU conversion, not the graph.
 
 Weights (whitening ``W r``, ``W = diag(w)``), per axis from the reported sigmas:
-- ``inverse``   (eq. 5): w = 1 / sigma
-- ``isotropic`` (eq. 6): w = 1 / max(sigma_east, sigma_north, sigma_up)
-- ``affine``    (eq. 7): w = a / sigma + b
+- ``inverse``   (eq. 5): sigma' = sigma (per axis)
+- ``isotropic`` (eq. 6): sigma' = max(sigma_east, sigma_north, sigma_up)
+
+and with the user's a, b (eq. 7; a = 1, b = 0 by default) w = a / sigma' + b, for
+either (an ``affine`` weighting of its own had been the only one to read a, b).
 An optional Huber loss (``gtsam.noiseModel.Robust``) bounds the pull of outliers.
 """
 
@@ -36,16 +38,16 @@ from numpy.typing import ArrayLike, NDArray
 from common.errors import CollabSlamError
 
 FloatArray = NDArray[np.float64]
-WEIGHTINGS = ("inverse", "isotropic", "affine")
+WEIGHTINGS = ("inverse", "isotropic")
 
 
 @dataclass(frozen=True)
 class GpsWeighting:
     """How reported sigmas become factor weights; see the module docstring."""
 
-    mode: str = "inverse"  # inverse | isotropic | affine
-    a: float = 1.0  # eq. 7, used by "affine"
-    b: float = 0.0  # eq. 7, 1/m, used by "affine"
+    mode: str = "inverse"  # inverse | isotropic
+    a: float = 1.0  # eq. 7: w = a / sigma' + b
+    b: float = 0.0  # eq. 7, 1/m
     huber_k: float | None = 1.345  # whitened units; None: plain least squares
     sigma_min_m: float = 0.05  # m, floor on every reported sigma
     lever_arm: tuple[float, float] = (0.0, 0.0)  # m, antenna in the body frame (x fwd, y left)
@@ -77,10 +79,8 @@ def gps_weights(sigmas_enu: ArrayLike, weighting: GpsWeighting) -> FloatArray:
     if s.shape != (3,) or not np.all(np.isfinite(s)) or np.any(s <= 0):
         raise CollabSlamError(f"GPS sigmas must be 3 finite values > 0, got {sigmas_enu!r}")
     s = np.maximum(s, weighting.sigma_min_m)
-    if weighting.mode == "inverse":
-        return 1.0 / s
     if weighting.mode == "isotropic":
-        return np.full(3, 1.0 / s.max())
+        s = np.full(3, s.max())
     return weighting.a / s + weighting.b
 
 

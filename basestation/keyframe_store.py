@@ -111,6 +111,7 @@ class KeyframeStore:
         self.robots: dict[str, RobotKeyframes] = {}
         self._points: OrderedDict[tuple[str, int], np.ndarray] = OrderedDict()
         self.points_made = 0  # scan_points() calls (cache misses)
+        self._clouds_from: set[str] = set()  # robots warned of for sending 3-D clouds
 
     def points(self, robot_id: str, i: int) -> np.ndarray:
         """Keyframe i's scan points, (N, 2) float32 in its body frame (m); read only."""
@@ -219,6 +220,11 @@ class KeyframeStore:
                 + (np.zeros(2) if k.seq == 0 else np.array([0.5 * (c[0, 0] + c[1, 1]), c[5, 5]]))
             )
             r.has_scan.append(k.scan2d is not None)
+            if k.cloud3d is not None and k.robot_id not in self._clouds_from:
+                self._clouds_from.add(k.robot_id)
+                log.warning("robot %s sends 3-D clouds: the base station maps 2-D "
+                            "scans only; its keyframes join the pose graph, its clouds "
+                            "are neither matched nor drawn", k.robot_id)  # fmt: skip
             self.scan_archive.add((k.robot_id, k.seq), k.scan2d)
         return ready
 

@@ -51,6 +51,7 @@ from common.config import Config
 from common.errors import CollabSlamError
 from common.geometry import pose4_to_pose7
 from common.logging_setup import set_sim_clock
+from common.map_io import EXPLORATION_FREE_THRESH
 from common.memory import HeapTrimmer
 from common.metrics import TIMINGS_KEPT
 from common.scenario import Scenario
@@ -345,7 +346,7 @@ class BaseStationNode:
 
     def explore(self) -> None:
         """One exploration step: new paths (map frame) for the robots that need one."""
-        grid = self.map.gridmap(free_thresh=0.49)
+        grid = self.map.gridmap(free_thresh=EXPLORATION_FREE_THRESH)
         if grid is None or self.explorer is None:
             return
         with self._lock:

@@ -184,8 +184,8 @@ class GpsConfig:
     """GPS position factors in the pose graph (seed 000 §III, eq. 3-7); map = ENU."""
 
     enabled: bool = False
-    weighting: str = "inverse"  # inverse (eq. 5) | isotropic (eq. 6, worst sigma) | affine (eq. 7)
-    a: float = 1.0  # eq. 7: weight = a / sigma + b (per axis), 1/m
+    weighting: str = "inverse"  # inverse (eq. 5) | isotropic (eq. 6, worst sigma)
+    a: float = 1.0  # eq. 7: weight = a / sigma + b (either weighting's sigma), 1/m
     b: float = 0.0  # eq. 7, 1/m
     huber: bool = True  # Huber loss on the whitened GPS residual
     huber_k: float = 1.345  # Huber width in whitened units

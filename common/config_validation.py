@@ -8,15 +8,19 @@ loading; here only values and their relations.
 from __future__ import annotations
 
 import dataclasses
+import logging
 import typing
 from collections.abc import Iterable, Iterator
 from typing import TYPE_CHECKING, Any
 
 from common.errors import ConfigError
+from common.map_io import EXPLORATION_FREE_THRESH
 from protocol.messages import KEYFRAME_VAR_RANGE
 
 if TYPE_CHECKING:  # common.config imports this module
     from common.config import BaseStationConfig, Config
+
+log = logging.getLogger(__name__)
 
 
 # Numbers that may be negative: biases, offsets and coordinates. Every other number in the
@@ -196,8 +200,14 @@ def _validate_map(cfg: Config) -> None:
     _positive("map.resolution_m", cfg.map.resolution_m)
     for key in ("p_hit", "p_miss", "p_min", "p_max", "occupied_thresh", "free_thresh"):
         _prob(f"map.{key}", getattr(cfg.map, key))
-    if not cfg.map.p_miss < 0.5 < cfg.map.p_hit:
-        raise ConfigError("map.p_hit / map.p_miss: expected p_miss < 0.5 < p_hit")
+    m = cfg.map  # (checked at the first map update, these had stopped the base station)
+    if not m.p_min < m.p_miss < 0.5 < m.p_hit < m.p_max:
+        raise ConfigError("map.p_min / p_miss / p_hit / p_max: expected "
+                          "p_min < p_miss < 0.5 < p_hit < p_max")  # fmt: skip
+    if not m.free_thresh < m.occupied_thresh or not m.occupied_thresh > EXPLORATION_FREE_THRESH:
+        raise ConfigError(f"map.free_thresh / occupied_thresh: expected free_thresh < "
+                          f"occupied_thresh and occupied_thresh > {EXPLORATION_FREE_THRESH} "
+                          "(exploration's free threshold)")  # fmt: skip
     _positive("map.rerender_tile_m", cfg.map.rerender_tile_m)
     _positive("map.max_radius_m", cfg.map.max_radius_m)
     if cfg.map.rerender_budget_s < 0.0:
@@ -341,6 +351,8 @@ def _validate_backend(b: BaseStationConfig) -> None:
         ),
     )
     _non_negative_fields("basestation.constraints", cc, ("inter_redundant_keyframes",))
+    for key in ("min_score", "min_overlap", "global_min_score"):  # (> 1: no match ever)
+        _prob(f"basestation.constraints.{key}", getattr(cc, key))
     if not 0.0 <= cc.false_match_fraction < 1.0:
         raise ConfigError("basestation.constraints.false_match_fraction: expected 0 <= f < 1")
     if cc.robust_kernel not in ("huber", "cauchy", "none"):
@@ -366,9 +378,13 @@ def _validate_gps(cfg: Config) -> None:
     if not -90.0 <= g.origin_lat_deg <= 90.0 or not -180.0 <= g.origin_lon_deg <= 180.0:
         raise ConfigError("sim.gnss.origin_lat_deg / origin_lon_deg: out of WGS84 range")
     p = cfg.basestation.gps
-    if p.weighting not in ("inverse", "isotropic", "affine"):
+    if p.weighting == "affine":  # (a config of an earlier version: the same weights)
+        log.warning("basestation.gps.weighting = 'affine' is 'inverse' now: a and b "
+                    "apply to either weighting")  # fmt: skip
+        p.weighting = "inverse"
+    if p.weighting not in ("inverse", "isotropic"):
         raise ConfigError(
-            f"basestation.gps.weighting: expected inverse, isotropic or affine, got {p.weighting!r}"
+            f"basestation.gps.weighting: expected inverse or isotropic, got {p.weighting!r}"
         )
     if p.a < 0.0 or p.b < 0.0 or not (p.a > 0.0 or p.b > 0.0):
         raise ConfigError("basestation.gps.a / b: expected a, b >= 0, not both 0")

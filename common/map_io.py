@@ -37,6 +37,8 @@ OCCUPIED = 100
 # (free_thresh 0.196, occupied_thresh 0.65).
 FREE_MAX = 19
 OCCUPIED_MIN = 65
+# exploration's free cells: seen free more often than not (frontiers, planning)
+EXPLORATION_FREE_THRESH = 0.49
 
 # Pixel values written by write_map (map_saver convention).
 PIXEL_FREE = 254

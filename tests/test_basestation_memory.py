@@ -5,6 +5,7 @@ points are a bounded cache, and that nothing grows while no new keyframe arrives
 
 from __future__ import annotations
 
+import dataclasses
 import gc
 import json
 import time
@@ -12,6 +13,7 @@ import tracemalloc
 from pathlib import Path
 
 import numpy as np
+import pytest
 from process_helpers import synthetic_keyframe
 
 from basestation.inbox import KeyframeInbox
@@ -22,7 +24,7 @@ from basestation.scan_archive import ScanArchive
 from common.bus import Bus
 from common.config import Config
 from common.geometry import se2_compose
-from protocol import Keyframe, RobotState
+from protocol import Cloud3D, Keyframe, RobotState
 
 BEAMS = 1081  # the simulated lidar's
 
@@ -67,6 +69,20 @@ def test_store_keeps_scans_and_a_bounded_points_cache() -> None:
     np.testing.assert_array_equal(again, first)
     np.testing.assert_array_equal(again, scan_points(scan0))
     assert store.points("r0", 0) is again and store.points_made == 601  # cached now
+
+
+def test_a_robot_sending_3d_clouds_is_named_once(caplog: pytest.LogCaptureFixture) -> None:
+    """The base station maps 2-D scans only: a cloud keyframe joins the graph's chain
+    (admitted, acknowledged) and the robot is named once in a warning (before, its
+    clouds were dropped without a word)."""
+    store = KeyframeStore()
+    rng = np.random.default_rng(0)
+    cloud = Cloud3D(rng.uniform(-5.0, 5.0, (500, 3)).astype(np.float32))
+    kfs = [dataclasses.replace(k, scan2d=None, cloud3d=cloud) for k in _tour("r0", 5)]
+    with caplog.at_level("WARNING"):
+        assert sum(len(store.admit(kf)) for kf in kfs) == 5
+    assert caplog.text.count("robot r0 sends 3-D clouds") == 1
+    assert store.robot("r0").next_seq == 5 and not any(store.robot("r0").has_scan)
 
 
 def test_store_with_a_database_keeps_a_bounded_number_of_scans(tmp_path: Path) -> None:

@@ -51,6 +51,15 @@ def test_round_trip(tmp_path: Path) -> None:
         ({"agent.local_slam.max_match_yaw_jump_deg": -1.0}, "agent.local_slam.max_match_yaw"),
         ({"agent.resend_batch": 0}, "agent.resend_batch"),
         ({"agent.safety_margin_m": 0.3}, "agent.vehicle_radius_m + agent.safety_margin_m"),
+        # taken, these had stopped the base station at its first map update
+        ({"map.occupied_thresh": 0.45}, "map.free_thresh / occupied_thresh"),
+        ({"map.free_thresh": 0.7}, "map.free_thresh / occupied_thresh"),
+        ({"map.p_min": 0.45}, "map.p_min / p_miss / p_hit / p_max"),
+        ({"map.p_max": 0.6}, "map.p_min / p_miss / p_hit / p_max"),
+        # a score or overlap above 1 had turned every loop closure off without a word
+        ({"basestation.constraints.min_score": 1.5}, "basestation.constraints.min_score"),
+        ({"basestation.constraints.min_overlap": 1.2}, "basestation.constraints.min_overlap"),
+        ({"basestation.constraints.global_min_score": 2}, "basestation.constraints.global_min"),
     ],
 )
 def test_bad_values_name_the_key(overrides: dict, key: str) -> None:
@@ -102,6 +111,10 @@ def test_a_config_written_by_an_earlier_version_is_taken(
     with caplog.at_level("WARNING"):
         assert load_config(path) == Config()
     assert "agent.local_slam.match_sigma_per_m is no longer used" in caplog.text
+    # a retired value: the GPS weighting `affine` is `inverse` (a, b apply to either)
+    with caplog.at_level("WARNING"):
+        old_gps = load_config(overrides={"basestation.gps.weighting": "affine"})
+    assert old_gps.basestation.gps.weighting == "inverse" and "'affine' is 'inverse'" in caplog.text
     path.write_text(text.replace("match_sigma_per_m", "match_sigma_typo"))
     with pytest.raises(ConfigError, match="unknown config key agent.local_slam.match_sigma_typo"):
         load_config(path)

@@ -82,17 +82,18 @@ def test_weights_match_equations_5_6_7() -> None:
     sig = np.array([0.8, 1.6, 3.2])
     np.testing.assert_allclose(gps_weights(sig, GpsWeighting("inverse")), 1 / sig)  # eq. 5
     np.testing.assert_allclose(gps_weights(sig, GpsWeighting("isotropic")), [1 / 3.2] * 3)
-    affine = GpsWeighting("affine", a=2.0, b=0.5)  # eq. 7: a diag(sigma)^-1 + b I
-    np.testing.assert_allclose(
-        gps_weights(sig, affine), [2 / 0.8 + 0.5, 2 / 1.6 + 0.5, 2 / 3.2 + 0.5]
-    )
+    eq7 = GpsWeighting("inverse", a=2.0, b=0.5)  # eq. 7: a diag(sigma)^-1 + b I
+    np.testing.assert_allclose(gps_weights(sig, eq7), [2 / 0.8 + 0.5, 2 / 1.6 + 0.5, 2 / 3.2 + 0.5])
+    # eq. 6 with eq. 7: a and b apply to the worst sigma (they had done nothing here)
+    eq67 = GpsWeighting("isotropic", a=2.0, b=0.5)
+    np.testing.assert_allclose(gps_weights(sig, eq67), [2 / 3.2 + 0.5] * 3)
     floor = GpsWeighting("inverse", sigma_min_m=1.0)
     np.testing.assert_allclose(gps_weights(sig, floor), [1.0, 1 / 1.6, 1 / 3.2])
 
 
 def test_noise_model_whitens_with_the_weights() -> None:
     sig = np.array([0.8, 1.6, 3.2])
-    for weighting in (GpsWeighting("inverse", huber_k=None), GpsWeighting("affine", 2, 0.5, None)):
+    for weighting in (GpsWeighting("inverse", huber_k=None), GpsWeighting("inverse", 2, 0.5, None)):
         noise = gps_noise(sig, weighting)
         r = np.array([0.5, -0.25])
         np.testing.assert_allclose(noise.whiten(r), gps_weights(sig, weighting)[:2] * r)
@@ -113,7 +114,7 @@ def test_bad_inputs_raise() -> None:
     with pytest.raises(CollabSlamError):
         GpsWeighting("median")
     with pytest.raises(CollabSlamError):
-        GpsWeighting("affine", a=0.0, b=0.0)
+        GpsWeighting("inverse", a=0.0, b=0.0)
     with pytest.raises(CollabSlamError):
         gps_weights([1.0, 0.0, 1.0], GpsWeighting())
     with pytest.raises(CollabSlamError):

@@ -226,7 +226,7 @@ def test_gps_options_reach_the_pose_graph() -> None:
     cfg = load_config(
         overrides={
             "basestation.gps.enabled": True,
-            "basestation.gps.weighting": "affine",
+            "basestation.gps.weighting": "isotropic",
             "basestation.gps.a": 2.0,
             "basestation.gps.b": 0.5,
             "basestation.gps.huber": False,
@@ -236,7 +236,7 @@ def test_gps_options_reach_the_pose_graph() -> None:
         }
     )
     w = pose_graph_options(cfg.basestation)["gps_weighting"]
-    assert (w.mode, w.a, w.b, w.huber_k, w.sigma_min_m) == ("affine", 2.0, 0.5, None, 0.3)
+    assert (w.mode, w.a, w.b, w.huber_k, w.sigma_min_m) == ("isotropic", 2.0, 0.5, None, 0.3)
     assert tuple(w.lever_arm) == (0.25, -0.1)
 
 

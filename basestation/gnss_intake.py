@@ -14,7 +14,10 @@ import logging
 import numpy as np
 from numpy.typing import NDArray
 
+from common.errors import CollabSlamError
 from common.geodesy import GeoOrigin, geodetic_to_enu
+from common.scenario import Scenario
+from common.world_files import world_wgs84_origin
 from protocol import GnssFix
 
 log = logging.getLogger(__name__)
@@ -22,12 +25,39 @@ log = logging.getLogger(__name__)
 ORIGIN_FIXES = 5  # fixes whose median sets an origin the world does not give
 
 
+def map_georeference(scenario: Scenario | None, headings: bool) -> tuple[GeoOrigin | None, str]:
+    """The map frame's WGS84 origin (None: not known yet) and why the map is not ENU ("":
+    it is). With a scenario the map is its world frame, ENU at the scenario's WGS84
+    origin, else the world map YAML's; robots started from GNSS headings put it in ENU
+    at the first fixes' median (`GnssIntake.take`)."""
+    if scenario is None:
+        return None, "without a scenario (--scenario) the map is the first robot's odom frame"
+    origin = scenario.wgs84_origin
+    if origin is None:
+        try:
+            origin = world_wgs84_origin(scenario.world)
+        except CollabSlamError as exc:
+            log.warning("no WGS84 origin for the map: %s", exc)
+    if origin is None and not headings:
+        return None, ("the map is the scenario's world frame, whose WGS84 origin is not "
+                      "known (give the scenario a wgs84_origin, or the world's map YAML "
+                      "one)")  # fmt: skip
+    return origin, ""
+
+
 class GnssIntake:
-    def __init__(self, origin: GeoOrigin | None, reach_m: float) -> None:
+    def __init__(self, origin: GeoOrigin | None, reach_m: float, not_enu: str = "") -> None:
+        """`not_enu`: why the map frame is not ENU (empty: it is), when it is not: every
+        fix is then ignored (counted, named once). The fixes' median had been taken for
+        the origin of a world frame that has none (a scenario with known starts: 3.25 m
+        and 21 degrees of bend), or of the first robot's odom frame (no scenario), and
+        its files had claimed a georeference they did not have."""
         self.origin = origin
         self.reach_m = reach_m  # m from the origin: farther fixes are dropped
+        self.not_enu = not_enu
         self._first: list[GnssFix] = []  # held until the origin is known
         self.dropped = 0
+        self.ignored = 0  # fixes not taken: the map frame is not ENU
         self._origin_saved = False  # on the database (persistence.Batch.origin)
 
     def new_origin(self) -> list[float] | None:
@@ -41,13 +71,18 @@ class GnssIntake:
     def restore(self, stored: list[float] | None) -> None:
         """The origin of a restored database (None: none was set), unless the world gives
         one: set from the first fixes, it had been set again from the next five."""
-        if stored is not None and self.origin is None:
+        if stored is not None and self.origin is None and not self.not_enu:
             self.origin = GeoOrigin.from_sequence(stored)
         self._origin_saved |= stored is not None
 
     def take(self, fix: GnssFix) -> list[tuple[GnssFix, NDArray[np.float64]]]:
         """The fixes now ready for the graph (this one, or the held ones once the origin
         is set), each with its east-north position (m) in the map frame."""
+        if self.not_enu:
+            if not self.ignored:
+                log.error("GNSS fixes ignored: %s", self.not_enu)
+            self.ignored += 1
+            return []
         fixes = [fix]
         if self.origin is None:
             self._first.append(fix)

@@ -35,7 +35,7 @@ from basestation.exploration_setup import (
     planar_pose,
 )
 from basestation.global_slam import GlobalSlam
-from basestation.gnss_intake import GnssIntake
+from basestation.gnss_intake import GnssIntake, map_georeference
 from basestation.gps_fixes import local_pose
 from basestation.inbox import KeyframeInbox
 from basestation.lockstep import LockstepClock
@@ -48,14 +48,12 @@ from basestation.robot_segments import RobotSegments, robot_of
 from basestation.roster import Roster
 from common.bus import Bus
 from common.config import Config
-from common.errors import CollabSlamError
 from common.geometry import pose4_to_pose7
 from common.logging_setup import set_sim_clock
 from common.map_io import EXPLORATION_FREE_THRESH
 from common.memory import HeapTrimmer
 from common.metrics import TIMINGS_KEPT
 from common.scenario import Scenario
-from common.world_files import world_wgs84_origin
 from protocol import (
     ClockSync,
     GnssFix,
@@ -101,15 +99,9 @@ class BaseStationNode:
         if lockstep:  # DEBUG lines say the sim time of the step they are about
             set_sim_clock(lambda: self.clock.requested if self.clock.requested >= 0 else None)
         self.slam = GlobalSlam(cfg, starts, headings, self.db.scan_reader(), threaded=not lockstep)
-        # With a scenario, map is the world frame: ENU at its WGS84 origin (the scenario's,
-        # else the world YAML's, if any; else the first fixes' median: gnss_intake.py).
-        origin = None if scenario is None else scenario.wgs84_origin
-        if scenario is not None and origin is None:
-            try:
-                origin = world_wgs84_origin(scenario.world)
-            except CollabSlamError as exc:
-                log.warning("no WGS84 origin for the map: %s", exc)
-        self.gnss = GnssIntake(origin, 2.0 * cfg.map.max_radius_m)  # fixes -> map frame
+        # With a scenario, map is the world frame: ENU at its WGS84 origin (gnss_intake.py)
+        origin, not_enu = map_georeference(scenario, bool(headings))
+        self.gnss = GnssIntake(origin, 2.0 * cfg.map.max_radius_m, not_enu)  # fixes -> map
         self.map = MapBuilder(cfg.map, self.slam.store.scans)
         self.explorer = make_explorer(cfg, lockstep) if cfg.exploration.enabled else None
         self._last_explore = 0.0
@@ -467,6 +459,7 @@ class BaseStationNode:
     def stats(self) -> dict[str, Any]:
         return {
             **self.slam.stats(),
+            "gnss_fixes_not_enu": self.gnss.ignored,  # the map frame is not ENU: none taken
             "unknown_robot_drops": self.roster.drops,
             "intake_pauses": self.intake_pauses,
             "inbox_drops": self.inbox.drops,  # full inbox: sent again by the agents

@@ -92,6 +92,11 @@ class Simulator:
         q = s.quadrotor
         self.robots: dict[str, SimRobot] = {}
         origin = scenario.wgs84_origin or world_origin(world.geo_origin, s.gnss)
+        # where the world frame is ENU: the fixes' origin (the ground truth had named the
+        # world's while the fixes were made at the scenario's); None: nowhere known
+        self.geo_origin = (
+            origin if scenario.wgs84_origin or world.geo_origin or s.gnss.enabled else None
+        )
         for i, r in enumerate(scenario.robots):
             x, y, yaw = (float(v) for v in r.start_pose)
             self.robots[r.robot_id] = SimRobot(
@@ -376,7 +381,7 @@ class Simulator:
             write_tum(
                 out / "ground_truth" / f"{rid}.tum",
                 Trajectory.from_pose4(gt[:, 0], gt[:, 1:5]),
-                wgs84_origin=self.world.geo_origin,  # the world frame is ENU there
+                wgs84_origin=self.geo_origin,  # the world frame is ENU there
             )
         (out / "simulator.json").write_text(json.dumps(self.stats(), indent=1))
 

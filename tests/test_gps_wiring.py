@@ -6,6 +6,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 from basestation.global_slam import GlobalSlam
 from basestation.node import BaseStationNode
@@ -264,3 +265,57 @@ def test_a_heading_robot_matched_onto_the_map_before_its_first_fix_keeps_its_fix
     slam.optimize()
     assert slam.graph.is_anchored("r1") and slam.gps_fixes_ignored == 0
     assert np.allclose(slam.graph.poses("r1")[-1, :2], [0.2 * 39 + 10.0, -3.0], atol=0.5)
+
+
+def test_fixes_are_not_taken_where_the_map_is_not_enu(
+    tmp_path: Path, endpoint: str, caplog: pytest.LogCaptureFixture
+) -> None:
+    """Known starts on a world with no WGS84 origin: the map is the world frame, but where
+    it is on Earth is not known. The first fixes' median had been taken for the world's
+    (0, 0), and a robot starting at (20, 10) was bent 3.25 m and 21 degrees. Without a
+    scenario the map is the first robot's odom frame: its files had claimed a WGS84
+    georeference. Now the fixes are ignored, named once, and no file claims one."""
+    grid = GridMap(np.zeros((10, 10), np.int8), 0.1, (0.0, 0.0, 0.0))  # no wgs84_origin
+    write_map(grid, tmp_path / "w.yaml")
+    start = np.array([20.0, 10.0, 0.0])
+    scenario = Scenario(str(tmp_path / "w.yaml"), [RobotScenario("r0", start)])
+    for sc, why in ((scenario, "whose WGS84 origin is not known"), (None, "without a scenario")):
+        caplog.clear()
+        with Bus(ZenohConfig(listen=[endpoint]), "default") as bus, caplog.at_level("ERROR"):
+            node = BaseStationNode(_cfg(), bus, sc)
+            for seq in range(30):
+                node._on_keyframe(_keyframe(seq), "k")
+                t = 0.5 * seq + 0.25
+                node.gnss_inbox.put(_fix(t, start[0] + 0.4 * t, start[1]))
+                node.step(timeout=0.01)
+            node.step(timeout=0.01)
+            stats = node.stats()
+            assert stats["gps"]["gps_factors"] == 0 and stats["gnss_fixes_not_enu"] == 30
+            assert node.gnss.origin is None
+            node.write_outputs(tmp_path / "out")
+        assert caplog.text.count("GNSS fixes ignored") == 1 and why in caplog.text
+        est = node.slam.graph.poses("r0")[-1, :2]
+        if sc is not None:  # the world frame: where the known start and odometry put it
+            assert np.allclose(est, start[:2] + [0.2 * 29, 0.0], atol=0.05)
+        assert "wgs84_origin" not in (tmp_path / "out" / "trajectories" / "r0.tum").read_text()
+        assert "wgs84_origin" not in (tmp_path / "out" / "map.yaml").read_text()
+
+
+def test_the_ground_truth_is_georeferenced_where_the_fixes_are_made(
+    tmp_path: Path, endpoint: str
+) -> None:
+    """A scenario's own WGS84 origin: the simulator makes its fixes there, and its ground
+    truth had named the world YAML's origin (45.8118, 16.0106) instead."""
+    from common.trajectory_io import read_tum
+    from simulation.simulator import Simulator
+    from simulation.world import World
+
+    own = GeoOrigin(46.0, 15.0, 200.0)
+    cfg = load_config(overrides={"sim.gnss.enabled": True})
+    sc = Scenario("bshape", [RobotScenario("r0", np.array([1.0, 1.0, 0.0]))], 0, own)
+    with Bus(ZenohConfig(listen=[endpoint]), "default") as bus:
+        sim = Simulator(cfg, bus, sc, World.load("bshape"), 1.0)
+        assert sim.robots["r0"].gnss.origin == own
+        sim.robots["r0"].gt.append([0.0, 1.0, 1.0, 1.0, 0.0])
+        sim.write_outputs(tmp_path)
+    assert read_tum(tmp_path / "ground_truth" / "r0.tum").wgs84_origin == own

@@ -19,6 +19,8 @@ from common.bus import Bus
 from common.config import Config
 from common.errors import PersistenceError
 from common.geometry import se2_compose
+from common.map_io import GridMap, write_map
+from common.scenario import RobotScenario, Scenario
 from protocol import GnssFix, Keyframe, RobotState, encode
 from protocol import Path as PathMsg
 
@@ -277,10 +279,13 @@ def test_gnss_fixes_and_the_map_origin_are_restored(
     assert back.graph.is_anchored("r0") and back.graph.num_gps_factors == 8
     np.testing.assert_allclose(back.T_map_odom("r0"), live.T_map_odom("r0"), atol=1e-6)
     cfg.basestation.db_path, cfg.zenoh.listen = str(tmp_path / "node.db"), [endpoint]
+    cfg.basestation.known_start_poses = False  # robots started from GNSS headings
+    write_map(GridMap(np.zeros((10, 10), np.int8), 0.1, (0.0, 0.0, 0.0)), tmp_path / "w.yaml")
+    scenario = Scenario(str(tmp_path / "w.yaml"), [RobotScenario("r0", np.array([0, 0, 0.3]))])
     origins = []
     for start in range(2):  # a node whose world gives no WGS84 origin, then its restart
         with Bus(cfg.zenoh, cfg.fleet) as bus:
-            node = BaseStationNode(cfg, bus, None)
+            node = BaseStationNode(cfg, bus, scenario)
             node.recover()
             for i in range(5):  # the first five fixes' median is the origin
                 lat = 48.0 + 1e-4 * (i + 5 * start)

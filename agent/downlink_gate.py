@@ -34,6 +34,7 @@ class DownlinkGate:
         self._clock = 0.0  # the latest such clock (not reset: `_clock_jump` compares to it)
         self._clock_jump = JumpGate()  # one at 1e9 s had every tick wait `timeout_s`
         self._mark: DownlinkMark | None = None  # the base station's latest
+        self._mark_jump = JumpGate()
         self._paths = 0  # Path messages received
         self._epoch = -1  # the latest correction's epoch received
         self._state_sent = -1.0  # stamp of the latest state sent
@@ -45,6 +46,12 @@ class DownlinkGate:
     # --- Zenoh threads ------------------------------------------------------------------
     def on_mark(self, mark: DownlinkMark, key: str = "") -> None:
         with self._cond:
+            # one stamped far ahead had been kept for good, and every tick waited for it
+            last = self._clock if self._mark is None else max(self._mark.stamp, self._clock)
+            if self._mark_jump.holds(mark.stamp, last):
+                log.error("downlink mark stamped %.6g, far past the last: dropped unless "
+                          "the next follows it", mark.stamp)  # fmt: skip
+                return
             if self._resumed:  # counted from the first: what came before is not for us
                 self._resumed = False
                 self._paths, self._epoch = (

@@ -3,7 +3,7 @@
 Every process talks through a `Bus`. Publishers encode protocol messages;
 subscribers decode and validate them, and a payload that fails (malformed,
 oversized, wrong version, NaN, a robot id that does not match its key) is
-logged once per reason and dropped: the callback never sees it and the process
+logged (the first few of each kind) and dropped: the callback never sees it and the process
 keeps running. Reliable data (keyframes, acks, corrections, commands) uses
 `Reliability.RELIABLE` + `CongestionControl.BLOCK`.
 
@@ -32,6 +32,8 @@ from protocol.keys import Keys
 
 log = logging.getLogger(__name__)
 M = TypeVar("M")
+REJECTS_LOGGED_PER_KIND = 5  # bad messages of one kind logged in full (then 1 in 1000)
+REJECT_KINDS_KEPT = 64  # kinds counted apart in `rejected`; then "other"
 
 
 def zenoh_config(zc: ZenohConfig) -> zenoh.Config:
@@ -149,11 +151,16 @@ class Bus:
         self._handles.append(self.session.declare_subscriber(key_expr, on_sample))
 
     def _reject(self, key: str, reason: str) -> None:
+        kind = reason.split(":")[0]
         with self._lock:
-            self.rejected[reason.split(":")[0]] += 1
-            n = sum(self.rejected.values())
-        # Log the first few in full, then every 1000th, so a flood cannot drown the log.
-        if n <= 20 or n % 1000 == 0:
+            if kind not in self.rejected and len(self.rejected) >= REJECT_KINDS_KEPT:
+                kind = "other"  # (a kind can name a robot id: a flood of them is bounded)
+            self.rejected[kind] += 1
+            n, of_kind = sum(self.rejected.values()), self.rejected[kind]
+        # The first few of each kind in full, then every 1000th, so a flood cannot drown
+        # the log (the first 20 of all had been logged: after an old agent's 20 states,
+        # another robot's NaN keyframes were dropped without a line)
+        if of_kind <= REJECTS_LOGGED_PER_KIND or n % 1000 == 0:
             log.error("dropped bad message on %s: %s (%d rejected so far)", key, reason, n)
 
     # --- liveliness ---------------------------------------------------------------------

@@ -3,6 +3,7 @@ what a process takes from the wire is refused here, not deep inside the one usin
 
 from __future__ import annotations
 
+import math
 import re
 
 import numpy as np
@@ -39,9 +40,31 @@ def check_covariance(name: str, cov: np.ndarray) -> None:
     if np.abs(cov - cov.T).max() > 1e-9 * np.abs(cov).max() or np.any(np.diag(cov) <= 0.0):
         raise ProtocolError(f"{name} must be symmetric with a positive diagonal")
     try:
-        np.linalg.cholesky(cov)
+        chol = np.linalg.cholesky(cov)
     except np.linalg.LinAlgError:
         raise ProtocolError(f"{name} is not positive definite") from None
+    # each variance given the ones before it (the pivots): a correlation within 1e-9 of
+    # +-1 had passed here, been refused by the pose graph's own test, and stopped the
+    # base station at every restart (its agent sent it again)
+    if np.any(np.diag(chol) ** 2 < 1e-9 * np.diag(cov)):
+        raise ProtocolError(f"{name} is nearly singular (a correlation within 1e-9 of 1)")
+
+
+MAX_SCAN_SPAN_RAD = 2.0 * math.pi * (1.0 + 1e-3)  # first to last beam: one turn at most
+
+
+def check_scan_angles(name: str, angle_min: float, angle_increment: float, beams: int) -> None:
+    """A scan's beams within one turn from an angle_min within two turns of 0: angles far
+    beyond (an increment of 1e37) had become inf in the map's float32 angles and stopped
+    the base station, at every restart too (the keyframe was stored)."""
+    if angle_increment == 0.0:
+        raise ProtocolError(f"{name}.angle_increment is 0")
+    span = abs(angle_increment) * max(beams - 1, 0)
+    if abs(angle_min) > 4.0 * math.pi or span > MAX_SCAN_SPAN_RAD:
+        raise ProtocolError(
+            f"{name}: angle_min {angle_min:.6g} rad and {beams} beams of "
+            f"{angle_increment:.6g} rad: expected |angle_min| <= 4 pi and one turn at most"
+        )
 
 
 def check_frame(frame: str, allowed: tuple[str, ...] = ("odom", "map")) -> None:

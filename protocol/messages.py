@@ -19,6 +19,7 @@ from protocol.checks import (
     check_pose7,
     check_position,
     check_robot_id,
+    check_scan_angles,
 )
 from protocol.codec import array_field, later_field, message
 
@@ -76,8 +77,7 @@ class LaserScan(Message):
             raise ProtocolError("LaserScan.ranges is empty")
         if not (0.0 <= self.range_min < self.range_max):
             raise ProtocolError("LaserScan: expected 0 <= range_min < range_max")
-        if self.angle_increment == 0.0:
-            raise ProtocolError("LaserScan.angle_increment is 0")
+        check_scan_angles("LaserScan", self.angle_min, self.angle_increment, self.ranges.size)
 
 
 @message
@@ -285,10 +285,11 @@ class Keyframe(Message):
                 f"Keyframe.delta_cov variances {var.min():.3g}..{var.max():.3g} outside "
                 f"{KEYFRAME_VAR_RANGE[0]:g}..{KEYFRAME_VAR_RANGE[1]:g}"
             )
-        if self.scan2d is not None and not 0.0 < self.scan2d.range_max:
-            raise ProtocolError(
-                f"Keyframe.scan2d.range_max must be > 0, got {self.scan2d.range_max}"
-            )
+        if (scan := self.scan2d) is not None:
+            if not 0.0 < scan.range_max:
+                raise ProtocolError(f"Keyframe.scan2d.range_max must be > 0, got {scan.range_max}")
+            n = scan.ranges_mm.size
+            check_scan_angles("Keyframe.scan2d", scan.angle_min, scan.angle_increment, n)
 
 
 @message

@@ -64,6 +64,9 @@ class SimRobot:
     gnss: GnssModel | None = None  # sim.gnss.enabled
     command: tuple[float, float, float, float] = (0.0, 0.0, 0.0, 0.0)
     answered: float = -1.0  # stamp of the last tick this robot's agent answered
+    # a command stamped far past the last (one at 1e9 s had every later one dropped as an
+    # old answer, and lock-step stopped waiting for the robot)
+    command_jump: JumpGate = field(default_factory=JumpGate)
     status: str = "starting"
     state_stamp: float = -1.0  # of the RobotState `status` is from
     state_due: float = -1.0  # of the latest RobotState its agent sent (its command says)
@@ -174,6 +177,10 @@ class Simulator:
             r = self.robots[msg.robot_id]
             if msg.stamp < r.answered:
                 return  # an old answer to a re-published tick
+            if r.command_jump.holds(msg.stamp, max(r.answered, self.t)):
+                log.error("robot %s: command stamped %.6g, far past the clock: dropped "
+                          "unless the next follows it", msg.robot_id, msg.stamp)  # fmt: skip
+                return
             r.command = (msg.vx, msg.vy, msg.vz, msg.yaw_rate)
             r.answered = msg.stamp
             r.state_due = msg.state_stamp

@@ -198,3 +198,30 @@ def test_a_resumed_agent_does_not_wait_for_what_went_to_the_one_before() -> None
         gate.on_correction(25)
         gate.wait()
         assert gate.timeouts == 2 * timeouts  # counted on from the first mark (or never in)
+
+
+def test_a_mark_or_a_simulated_command_far_ahead_is_held_back(endpoint: str) -> None:
+    """A DownlinkMark stamped 1e9 s (counting 10^6 paths) had been kept as the latest for
+    good: every tick waited out the timeout. A VehicleCommand stamped 1e9 s had become the
+    simulator's answered stamp: every later command was dropped as an old answer, and
+    the drone flew the glitch's velocity on."""
+    from common.config import load_config
+    from common.scenario import RobotScenario, Scenario
+    from simulation.simulator import Simulator
+    from simulation.world import World
+
+    gate = DownlinkGate(timeout_s=0.2)
+    gate.on_mark(DownlinkMark("r0", 1e9, 10**6, 0))
+    for t in (1.0, 2.0):
+        gate.on_mark(DownlinkMark("r0", t, 0, -1))
+        gate.on_clock(t)
+        gate.wait()
+    assert gate.timeouts == 0
+    cfg = load_config(overrides={"exploration.enabled": False})
+    sc = Scenario("rooms15", [RobotScenario("r0", np.array([1.5, 2.5, 0.0]))])
+    with Bus(ZenohConfig(listen=[endpoint]), cfg.fleet) as bus:
+        sim = Simulator(cfg, bus, sc, World.load("rooms15"), 10.0)
+        sim._on_command(VehicleCommand("r0", 0.025, 0.5, 0.0, 0.0, 0.0), "")
+        sim._on_command(VehicleCommand("r0", 1e9, 1.0, 0.0, 0.0, 0.0), "")
+        sim._on_command(VehicleCommand("r0", 0.05, 0.0, 0.0, 0.0, 0.0), "")  # stop
+        assert sim.robots["r0"].command[0] == 0.0 and sim.robots["r0"].answered == 0.05

@@ -212,6 +212,20 @@ def _not_positive_definite() -> np.ndarray:
     return cov
 
 
+def _nearly_singular() -> np.ndarray:
+    """x and y correlated to 1 - 1e-12: numpy's Cholesky takes it, the graph did not."""
+    cov = np.eye(6) * 1e-4
+    cov[0, 1] = cov[1, 0] = 1e-4 * (1.0 - 1e-12)
+    return cov
+
+
+def _scan_angles(angle_min: float, increment: float) -> Keyframe:
+    kf = _keyframe()
+    return dataclasses.replace(
+        kf, scan2d=dataclasses.replace(kf.scan2d, angle_min=angle_min, angle_increment=increment)
+    )
+
+
 def _slightly_asymmetric() -> np.ndarray:
     cov = np.eye(6) * 1e-4
     cov[0, 1], cov[1, 0] = 1e-5, 1e-5 + 5e-9  # within allclose's 1e-5 relative
@@ -227,6 +241,11 @@ def _slightly_asymmetric() -> np.ndarray:
         (_keyframe(delta_xy=1e7), "moves"),
         (_keyframe(range_max=-5.0), "range_max"),
         (_keyframe(cov=_slightly_asymmetric()), "symmetric"),  # (graph: "must be symmetric")
+        (_keyframe(cov=_nearly_singular()), "nearly singular"),  # at every restart too
+        # float32 angles of inf in the map: the base station stopped, at every restart
+        (_scan_angles(-2.356, 1e37), "one turn at most"),
+        (_scan_angles(1e20, 0.00436), "one turn at most"),
+        (_scan_angles(-2.356, 0.0), "angle_increment is 0"),
     ],
 )
 def test_keyframes_the_pose_graph_cannot_take_are_refused(kf: Keyframe, reason: str) -> None:

@@ -165,8 +165,10 @@ class GlobalSlam:
                 self._unsaved.clear()  # the journal need not keep the keyframes till the end
         self.optimize()
         self._new_nodes.clear()  # their candidates were searched before the crash
-        frames = self._frames(self.graph.components())
-        self._together = {r: frozenset(f) for f in frames for r in f}
+        # joined maps join again at the first search and are backfilled: a join's jobs were
+        # lost with the crash (robots started known on the map were never joined)
+        known = frozenset(r for r in self.graph.robots() if r in self.known_starts)
+        self._together = {r: known if r in known else frozenset([r]) for r in self.graph.robots()}
         self.take_journal()  # all of it is on disk already
         accepted = self.loops.accepted
         differ = sum(c.in_graph != (c.measurement.id in accepted) for c in rec.constraints)

@@ -5,10 +5,13 @@ are searched against each other from the start."""
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 from process_helpers import poll_until
 
 from basestation.global_slam import GlobalSlam
+from basestation.persistence import KeyframeDatabase
 from common.config import Config
 from common.geometry import pose4_to_pose7, se2_between
 from protocol import Keyframe, Scan2D
@@ -175,3 +178,63 @@ def test_stretches_two_robots_are_tied_at_get_no_more_inter_robot_matches() -> N
     assert stats["submitted_inter"] < all_stats["submitted_inter"], (stats, all_stats)
     assert 2 <= len(ties) <= len(all_ties) / 2, (ties, all_ties)
     assert error < 0.1 and all_error < 0.1
+
+
+def _early_ties(slam: GlobalSlam, n: int) -> int:
+    group = slam.loops.groups[("a", "b")]
+    return sum(
+        1 for i, m in group.measurements.items() if i in slam.loops.accepted and m.index_b < n - 21
+    )
+
+
+def test_a_joins_backfill_is_queued_again_after_a_restart(tmp_path: Path) -> None:
+    """A base station killed after two maps were joined (and stored) but before the
+    join's backfill jobs were verified: restored, it had taken the maps as joined for
+    good, never queued them again, and b's chain before the join hung on its odometry."""
+    world = World.load("floor30x25")
+    n = 37
+    xs = 1.5 + 0.5 * np.arange(n)
+    truth_a = np.column_stack([xs, np.full(n, 6.0), np.zeros(n)])
+    truth_b = truth_a + [0.0, 0.1, 0.02]
+    cfg = Config()
+    cfg.basestation.constraints.global_min_score = 1.0
+    cfg.basestation.constraints.merge_stretch_keyframes = 10
+    db = KeyframeDatabase(tmp_path / "base.db")
+    starts = {"a": truth_a[0]}
+    slam = GlobalSlam(cfg, known_starts=dict(starts))
+    try:
+        for kf in _keyframes(world, "a", truth_a) + _keyframes(world, "b", truth_b):
+            assert slam.admit(kf) == 1
+        slam.optimize()
+        slam.search_constraints()
+        _settle(slam)
+        db.commit(slam.take_journal())
+        cov = np.diag([1e-3, 1e-3, 1e-4])
+        for j in (n - 1, n - 11, n - 21):  # the join, as the node stores it
+            slam.loops.add(("a", j), ("b", j), se2_between(truth_a[j], truth_b[j]), cov, "inter")
+        slam.optimize()
+        db.commit(slam.take_journal())  # node._persist: on disk before acks
+        before = slam.builder.stats["submitted_inter"]
+        slam.search_constraints()
+        live_backfill = slam.builder.stats["submitted_inter"] - before
+        _settle(slam)
+        live_early = _early_ties(slam, n)
+    finally:
+        slam.close()
+    # ---- SIGKILL here: the backfill jobs were queued, not verified; restart on the db
+    db.close()
+    db2 = KeyframeDatabase(tmp_path / "base.db")
+    slam2 = GlobalSlam(cfg, known_starts=dict(starts))
+    try:
+        slam2.restore(db2.load())
+        assert slam2.graph.is_anchored("b")
+        before = slam2.builder.stats.get("submitted_inter", 0)
+        slam2.search_constraints()
+        restored_backfill = slam2.builder.stats.get("submitted_inter", 0) - before
+        _settle(slam2)
+        restored_early = _early_ties(slam2, n)
+    finally:
+        slam2.close()
+    assert live_backfill >= 5 and live_early >= 1
+    assert restored_backfill >= 5, "the join's backfill is never queued after the restart"
+    assert restored_early >= 1, "b's pre-join nodes stay untied after the restart"

@@ -18,7 +18,8 @@ at seq 0 in a session of its own: the base station maps it as a new segment of t
 robot (basestation/robot_segments.py); it had linked it into the old trajectory.
 
 A state older than `agent.resume_within_s` is another mission's: it is deleted, with
-its keyframes, and the agent starts afresh.
+its keyframes, and the agent starts afresh; keyframes of it that no base station
+acknowledged are kept aside (`_keep_unsent`), not sent.
 """
 
 from __future__ import annotations
@@ -133,11 +134,37 @@ def load(directory: Path, max_age_s: float) -> ResumePoint | None:
         return _start_afresh(directory, None)
     age = time.time() - point.saved_unix
     if not abs(age) <= max_age_s:  # (< 0: the host's clock was set back meanwhile)
-        return _start_afresh(directory, f"saved {age:.0f} s ago (> agent.resume_within_s)")
+        why = f"saved {age:.0f} s ago (> agent.resume_within_s)"
+        _keep_unsent(directory, point, why)
+        return _start_afresh(directory, why)
     log.warning("resuming from %s (saved %.1f s ago): keyframe chain %d at seq %d, %d not "
                 "acknowledged", path, age, point.chain, point.next_seq,
                 point.next_seq - point.acked_seq - 1)  # fmt: skip
     return point
+
+
+def _keep_unsent(directory: Path, point: ResumePoint, why: str) -> None:
+    """A stale state's keyframes no base station acknowledged are moved, with the state,
+    to a folder of their own (`unsent-<saved unix time>`), not deleted: a drone whose link
+    was lost, then landed and restarted after `agent.resume_within_s` (a battery swap),
+    had lost all it mapped meanwhile. They are not sent: that mission's base station may
+    be gone, and a new one would map them into its own mission."""
+    unsent = point.next_seq - point.acked_seq - 1
+    logs = sorted(directory.glob("keyframes-*.log"))
+    if unsent <= 0 or not logs:
+        return
+    keep = directory / f"unsent-{int(point.saved_unix)}"
+    try:
+        keep.mkdir(exist_ok=True)
+        for p in (*logs, directory / STATE_FILE):
+            os.replace(p, keep / p.name)
+    except OSError as exc:
+        log.error("%s: could not keep another mission's %d unacknowledged keyframes in %s "
+                  "(%s): deleted", directory, unsent, keep, exc)  # fmt: skip
+        return
+    log.error("%s: another mission's state, %s, with %d keyframes (seqs %d-%d of chain "
+              "%d) no base station acknowledged: kept in %s, not sent", directory, why,
+              unsent, point.acked_seq + 1, point.next_seq - 1, point.chain, keep)  # fmt: skip
 
 
 def _start_afresh(directory: Path, why: str | None) -> None:

@@ -64,6 +64,20 @@ def test_state_is_taken_up_only_when_recent_and_whole(tmp_path: Path, caplog) ->
     (tmp_path / STATE_FILE).write_text(json.dumps(raw))
     with caplog.at_level(logging.WARNING):
         assert load(tmp_path, max_age_s=60.0) is None
+    # its 2 keyframes no base station acknowledged are kept aside, not sent (they had been
+    # deleted: a drone restarted after a battery swap lost what it mapped with no link)
+    (kept,) = tmp_path.iterdir()
+    assert kept.name.startswith("unsent-") and "2 keyframes (seqs 10-11 of chain 0)" in caplog.text
+    assert sorted(p.name for p in kept.iterdir()) == ["keyframes-0000000000.log", STATE_FILE]
+    kept.rename(tmp_path.parent / f"{tmp_path.name}-kept")
+    save(tmp_path, ResumePoint(0, 12, 11, keyframe_pose=[0.0, 0.0, 1.0, 0.0]))  # all acked
+    (tmp_path / "keyframes-0000000000.log").write_bytes(b"")
+    raw = json.loads((tmp_path / STATE_FILE).read_text())
+    raw["saved_unix"] = time.time() - 3600.0
+    (tmp_path / STATE_FILE).write_text(json.dumps(raw))
+    caplog.clear()
+    with caplog.at_level(logging.WARNING):
+        assert load(tmp_path, max_age_s=60.0) is None
     assert "another mission's state" in caplog.text and not list(tmp_path.iterdir())
     for bad in ('{"chain": 0}', "[1, 2", json.dumps({**raw, "next_seq": -3})):
         (tmp_path / STATE_FILE).write_text(bad)

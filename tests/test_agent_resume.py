@@ -68,7 +68,11 @@ def test_state_is_taken_up_only_when_recent_and_whole(tmp_path: Path, caplog) ->
     # deleted: a drone restarted after a battery swap lost what it mapped with no link)
     (kept,) = tmp_path.iterdir()
     assert kept.name.startswith("unsent-") and "2 keyframes (seqs 10-11 of chain 0)" in caplog.text
-    assert sorted(p.name for p in kept.iterdir()) == ["keyframes-0000000000.log", STATE_FILE]
+    assert sorted(p.name for p in kept.iterdir()) == [
+        "keyframes-0000000000.log",
+        "path-0.json",
+        STATE_FILE,
+    ]
     kept.rename(tmp_path.parent / f"{tmp_path.name}-kept")
     save(tmp_path, ResumePoint(0, 12, 11, keyframe_pose=[0.0, 0.0, 1.0, 0.0]))  # all acked
     (tmp_path / "keyframes-0000000000.log").write_bytes(b"")
@@ -222,3 +226,27 @@ def test_keyframes_and_state_are_on_the_disk_itself_before_the_agent_goes_on(
     assert len(synced) == 3 and load(tmp_path, 60.0).session == 7
     kept.replace([b"%d" % k for k in range(12)])  # a new chain: once a file, not a keyframe
     assert len(synced) == 3 + 3 and len(list(kept.payloads())) == 12
+
+
+def test_the_path_is_written_when_it_changes_not_at_every_state(tmp_path: Path) -> None:
+    """A 2,000-waypoint tour had been written whole into every state (5 a second, on the
+    control thread: ~10 ms a save). It goes to a file of its own when it changes; the
+    state names it, and a resumed agent gets it back."""
+    tour = [[0.5 * k, 1.0] for k in range(2000)]
+    point = ResumePoint(0, 3, 1, keyframe_pose=[0.0, 0.0, 1.0, 0.0], path=tour, path_index=7)
+    assert save(tmp_path, point)
+    (written,) = tmp_path.glob("path-*.json")
+    first = written.stat().st_ino
+    for index in range(8, 12):  # states while flying it: the path file is not written again
+        point.path, point.path_index = [list(p) for p in tour], index
+        assert save(tmp_path, point)
+    assert [p.stat().st_ino for p in tmp_path.glob("path-*.json")] == [first]
+    assert (tmp_path / STATE_FILE).stat().st_size < 1000
+    got = load(tmp_path, max_age_s=60.0)
+    assert got is not None and got.path == tour and got.path_index == 11
+    point.path = [[1.0, 2.0]]  # a new path: a new file, the old one gone
+    assert save(tmp_path, point)
+    assert [p.name for p in tmp_path.glob("path-*.json")] == ["path-1.json"]
+    assert load(tmp_path, max_age_s=60.0).path == [[1.0, 2.0]]
+    (tmp_path / "path-1.json").unlink()  # the state names a file that is gone: afresh
+    assert load(tmp_path, max_age_s=60.0) is None and not list(tmp_path.iterdir())

@@ -86,6 +86,7 @@ def run_mission(
         if summary.get("coverage_curve")
         else None,
         "map_accuracy": summary["map_accuracy"],
+        "lockstep_timeouts": summary["lockstep_timeouts"],  # > 0: it may not repeat
         "wall_time_s": round(summary["wall_time_s"], 1),
         "coverage_curve": summary.get("coverage_curve", []),
         "out": str(out),

@@ -152,6 +152,10 @@ class Launcher:
         wall, contact = time.monotonic() - t0, 2.0 * self.cfg.sim.quadrotor.radius_m
         summary = build_summary(self.out, self.world_yaml, scenario.robot_ids, wall, contact)
         (self.out / "summary.json").write_text(json.dumps(summary, indent=1))
+        if summary["lockstep_timeouts"] and self.cfg.sim.clock == "lockstep":
+            log.warning("%d lock-step waits were given up (a process slower than its "
+                        "timeout: sim.basestation_timeout_s, sim.sync_wait_s): this run "
+                        "may not repeat", summary["lockstep_timeouts"])  # fmt: skip
         return summary
 
     def _supervise_until(self, sim: Child, others: list[Child]) -> None:

@@ -42,9 +42,9 @@ def build_summary(
     had been most of the figure), over its segments on the map (`on_map`: all were)."""
     sim = _load(out / "simulator.json")
     base = _load(out / "basestation.json")
-    robots = []
+    robots, agents = [], []
     for rid in robot_ids:
-        agent = _load(out / "agents" / f"{rid}.json")
+        agents.append(agent := _load(out / "agents" / f"{rid}.json"))
         segments = {s: r for s, r in base.get("robots", {}).items() if robot_of(s) == rid}
         in_graph = sum(r.get("keyframes_in_graph", 0) for r in segments.values())
         ate = None
@@ -93,6 +93,10 @@ def build_summary(
         "robot_contact": sep is not None and sep < contact_m,
         **_coverage_over_time(out, world_yaml, sim.get("sim_time_s")),
         "rejected_messages": base.get("rejected_messages", {}),
+        # waits of the lock-step clock given up (a base station's step over
+        # `sim.basestation_timeout_s`, a cold numba cache): such a run may not repeat
+        "lockstep_timeouts": sim.get("basestation_sync_timeouts", 0)
+        + sum(r.get("lockstep_downlink_timeouts", 0) for r in agents),
     }
 
 

@@ -29,3 +29,14 @@ def test_a_robot_that_never_joined_the_map_has_no_ate(tmp_path: Path) -> None:
     assert r0["on_map"] and r0["ate_rmse_m"] == 0.0
     assert not r1["on_map"] and r1["ate_rmse_m"] is None
     assert not r2["on_map"] and r2["keyframes_in_graph"] == 0  # never heard of
+
+
+def test_given_up_lock_step_waits_are_counted(tmp_path: Path) -> None:
+    """A base station compiling its numba kernels for over a minute on a loaded machine:
+    the simulator went on without it, the mission took another course (95 % at 17 s, not
+    20), and only sim.log said so. The summary counts the waits given up."""
+    (tmp_path / "agents").mkdir()
+    (tmp_path / "simulator.json").write_text(json.dumps({"basestation_sync_timeouts": 1}))
+    (tmp_path / "agents" / "r0.json").write_text(json.dumps({"lockstep_downlink_timeouts": 2}))
+    summary = build_summary(tmp_path, resolve_world("bshape"), ["r0", "r1"], 1.0)
+    assert summary["lockstep_timeouts"] == 3

@@ -235,6 +235,10 @@ class CarmenReplay:
         for rec, odom_pose in self._lasers():
             if first is None:
                 first = rec.stamp
+                if self.rate > 0.0 and (late := time.time() - start) > 1.0:
+                    log.warning("%s: the replay starts %.0f s after its start time: the "
+                                "first %.0f s of log come unpaced", self.path.name, late,
+                                late * self.rate)  # fmt: skip
                 mount = se2_between(rec.odom_pose, rec.laser_pose)
                 if np.abs(mount).max() > 1e-3:  # (the shipped logs' is zero)
                     log.warning("%s: the laser is mounted at %s from the robot (x, y, yaw): "

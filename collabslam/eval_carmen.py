@@ -33,6 +33,7 @@ log = logging.getLogger(__name__)
 # Log seconds per wall second of each segment's replay (agent.replay_rate; a huge value
 # replays as fast as the acks allow, as before).
 EVAL_REPLAY_RATE = 3.0
+EVAL_HEAD_START_S = 10.0  # s: the processes start (each reads its log) before the replay
 
 
 def map_frame_trajectory(local: Trajectory, keyframes: Trajectory) -> Trajectory:
@@ -76,6 +77,12 @@ def eval_carmen(
         raise CollabSlamError("--robots must be at least 1")
     rel = read_relations(rel_path)  # fail early on a bad file
     t0_log, t1_log = carmen_time_span(log_path)
+    in_log = (rel.t1 >= t0_log) & (rel.t2 >= t0_log) & (rel.t1 <= t1_log) & (rel.t2 <= t1_log)
+    if not in_log.any():  # (another log's: it had run the mission, then written NaN)
+        raise CollabSlamError(
+            f"{rel_path}: none of its {len(rel)} relations falls within the scans of "
+            f"{log_path} ({t0_log:.3f} to {t1_log:.3f} s): the relations of another log?"
+        )
     edges = np.linspace(t0_log, t1_log, robots + 1)
     edges[-1] += 1.0
     out = json_out.parent / json_out.stem
@@ -98,7 +105,9 @@ def eval_carmen(
     # drift apart in log time on a loaded machine, and a segment searches a map the first
     # one has not flown yet (ACES: 3 of 5 right unpaced; 4 of 4 paced at 3x).
     cfg.agent.replay_rate = cfg.agent.replay_rate or EVAL_REPLAY_RATE
-    cfg.agent.replay_start_unix = cfg.agent.replay_start_unix or time.time() + 5.0
+    # (this run's wall time: the one in an earlier run's config.toml, used again, had every
+    # segment behind its start, unpaced, without a word: ACES 2 of 3 robots on the map)
+    cfg.agent.replay_start_unix = time.time() + EVAL_HEAD_START_S
     dump_config(cfg, out / "config.toml")
     ep = endpoint(free_port())
     group = ProcessGroup(out, log_level)
@@ -170,6 +179,9 @@ def eval_carmen(
     )
     write_tum(out / "trajectory.tum", traj)
     err = score_relations(traj, on_map_relations(rel, parts))
+    if err.n_relations == 0:
+        raise CollabSlamError(f"no relation of {rel_path} could be scored (robots on the "
+                              f"map: {sorted(on_map)})")  # fmt: skip
     result = {
         "log": str(log_path),
         "relations": str(rel_path),
@@ -197,5 +209,5 @@ def eval_carmen(
         "outputs": str(out),
     }
     json_out.parent.mkdir(parents=True, exist_ok=True)
-    json_out.write_text(json.dumps(result, indent=1))
+    json_out.write_text(json.dumps(result, indent=1, allow_nan=False))
     return result

@@ -268,3 +268,18 @@ def test_aces_no_return_reading_is_50_m_and_intels_is_past_its_range_max(
     """On the real logs (the `shared_data` fixture: ../shared/data beside the checkout)."""
     for name, expected in (("aces.clf.bz2", 50.0), ("intel.clf.bz2", None)):
         assert saturation_range_m(shared_data / "carmen" / name) == expected
+
+
+def test_eval_carmen_refuses_relations_of_another_log_before_it_flies(tmp_path: Path) -> None:
+    """Relations none of which fall within the log's scans (another log's) had run the
+    whole mission, then written NaN into the JSON (not JSON) and exited 0."""
+    from collabslam.eval_carmen import eval_carmen
+    from common.config import Config
+    from common.errors import CollabSlamError
+
+    log_path = write_log(tmp_path, SMALL_LOG)
+    rel = tmp_path / "other.relations"
+    rel.write_text("5000.0 5001.0 0.1 0 0 0 0 0.01\n")
+    with pytest.raises(CollabSlamError, match="relations of another log"):
+        eval_carmen(Config(), log_path, rel, 2, tmp_path / "out.json")
+    assert not (tmp_path / "out").exists() and not (tmp_path / "out.json").exists()

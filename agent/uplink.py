@@ -28,6 +28,9 @@ from common.geometry import pose7_to_pose4
 from protocol import Keyframe, KeyframeAck, decode, encode
 
 log = logging.getLogger(__name__)
+# s of wall time with a base station up and no ack at all: named (the access control drops
+# every keyframe of a drone whose certificate is another's, or of another fleet, silently)
+NO_ACK_WARN_S = 60.0
 
 
 class KeyframeUplink:
@@ -52,6 +55,8 @@ class KeyframeUplink:
         # this agent's run (protocol MAX_SESSION): a resumed agent goes on in its session
         self.session = secrets.randbits(32) or 1 if resume is None else resume.session
         self.other_sessions = 0  # messages for another run of this robot, dropped
+        self.acks_heard = 0  # KeyframeAcks of this run
+        self._base_up_at: float | None = None  # monotonic s a base station came up
         if resume is not None:
             self._resume(resume)
 
@@ -94,6 +99,7 @@ class KeyframeUplink:
     def on_ack(self, msg: KeyframeAck, key: str = "") -> None:
         """(Zenoh thread) An ack of this chain; -1 after some were acknowledged: the base
         station has none of them (another one acknowledged them), a new chain is due."""
+        self.acks_heard += 1
         if msg.chain != self.chain:  # about a chain this agent has left
             return
         if msg.acked_seq < 0 <= self.outbox.acked_seq:
@@ -108,7 +114,9 @@ class KeyframeUplink:
         if not alive:
             log.warning("base station %s lost: flying on local SLAM, %d keyframes kept in "
                         "the outbox", name, len(self.outbox))  # fmt: skip
+            self._base_up_at = None
             return
+        self._base_up_at = self._base_up_at or time.monotonic()
         if again:
             log.info("base station %s is back: resending %d keyframes", name, len(self.outbox))
         self.outbox.kick()
@@ -141,6 +149,13 @@ class KeyframeUplink:
         if new:
             self.chain += 1
             self.next_seq = self.outbox.new_chain(self.chain)
+        up = self._base_up_at
+        if up is not None and not self.acks_heard and time.monotonic() - up > NO_ACK_WARN_S:
+            self._base_up_at = None  # (once a link)
+            log.error("a base station has been up %.0f s and acknowledged none of this "
+                      "robot's %d keyframes: is it busy, or does the access control drop "
+                      "them (a certificate for another robot id, another fleet name)?",
+                      NO_ACK_WARN_S, len(self.outbox))  # fmt: skip
         batch = self.outbox.due_for_resend()
         if batch:
             log.info("resending %d keyframes after seq %d (the last acknowledged)",

@@ -70,7 +70,8 @@ def own_ground(
         return out
     for k, i in enumerate(rows):
         others = np.delete(everyone, i, axis=0).min(axis=0)
-        out[k] = np.nan_to_num(np.clip(others - mine[k], 0.0, cap_m))
+        with np.errstate(invalid="ignore"):  # (inf - inf: reachable by none, 0)
+            out[k] = np.nan_to_num(np.clip(others - mine[k], 0.0, cap_m))
     return out
 
 

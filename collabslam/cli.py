@@ -39,9 +39,13 @@ def _version() -> str:
     return f"collabslam {__version__} (" + ", ".join(f"{k} {v}" for k, v in libs.items()) + ")"
 
 
-def _bus(cfg: Any) -> Any:
+def _bus(cfg: Any, certificate_name: str | None = None) -> Any:
+    """`certificate_name`: the CN the config file's certificate must have, if it has one."""
     from common.bus import Bus
+    from common.zenoh_security import check_certificate_name
 
+    if certificate_name and cfg.zenoh.config_file:
+        check_certificate_name(cfg.zenoh.config_file, certificate_name)
     return Bus(cfg.zenoh, cfg.fleet, cfg.protocol.max_message_bytes)
 
 
@@ -86,7 +90,7 @@ def cmd_agent(args: argparse.Namespace) -> int:
         T_map_odom = np.array([x, y, 0.0, yaw])
     stop = threading.Event()
     install_signal_handlers(stop)
-    with _bus(cfg) as bus:
+    with _bus(cfg, args.robot_id) as bus:
         if args.replay:
             a = cfg.agent
             source = CarmenReplay(
@@ -146,6 +150,7 @@ def cmd_basestation(args: argparse.Namespace) -> int:
     from common.memory import fix_mmap_threshold, limit_malloc_arenas
     from common.scenario import read_scenario
     from common.shutdown import install_signal_handlers
+    from common.zenoh_security import BASESTATION_CN
 
     cfg = load_cfg(args)
     b = cfg.basestation
@@ -155,7 +160,7 @@ def cmd_basestation(args: argparse.Namespace) -> int:
     scenario = read_scenario(args.scenario) if args.scenario else None
     stop = threading.Event()
     install_signal_handlers(stop)
-    with _bus(cfg) as bus:
+    with _bus(cfg, BASESTATION_CN) as bus:
         node = BaseStationNode(cfg, bus, scenario, lockstep=args.lockstep)
         node.start()
         log.info("base station running (fleet %s)", cfg.fleet)

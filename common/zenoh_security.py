@@ -22,6 +22,7 @@ any `--listen/--connect` endpoints still come from our `ZenohConfig`.
 from __future__ import annotations
 
 import json
+import ssl
 from pathlib import Path
 from typing import Any
 
@@ -69,6 +70,33 @@ def check_tls_files(conf: zenoh.Config, source: str) -> None:
             raise ConfigError(
                 f"{source}: transport.link.tls.{key} {path!r}: {exc.strerror}"
             ) from None
+
+
+def check_certificate_name(config_file: str, name: str) -> None:
+    """ConfigError if the certificate a Zenoh config file presents (its connect_, else its
+    listen_certificate) is not `name`'s (CN): the access control drops all this process
+    sends, and a drone given another drone's config had flown a mission mapping nothing,
+    with no line in any log."""
+    try:
+        conf = zenoh.Config.from_file(config_file)
+    except Exception:  # (the Bus names a file it cannot read)
+        return
+    for key in ("connect_certificate", "listen_certificate"):
+        path = json.loads(conf.get_json(f"transport/link/tls/{key}"))
+        if not path:
+            continue
+        try:  # (CPython's own PEM reader; the ssl module has no public one)
+            subject = ssl._ssl._test_decode_cert(path)["subject"]  # type: ignore[attr-defined]
+        except (OSError, ssl.SSLError, AttributeError, KeyError):
+            return  # (check_tls_files names a file it cannot read)
+        cn = dict(pair[0] for pair in subject).get("commonName")
+        if cn != name:
+            raise ConfigError(
+                f"zenoh.config_file {config_file!r}: its certificate {path} is {cn!r}'s, "
+                f"not {name!r}'s: the access control would drop everything this process "
+                "sends (another drone's config?)"
+            )
+        return
 
 
 def _rule(rule_id: str, flow: str, messages: list[str], key_exprs: list[str]) -> dict[str, Any]:

@@ -28,7 +28,12 @@ from collabslam.supervisor import free_port
 from common.bus import Bus, zenoh_config
 from common.config import ZenohConfig
 from common.errors import CollabSlamError, ConfigError
-from common.zenoh_security import basestation_config, robot_config, write_json5
+from common.zenoh_security import (
+    basestation_config,
+    check_certificate_name,
+    robot_config,
+    write_json5,
+)
 from protocol import GnssFix, Keyframe, KeyframeAck
 
 REPO = Path(__file__).resolve().parents[1]
@@ -300,3 +305,20 @@ def test_a_drones_relayed_gnss_fixes_reach_the_base_station_under_the_acl(
         wait_for(lambda: len(fixes) == 5 and len(kfs) == 5, 5.0)
     assert len(kfs) == 5, kfs  # control
     assert fixes == [0.0, 1.0, 2.0, 3.0, 4.0], fixes
+
+
+def test_a_drone_given_another_drones_config_is_refused_at_start(
+    tmp_path: Path, certs: tuple[Path, Path]
+) -> None:
+    """r1 started on r0's config (a copy to the wrong drone) had connected, had every
+    keyframe dropped by the access control, and flown the mission mapping nothing with no
+    line in any log. Now the agent (and a base station on a robot's config) refuses."""
+    from collabslam.cli import main
+
+    path = write_json5(robot_config(certs[0], "r0", ["tls/127.0.0.1:7447"]), tmp_path / "r0.json5")
+    check_certificate_name(str(path), "r0")  # its own: taken
+    with pytest.raises(ConfigError, match="certificate .*r0.pem is 'r0''s, not 'r1''s"):
+        check_certificate_name(str(path), "r1")
+    argv = ["agent", "--robot-id", "r1", "--zenoh-config", str(path), "--out", str(tmp_path)]
+    assert main(argv) != 0
+    assert main(["basestation", "--zenoh-config", str(path), "--out", str(tmp_path)]) != 0

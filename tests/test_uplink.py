@@ -316,3 +316,29 @@ def test_a_second_agent_with_the_same_id_is_named(caplog: pytest.LogCaptureFixtu
     assert "another agent sends as r0 (restarted, or two with this id)" in caplog.text
     assert st.admit(_kf(3)) == [] and r.next_seq == 3  # seq 3 would have joined the two
     assert st.ack("r0") is None and st.none_of("r0", 0, 3) is None
+
+
+def test_a_base_station_that_acknowledges_nothing_is_named(
+    cfg, endpoint: str, caplog: pytest.LogCaptureFixture
+) -> None:
+    """A drone whose keyframes the access control drops (another drone's certificate,
+    another fleet) had resent them all mission long with INFO lines only."""
+    import time
+
+    from agent.uplink import NO_ACK_WARN_S, KeyframeUplink
+    from common.bus import Bus
+    from common.config import ZenohConfig
+
+    with Bus(ZenohConfig(listen=[endpoint]), cfg.fleet) as bus:
+        up = KeyframeUplink(cfg.agent, "r0", bus)
+        up.on_base_alive("base-1", True, again=False)
+        kf = _kf(1)
+        fields = {k: getattr(kf, k) for k in ("stamp", "pose_odom", "delta", "delta_cov", "scan2d")}
+        assert up.send(**fields)
+        with caplog.at_level(logging.ERROR):
+            up.resend()  # up for less than NO_ACK_WARN_S: nothing said
+            assert "acknowledged none" not in caplog.text
+            up._base_up_at = time.monotonic() - NO_ACK_WARN_S - 1.0
+            up.resend()
+            up.resend()
+        assert caplog.text.count("acknowledged none of this robot's 1 keyframes") == 1

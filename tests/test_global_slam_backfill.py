@@ -68,22 +68,32 @@ def _settle(slam: GlobalSlam) -> None:
     assert poll_until(slam.idle, timeout=60.0)
 
 
-def test_nodes_flown_before_a_join_are_matched_against_the_other_robot() -> None:
-    world = World.load("floor30x25")
-    n = 37  # 0.5 m apart along the corridor at y = 6 m
+def _corridor(n: int = 37) -> tuple[World, np.ndarray, np.ndarray]:
+    """floor30x25 and two robots' truths side by side along its corridor, 0.1 m apart."""
     xs = 1.5 + 0.5 * np.arange(n)
     truth_a = np.column_stack([xs, np.full(n, 6.0), np.zeros(n)])
-    truth_b = truth_a + [0.0, 0.1, 0.02]
-    cfg = Config()
-    cfg.basestation.constraints.global_min_score = 1.0  # b cannot join by global search
+    return World.load("floor30x25"), truth_a, truth_a + [0.0, 0.1, 0.02]
+
+
+def _b_floating(cfg: Config) -> tuple[GlobalSlam, np.ndarray, np.ndarray]:
+    """a from its known start and b floating along the corridor (b cannot join by global
+    search; three stretches of 5 m join maps), both fed, searched and settled."""
+    world, truth_a, truth_b = _corridor()
+    cfg.basestation.constraints.global_min_score = 1.0
     cfg.basestation.constraints.merge_stretch_keyframes = 10  # 5 m: keyframes 0.5 m apart
     slam = GlobalSlam(cfg, known_starts={"a": truth_a[0]})
+    for kf in _keyframes(world, "a", truth_a) + _keyframes(world, "b", truth_b):
+        assert slam.admit(kf) == 1
+    slam.optimize()
+    slam.search_constraints()
+    _settle(slam)
+    return slam, truth_a, truth_b
+
+
+def test_nodes_flown_before_a_join_are_matched_against_the_other_robot() -> None:
+    n, cfg = 37, Config()  # 0.5 m apart along the corridor at y = 6 m
+    slam, truth_a, truth_b = _b_floating(cfg)
     try:
-        for kf in _keyframes(world, "a", truth_a) + _keyframes(world, "b", truth_b):
-            assert slam.admit(kf) == 1
-        slam.optimize()
-        slam.search_constraints()
-        _settle(slam)
         assert not slam.graph.is_anchored("b")
 
         # three verified matches on b's last 20 nodes (three stretches: see
@@ -147,11 +157,7 @@ def test_robots_with_known_starts_get_inter_robot_constraints() -> None:
 def _side_by_side(redundant_keyframes: int) -> tuple[list[tuple[int, int]], dict, float]:
     """Two robots with known starts fly a corridor side by side, a few keyframes at a
     time: the accepted ties (a, b), the builder's counts, b's largest position error."""
-    world = World.load("floor30x25")
-    n = 37
-    xs = 1.5 + 0.5 * np.arange(n)
-    truth_a = np.column_stack([xs, np.full(n, 6.0), np.zeros(n)])
-    truth_b = truth_a + [0.0, 0.1, 0.02]
+    (world, truth_a, truth_b), n = _corridor(), 37
     cfg = Config()
     cfg.basestation.constraints.inter_redundant_keyframes = redundant_keyframes
     slam = GlobalSlam(cfg, known_starts={"a": truth_a[0], "b": truth_b[0]})
@@ -191,23 +197,11 @@ def test_a_joins_backfill_is_queued_again_after_a_restart(tmp_path: Path) -> Non
     """A base station killed after two maps were joined (and stored) but before the
     join's backfill jobs were verified: restored, it had taken the maps as joined for
     good, never queued them again, and b's chain before the join hung on its odometry."""
-    world = World.load("floor30x25")
-    n = 37
-    xs = 1.5 + 0.5 * np.arange(n)
-    truth_a = np.column_stack([xs, np.full(n, 6.0), np.zeros(n)])
-    truth_b = truth_a + [0.0, 0.1, 0.02]
-    cfg = Config()
-    cfg.basestation.constraints.global_min_score = 1.0
-    cfg.basestation.constraints.merge_stretch_keyframes = 10
+    n, cfg = 37, Config()
     db = KeyframeDatabase(tmp_path / "base.db")
+    slam, truth_a, truth_b = _b_floating(cfg)
     starts = {"a": truth_a[0]}
-    slam = GlobalSlam(cfg, known_starts=dict(starts))
     try:
-        for kf in _keyframes(world, "a", truth_a) + _keyframes(world, "b", truth_b):
-            assert slam.admit(kf) == 1
-        slam.optimize()
-        slam.search_constraints()
-        _settle(slam)
         db.commit(slam.take_journal())
         cov = np.diag([1e-3, 1e-3, 1e-4])
         for j in (n - 1, n - 11, n - 21):  # the join, as the node stores it

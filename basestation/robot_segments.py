@@ -96,46 +96,47 @@ def segment_start(
     if T is None or o is None:
         return None
     T_map_source = se2_compose(T, se2_inverse(o))  # the odometry source's frame in map
-    drift, gap_s = _expected_drift(segment, s, T_map_source, T_map_odom, keyframes)
-    sx, _, syaw = SEGMENT_START_SIGMAS
-    d_xy, d_yaw = (0.0, 0.0) if drift is None else (math.hypot(*drift[:2]), drift[2])
-    seen = "" if drift is None else f"{d_xy:.2f} m, {math.degrees(d_yaw):.1f} deg"
-    if gap_s > SEGMENT_GAP_MAX_S or d_xy > sx or d_yaw > syaw:
-        log.warning("robot segment %s floats (matched onto the map): it starts %.0f s after "
-                    "%s (at most %.0f s), whose odometry frame drifts %s on the map by then "
-                    "(a start's sigmas: %.1f m, %.1f deg)", segment, gap_s, s,
-                    SEGMENT_GAP_MAX_S, seen or "(not known)", sx,
-                    math.degrees(syaw))  # fmt: skip
+    if (drift := _drift_since(segment, s, T_map_source, T_map_odom, keyframes)) is not None:
+        log.warning("robot segment %s floats (matched onto the map): the odometry frame of "
+                    "%s drifts %.2f m, %.1f deg on the map by its start (past a start's "
+                    "sigmas), or it starts over %.0f s later", segment, s,
+                    math.hypot(*drift[:2]), math.degrees(drift[2]),
+                    SEGMENT_GAP_MAX_S)  # fmt: skip
         return None
-    log.info("robot segment %s starts in the odometry frame of %s: at (%.2f, %.2f, %.1f deg), "
-             "loosely (its drift by then: %s)", segment, s, *T_map_source[:2],
-             math.degrees(T_map_source[2]), seen or "not known")  # fmt: skip
+    log.info(
+        "robot segment %s starts in the odometry frame of %s: at (%.2f, %.2f, %.1f deg), loosely",
+        segment,
+        s,
+        *T_map_source[:2],
+        math.degrees(T_map_source[2]),
+    )
     return se2_compose(T_map_source, own)
 
 
-def _expected_drift(
+def _drift_since(
     segment: str,
     s: str,
     T_map_source: np.ndarray,
     T_map_odom: Callable[..., np.ndarray | None],
     keyframes: Callable[[str], Any],
-) -> tuple[np.ndarray | None, float]:
-    """How far the odometry source's frame will have drifted on the map by the start of
-    `segment` ([m, m, rad], None: not known), at the rate it drifted during run `s` (first
-    keyframe to latest) over the time since; and that time (s). A wheel odometry's frame
-    turned ~70 degrees in a 400 s Intel run, and a run started 500 s later had been put
-    there and drawn across the building for good. (The live estimate of a run's first
-    keyframe may not show the drift yet: past `SEGMENT_GAP_MAX_S` no odometry counts.)"""
+) -> np.ndarray | None:
+    """How far the odometry source's frame is likely to have drifted on the map by the
+    start of `segment` (at the rate it drifted during run `s`, from its first keyframe to
+    its latest, over the time since), when that is past `SEGMENT_START_SIGMAS`; else None.
+    A wheel odometry's frame turned 69 degrees in a 400 s run, and a run started 500 s
+    later had been put there and drawn across the building for good (Intel)."""
     prev, new = keyframes(s), keyframes(segment)
-    if not len(prev.stamps) or not len(new.stamps):
-        return None, 0.0
-    gap_s = max(float(new.stamps[0, 0] - prev.stamps[-1, 0]), 0.0)
     T0, o0 = T_map_odom(s, 0), prev.odom_origin
-    if T0 is None or o0 is None:
-        return None, gap_s
+    if T0 is None or o0 is None or not len(prev.stamps) or not len(new.stamps):
+        return None
     moved = se2_between(se2_compose(T0, se2_inverse(o0)), T_map_source)
     ran_s = max(float(prev.stamps[-1, 0] - prev.stamps[0, 0]), MIN_DRIFT_SPAN_S)
-    return np.abs(moved) * gap_s / ran_s, gap_s
+    gap_s = max(float(new.stamps[0, 0] - prev.stamps[-1, 0]), 0.0)
+    drift = np.abs(moved) * gap_s / ran_s
+    sx, _, syaw = SEGMENT_START_SIGMAS  # (the live estimate of the run's first keyframe
+    # may not show its drift yet: after SEGMENT_GAP_MAX_S no odometry is trusted)
+    far = math.hypot(*drift[:2]) > sx or drift[2] > syaw or gap_s > SEGMENT_GAP_MAX_S
+    return drift if far else None
 
 
 class RobotSegments:

@@ -56,7 +56,6 @@ PAST_QUIET_S = 30.0  # s: a past segment not heard from this long gets no more c
 # it (`segment_start`): the source drifted, where the run before it had its local SLAM
 SEGMENT_START_SIGMAS = (2.0, 2.0, 0.25)
 MIN_DRIFT_SPAN_S = 10.0  # s: a run shorter than this tells its odometry's drift rate as this
-SEGMENT_GAP_MAX_S = 120.0  # s between two runs past which the odometry's frame is not used
 M = TypeVar("M")
 
 
@@ -98,10 +97,9 @@ def segment_start(
     T_map_source = se2_compose(T, se2_inverse(o))  # the odometry source's frame in map
     if (drift := _drift_since(segment, s, T_map_source, T_map_odom, keyframes)) is not None:
         log.warning("robot segment %s floats (matched onto the map): the odometry frame of "
-                    "%s drifts %.2f m, %.1f deg on the map by its start (past a start's "
-                    "sigmas), or it starts over %.0f s later", segment, s,
-                    math.hypot(*drift[:2]), math.degrees(drift[2]),
-                    SEGMENT_GAP_MAX_S)  # fmt: skip
+                    "%s drifts %.2f m, %.1f deg on the map by its start, past a start's "
+                    "sigmas", segment, s, math.hypot(*drift[:2]),
+                    math.degrees(drift[2]))  # fmt: skip
         return None
     log.info(
         "robot segment %s starts in the odometry frame of %s: at (%.2f, %.2f, %.1f deg), loosely",
@@ -133,10 +131,8 @@ def _drift_since(
     ran_s = max(float(prev.stamps[-1, 0] - prev.stamps[0, 0]), MIN_DRIFT_SPAN_S)
     gap_s = max(float(new.stamps[0, 0] - prev.stamps[-1, 0]), 0.0)
     drift = np.abs(moved) * gap_s / ran_s
-    sx, _, syaw = SEGMENT_START_SIGMAS  # (the live estimate of the run's first keyframe
-    # may not show its drift yet: after SEGMENT_GAP_MAX_S no odometry is trusted)
-    far = math.hypot(*drift[:2]) > sx or drift[2] > syaw or gap_s > SEGMENT_GAP_MAX_S
-    return drift if far else None
+    sx, _, syaw = SEGMENT_START_SIGMAS
+    return drift if math.hypot(*drift[:2]) > sx or drift[2] > syaw else None
 
 
 class RobotSegments:

@@ -156,11 +156,6 @@ def test_a_later_segment_starts_where_the_one_before_left_off() -> None:
     for kf in run(OdomOrigin(4.0, 2.0, -0.3), t0=100.0):
         late.admit(kf)
     assert not late.graph.is_anchored("r0~2")
-    steady = GlobalSlam(cfg, {"r0": start})  # no drift seen, but begun 200 s later: floats
-    for kf in [dataclasses.replace(_kf(s, 11), odom_origin=OdomOrigin(3, -1, 0.8)) for s
-               in range(3)] + run(OdomOrigin(4.0, 2.0, -0.3), t0=201.0):  # fmt: skip
-        steady.admit(kf)
-    assert not steady.graph.is_anchored("r0~2")
 
 
 def test_segments_beyond_the_graphs_chains_are_refused(caplog) -> None:

@@ -462,9 +462,9 @@ class GlobalSlam:
             self.builder.close()
 
     # --- estimates ----------------------------------------------------------------------
-    def T_map_odom(self, rid: str, idx: int | None = None) -> np.ndarray | None:
-        """[x, y, yaw] at keyframe `idx` (the latest: None), None while not on the map."""
-        idx = self.graph.latest_index(rid) if idx is None else idx
+    def T_map_odom(self, rid: str) -> np.ndarray | None:
+        """[x, y, yaw] at the robot's latest keyframe, None while it is not on the map."""
+        idx = self.graph.latest_index(rid)
         if idx is None or not self.graph.is_anchored(rid):
             return None
         T_odom_base = self.store.robot(rid).poses_odom[idx][[0, 1, 3]]

@@ -45,7 +45,7 @@ from typing import Any, TypeVar
 import numpy as np
 
 from basestation.pose_graph import ROBOT_KEY_ALPHABET
-from common.geometry import se2_between, se2_compose, se2_inverse
+from common.geometry import se2_compose, se2_inverse
 from protocol.messages import IN_FLIGHT_M
 
 log = logging.getLogger(__name__)
@@ -55,7 +55,6 @@ PAST_QUIET_S = 30.0  # s: a past segment not heard from this long gets no more c
 # [m, m, rad]: how loosely a later segment starts where the odometry source's frame puts
 # it (`segment_start`): the source drifted, where the run before it had its local SLAM
 SEGMENT_START_SIGMAS = (2.0, 2.0, 0.25)
-MIN_DRIFT_SPAN_S = 10.0  # s: a run shorter than this tells its odometry's drift rate as this
 M = TypeVar("M")
 
 
@@ -95,12 +94,6 @@ def segment_start(
     if T is None or o is None:
         return None
     T_map_source = se2_compose(T, se2_inverse(o))  # the odometry source's frame in map
-    if (drift := _drift_since(segment, s, T_map_source, T_map_odom, keyframes)) is not None:
-        log.warning("robot segment %s floats (matched onto the map): the odometry frame of "
-                    "%s drifts %.2f m, %.1f deg on the map by its start, past a start's "
-                    "sigmas", segment, s, math.hypot(*drift[:2]),
-                    math.degrees(drift[2]))  # fmt: skip
-        return None
     log.info(
         "robot segment %s starts in the odometry frame of %s: at (%.2f, %.2f, %.1f deg), loosely",
         segment,
@@ -109,30 +102,6 @@ def segment_start(
         math.degrees(T_map_source[2]),
     )
     return se2_compose(T_map_source, own)
-
-
-def _drift_since(
-    segment: str,
-    s: str,
-    T_map_source: np.ndarray,
-    T_map_odom: Callable[..., np.ndarray | None],
-    keyframes: Callable[[str], Any],
-) -> np.ndarray | None:
-    """How far the odometry source's frame is likely to have drifted on the map by the
-    start of `segment` (at the rate it drifted during run `s`, from its first keyframe to
-    its latest, over the time since), when that is past `SEGMENT_START_SIGMAS`; else None.
-    A wheel odometry's frame turned 69 degrees in a 400 s run, and a run started 500 s
-    later had been put there and drawn across the building for good (Intel)."""
-    prev, new = keyframes(s), keyframes(segment)
-    T0, o0 = T_map_odom(s, 0), prev.odom_origin
-    if T0 is None or o0 is None or not len(prev.stamps) or not len(new.stamps):
-        return None
-    moved = se2_between(se2_compose(T0, se2_inverse(o0)), T_map_source)
-    ran_s = max(float(prev.stamps[-1, 0] - prev.stamps[0, 0]), MIN_DRIFT_SPAN_S)
-    gap_s = max(float(new.stamps[0, 0] - prev.stamps[-1, 0]), 0.0)
-    drift = np.abs(moved) * gap_s / ran_s
-    sx, _, syaw = SEGMENT_START_SIGMAS
-    return drift if math.hypot(*drift[:2]) > sx or drift[2] > syaw else None
 
 
 class RobotSegments:

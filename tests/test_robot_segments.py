@@ -128,8 +128,8 @@ def test_a_later_segment_starts_where_the_one_before_left_off() -> None:
     slam.optimize()
     latest = [origin.x, origin.y, origin.yaw]  # paired with r0's latest T_map_odom
 
-    def run(origin: OdomOrigin | None, t0: float = 6.0) -> list[Keyframe]:  # a new session
-        return [dataclasses.replace(_kf(j, 22, t0), robot_id="r0~2", odom_origin=origin)
+    def run(origin: OdomOrigin | None) -> list[Keyframe]:  # from the identity, new session
+        return [dataclasses.replace(_kf(j, 22, 100.0), robot_id="r0~2", odom_origin=origin)
                 for j in range(4)]  # fmt: skip
 
     for kf in run(OdomOrigin(4.0, 2.0, -0.3)):
@@ -139,7 +139,7 @@ def test_a_later_segment_starts_where_the_one_before_left_off() -> None:
     source = se2_compose(slam.T_map_odom("r0"), se2_inverse(latest))  # its frame in map
     expected = se2_compose(source, [4.0, 2.0, -0.3])  # no matches yet: the prior holds
     np.testing.assert_allclose(slam.T_map_odom("r0~2"), expected, atol=1e-6)
-    slam.add_gps_fix("r0~2", 10.5, np.array([5.0, 3.5]), np.array([1.5, 1.5, 3.0]))
+    slam.add_gps_fix("r0~2", 104.5, np.array([5.0, 3.5]), np.array([1.5, 1.5, 3.0]))
     assert slam.stats()["gps"]["fixes_ignored"] == 0  # georeferenced as r0 is
     for origin in (OdomOrigin(0.3, 0.0, 0.0), None):  # began where its odometry did: floats
         other = GlobalSlam(cfg, {"r0": start})
@@ -147,15 +147,6 @@ def test_a_later_segment_starts_where_the_one_before_left_off() -> None:
                    in range(3)] + run(origin):  # fmt: skip
             other.admit(kf)
         assert not other.graph.is_anchored("r0~2") and other.T_map_odom("r0~2") is None
-    # begun 95 s after r0's last keyframe: its odometry's frame turned 0.09 rad on the map
-    # in r0's 4.5 s, so by then ~0.9 rad: it floats (Intel: put 35 degrees off for good)
-    late = GlobalSlam(cfg, {"r0": start})
-    for seq in range(10):
-        origin = OdomOrigin(3.0 + 0.02 * seq, -1.0, 0.8 + 0.01 * seq)
-        late.admit(dataclasses.replace(_kf(seq, 11), odom_origin=origin))
-    for kf in run(OdomOrigin(4.0, 2.0, -0.3), t0=100.0):
-        late.admit(kf)
-    assert not late.graph.is_anchored("r0~2")
 
 
 def test_segments_beyond_the_graphs_chains_are_refused(caplog) -> None:

@@ -57,6 +57,7 @@ class KeyframeUplink:
         self.other_sessions = 0  # messages for another run of this robot, dropped
         self.acks_heard = 0  # KeyframeAcks of this run
         self._base_up_at: float | None = None  # monotonic s a base station came up
+        self._unseen_since: float | None = time.monotonic()  # None: a base station was seen
         if resume is not None:
             self._resume(resume)
 
@@ -117,6 +118,7 @@ class KeyframeUplink:
             self._base_up_at = None
             return
         self._base_up_at = self._base_up_at or time.monotonic()
+        self._unseen_since = None
         if again:
             log.info("base station %s is back: resending %d keyframes", name, len(self.outbox))
         self.outbox.kick()
@@ -149,13 +151,18 @@ class KeyframeUplink:
         if new:
             self.chain += 1
             self.next_seq = self.outbox.new_chain(self.chain)
-        up = self._base_up_at
-        if up is not None and not self.acks_heard and time.monotonic() - up > NO_ACK_WARN_S:
+        up, unseen, now = self._base_up_at, self._unseen_since, time.monotonic()
+        if up is not None and not self.acks_heard and now - up > NO_ACK_WARN_S:
             self._base_up_at = None  # (once a link)
             log.error("a base station has been up %.0f s and acknowledged none of this "
                       "robot's %d keyframes: is it busy, or does the access control drop "
-                      "them (a certificate for another robot id, another fleet name)?",
-                      NO_ACK_WARN_S, len(self.outbox))  # fmt: skip
+                      "them (a certificate for another robot id)?", NO_ACK_WARN_S,
+                      len(self.outbox))  # fmt: skip
+        if unseen is not None and len(self.outbox) and now - unseen > NO_ACK_WARN_S:
+            self._unseen_since = None  # (once)
+            log.error("no base station seen in %.0f s (%d keyframes kept): are its endpoint, "
+                      "the fleet name (%r) and the certificates the base station's?",
+                      NO_ACK_WARN_S, len(self.outbox), self.bus.keys.fleet)  # fmt: skip
         batch = self.outbox.due_for_resend()
         if batch:
             log.info("resending %d keyframes after seq %d (the last acknowledged)",

@@ -46,6 +46,7 @@ class LockstepClock:
         self.requested = self.answered = -1.0  # sim time
         self._wall_pacing_from = time.monotonic() + timeout_s if active else 0.0
         self.sim_gone = False  # the simulator's liveliness token went away
+        self.input_timeouts = 0  # syncs answered without everything the robots sent
         self._commands: dict[str, VehicleCommand] = {}  # robot -> its latest command
         self._paths: dict[str, int] = {}  # robot -> Path messages sent to it
         self._epochs: dict[str, int] = {}  # robot -> the latest correction epoch sent to it
@@ -141,6 +142,7 @@ class LockstepClock:
                     missing.append(f"GNSS ({self._fixes} of {self._fixes_due} fixes)")
                 rest = deadline - time.monotonic()
                 if not missing or rest <= 0.0:
+                    self.input_timeouts += bool(missing)  # (the run may not repeat)
                     return missing
                 self._cond.wait(min(rest, POLL_S))
 

@@ -473,6 +473,7 @@ class BaseStationNode:
             "exploration": explorer_stats(self.explorer, self._path_id, self._explore_ms),
             "robot_segments": self.segments.stats(),  # robots with more than one
             "clock_syncs": self.syncs,
+            "clock_input_timeouts": self.clock.input_timeouts,
             **self.map.rerender_stats(),
         }
 

@@ -96,6 +96,8 @@ def build_summary(
         # waits of the lock-step clock given up (a base station's step over
         # `sim.basestation_timeout_s`, a cold numba cache): such a run may not repeat
         "lockstep_timeouts": sim.get("basestation_sync_timeouts", 0)
+        + sim.get("late_states", 0)
+        + base.get("clock_input_timeouts", 0)
         + sum(r.get("lockstep_downlink_timeouts", 0) for r in agents),
     }
 

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import json
 import logging
+import re
 import secrets
 import threading
 from collections import Counter
@@ -34,6 +35,7 @@ log = logging.getLogger(__name__)
 M = TypeVar("M")
 REJECTS_LOGGED_PER_KIND = 5  # bad messages of one kind logged in full (then 1 in 1000)
 REJECT_KINDS_KEPT = 64  # kinds counted apart in `rejected`; then "other"
+_NAMES_AND_NUMBERS = re.compile(r"'[^']*'|\"[^\"]*\"|[-+]?\d[\d.eE+-]*")
 
 
 def zenoh_config(zc: ZenohConfig) -> zenoh.Config:
@@ -151,7 +153,9 @@ class Bus:
         self._handles.append(self.session.declare_subscriber(key_expr, on_sample))
 
     def _reject(self, key: str, reason: str) -> None:
-        kind = reason.split(":")[0]
+        # the reason up to its first colon, numbers and quoted names left out (a size or a
+        # robot id before it had made a kind per message, and a flood filled the kinds)
+        kind = _NAMES_AND_NUMBERS.sub("#", reason.split(":")[0])
         with self._lock:
             if kind not in self.rejected and len(self.rejected) >= REJECT_KINDS_KEPT:
                 kind = "other"  # (a kind can name a robot id: a flood of them is bounded)

@@ -351,8 +351,9 @@ def _validate_backend(b: BaseStationConfig) -> None:
         ),
     )
     _non_negative_fields("basestation.constraints", cc, ("inter_redundant_keyframes",))
-    for key in ("min_score", "min_overlap", "global_min_score"):  # (> 1: no match ever)
-        _prob(f"basestation.constraints.{key}", getattr(cc, key))
+    for key in ("min_score", "min_overlap", "global_min_score"):  # (> 1 had been taken:
+        if not 0.0 <= getattr(cc, key) <= 1.0:  # no match ever; 1: whole-map search off)
+            raise ConfigError(f"basestation.constraints.{key}: expected 0 <= value <= 1")
     if not 0.0 <= cc.false_match_fraction < 1.0:
         raise ConfigError("basestation.constraints.false_match_fraction: expected 0 <= f < 1")
     if cc.robust_kernel not in ("huber", "cauchy", "none"):

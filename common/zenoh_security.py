@@ -73,30 +73,29 @@ def check_tls_files(conf: zenoh.Config, source: str) -> None:
 
 
 def check_certificate_name(config_file: str, name: str) -> None:
-    """ConfigError if the certificate a Zenoh config file presents (its connect_, else its
-    listen_certificate) is not `name`'s (CN): the access control drops all this process
+    """ConfigError if the certificate a Zenoh config file connects with (its
+    connect_certificate) is not `name`'s (CN): the access control drops all this process
     sends, and a drone given another drone's config had flown a mission mapping nothing,
-    with no line in any log."""
+    with no line in any log. A listening base station's own certificate may be named
+    after its host: the rules are about those who connect."""
     try:
         conf = zenoh.Config.from_file(config_file)
     except Exception:  # (the Bus names a file it cannot read)
         return
-    for key in ("connect_certificate", "listen_certificate"):
-        path = json.loads(conf.get_json(f"transport/link/tls/{key}"))
-        if not path:
-            continue
-        try:  # (CPython's own PEM reader; the ssl module has no public one)
-            subject = ssl._ssl._test_decode_cert(path)["subject"]  # type: ignore[attr-defined]
-        except (OSError, ssl.SSLError, AttributeError, KeyError):
-            return  # (check_tls_files names a file it cannot read)
-        cn = dict(pair[0] for pair in subject).get("commonName")
-        if cn != name:
-            raise ConfigError(
-                f"zenoh.config_file {config_file!r}: its certificate {path} is {cn!r}'s, "
-                f"not {name!r}'s: the access control would drop everything this process "
-                "sends (another drone's config?)"
-            )
+    path = json.loads(conf.get_json("transport/link/tls/connect_certificate"))
+    if not path:
         return
+    try:  # (CPython's own PEM reader; the ssl module has no public one)
+        subject = ssl._ssl._test_decode_cert(path)["subject"]  # type: ignore[attr-defined]
+    except (OSError, ssl.SSLError, AttributeError, KeyError):
+        return  # (check_tls_files names a file it cannot read)
+    cn = dict(pair[0] for pair in subject).get("commonName")
+    if cn != name:
+        raise ConfigError(
+            f"zenoh.config_file {config_file!r}: its certificate {path} is {cn!r}'s, not "
+            f"{name!r}'s: the access control would drop everything this process sends "
+            "(another drone's config?)"
+        )
 
 
 def _rule(rule_id: str, flow: str, messages: list[str], key_exprs: list[str]) -> dict[str, Any]:

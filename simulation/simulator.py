@@ -143,6 +143,7 @@ class Simulator:
         self.base_syncs = 0
         self.gnss_fixes = 0  # published (told to the base station with each clock request)
         self.base_sync_timeouts = 0
+        self.late_states = 0  # agents' states taken as lost (lock-step went on without)
 
     # --- wiring -------------------------------------------------------------------------
     def start(self) -> None:
@@ -279,6 +280,7 @@ class Simulator:
                     "t=%.3f: %s's state of t=%.3f never came", self.t, r.robot_id, r.state_due
                 )
                 r.state_stamp = r.state_due
+                self.late_states += 1
                 continue
             self.republished += 1
             log.warning(
@@ -369,6 +371,7 @@ class Simulator:
             "republished_ticks": self.republished,
             "basestation_syncs": self.base_syncs,
             "basestation_sync_timeouts": self.base_sync_timeouts,
+            "late_states": self.late_states,
             "end_reason": self.end_reason,
             "robots": {
                 rid: {

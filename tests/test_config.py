@@ -60,7 +60,7 @@ def test_round_trip(tmp_path: Path) -> None:
         ({"basestation.constraints.min_score": 1.5}, "basestation.constraints.min_score"),
         ({"basestation.constraints.min_overlap": 1.2}, "basestation.constraints.min_overlap"),
         ({"basestation.constraints.global_min_score": 2}, "basestation.constraints.global_min"),
-    ],
+    ],  # (global_min_score 1.0 turns the whole-map search off, and 0 takes anything: taken)
 )
 def test_bad_values_name_the_key(overrides: dict, key: str) -> None:
     with pytest.raises(ConfigError, match=key.replace(".", r"\.").replace("+", r"\+")):

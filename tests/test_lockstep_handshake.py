@@ -177,6 +177,7 @@ def test_a_fix_count_or_command_far_ahead_is_held_back() -> None:
     assert clock.wait_inputs(1.0, ["r0"], got.get, 0.05) == ["r0"]  # its 7 keyframes
     got["r0"] = (7, 1.0)
     assert clock.wait_inputs(1.0, ["r0"], got.get, 10.0) == []  # and no fix count
+    assert clock.input_timeouts == 1  # (summary.json's lockstep_timeouts counts it)
 
 
 def test_a_resumed_agent_does_not_wait_for_what_went_to_the_one_before() -> None:

@@ -36,7 +36,9 @@ def test_given_up_lock_step_waits_are_counted(tmp_path: Path) -> None:
     the simulator went on without it, the mission took another course (95 % at 17 s, not
     20), and only sim.log said so. The summary counts the waits given up."""
     (tmp_path / "agents").mkdir()
-    (tmp_path / "simulator.json").write_text(json.dumps({"basestation_sync_timeouts": 1}))
+    sim = {"basestation_sync_timeouts": 1, "late_states": 4}
+    (tmp_path / "simulator.json").write_text(json.dumps(sim))
+    (tmp_path / "basestation.json").write_text(json.dumps({"clock_input_timeouts": 8}))
     (tmp_path / "agents" / "r0.json").write_text(json.dumps({"lockstep_downlink_timeouts": 2}))
     summary = build_summary(tmp_path, resolve_world("bshape"), ["r0", "r1"], 1.0)
-    assert summary["lockstep_timeouts"] == 3
+    assert summary["lockstep_timeouts"] == 15

@@ -342,3 +342,11 @@ def test_a_base_station_that_acknowledges_nothing_is_named(
             up.resend()
             up.resend()
         assert caplog.text.count("acknowledged none of this robot's 1 keyframes") == 1
+        # another fleet's agent never sees the base station at all: named too
+        alone = KeyframeUplink(cfg.agent, "r1", bus)
+        assert alone.send(**fields)
+        alone._unseen_since = time.monotonic() - NO_ACK_WARN_S - 1.0
+        with caplog.at_level(logging.ERROR):
+            alone.resend()
+            alone.resend()
+        assert caplog.text.count("no base station seen in 60 s") == 1

@@ -226,3 +226,36 @@ def test_a_mark_or_a_simulated_command_far_ahead_is_held_back(endpoint: str) -> 
         sim._on_command(VehicleCommand("r0", 1e9, 1.0, 0.0, 0.0, 0.0), "")
         sim._on_command(VehicleCommand("r0", 0.05, 0.0, 0.0, 0.0, 0.0), "")  # stop
         assert sim.robots["r0"].command[0] == 0.0 and sim.robots["r0"].answered == 0.05
+
+
+def test_a_tick_sent_again_leaves_out_its_gnss_fix(endpoint: str) -> None:
+    """A tick re-published to an agent slower than `sim.lockstep_timeout_s` (a cold numba
+    cache) had carried its GNSS fix again: the base station took the fix at t = 0 four
+    times (four times its weight in the graph), and a cold run and a warm one of one
+    seed flew apart."""
+    from common.config import load_config
+    from common.scenario import RobotScenario, Scenario
+    from protocol import GnssFix, encode
+    from simulation.simulator import Simulator
+    from simulation.world import World
+
+    cfg = load_config(overrides={"exploration.enabled": False})
+    sc = Scenario("rooms15", [RobotScenario("r0", np.array([1.5, 2.5, 0.0]))])
+    got: list[object] = []
+    with Bus(ZenohConfig(listen=[endpoint]), cfg.fleet) as bus:
+        bus.subscribe(
+            bus.keys.robot("r0", "sensor/*"), (GnssFix, Altimeter), lambda m, k: got.append(m)
+        )
+        time.sleep(0.2)
+        sim = Simulator(cfg, bus, sc, World.load("rooms15"), 10.0)
+        fix = GnssFix("r0", 0.0, np.array([45.8, 16.0, 160.0]), np.array([1.5, 1.5, 3.0]))
+        sim.robots["r0"].tick = [
+            (bus.keys.sensor("r0", "gnss"), encode(fix)),
+            (bus.keys.sensor("r0", "altimeter"), encode(Altimeter("r0", 0.0, 1.0))),
+        ]
+        sim._late([sim.robots["r0"]])  # no command yet: the tick again
+        deadline = time.monotonic() + 5.0
+        while not got and time.monotonic() < deadline:
+            time.sleep(0.05)
+        time.sleep(0.3)
+    assert [type(m).__name__ for m in got] == ["Altimeter"]

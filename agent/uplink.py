@@ -152,7 +152,7 @@ class KeyframeUplink:
             self.chain += 1
             self.next_seq = self.outbox.new_chain(self.chain)
         up, unseen, now = self._base_up_at, self._unseen_since, time.monotonic()
-        if up is not None and not self.acks_heard and now - up > NO_ACK_WARN_S:
+        if up is not None and not self.acks_heard and len(self.outbox) and now - up > NO_ACK_WARN_S:
             self._base_up_at = None  # (once a link)
             log.error("a base station has been up %.0f s and acknowledged none of this "
                       "robot's %d keyframes: is it busy, or does the access control drop "

@@ -35,7 +35,7 @@ log = logging.getLogger(__name__)
 M = TypeVar("M")
 REJECTS_LOGGED_PER_KIND = 5  # bad messages of one kind logged in full (then 1 in 1000)
 REJECT_KINDS_KEPT = 64  # kinds counted apart in `rejected`; then "other"
-_NAMES_AND_NUMBERS = re.compile(r"'[^']*'|\"[^\"]*\"|[-+]?\d[\d.eE+-]*")
+_NAMES_AND_NUMBERS = re.compile(r"'[^']*'|\"[^\"]*\"|(?<![\w.])[-+]?\d[\d.eE+-]*")
 
 
 def zenoh_config(zc: ZenohConfig) -> zenoh.Config:

@@ -332,6 +332,11 @@ def test_a_base_station_that_acknowledges_nothing_is_named(
     with Bus(ZenohConfig(listen=[endpoint]), cfg.fleet) as bus:
         up = KeyframeUplink(cfg.agent, "r0", bus)
         up.on_base_alive("base-1", True, again=False)
+        up._base_up_at = time.monotonic() - NO_ACK_WARN_S - 1.0
+        with caplog.at_level(logging.ERROR):
+            up.resend()  # nothing to acknowledge (a resumed agent, hovering): nothing said
+        assert "acknowledged none" not in caplog.text
+        up._base_up_at = time.monotonic()
         kf = _kf(1)
         fields = {k: getattr(kf, k) for k in ("stamp", "pose_odom", "delta", "delta_cov", "scan2d")}
         assert up.send(**fields)

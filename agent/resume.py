@@ -160,8 +160,10 @@ def load(directory: Path, max_age_s: float) -> ResumePoint | None:
             raw["path"] = json.loads((directory / raw["path"]).read_text())
         point = ResumePoint(**raw)
         point.check()
-    except (OSError, ValueError, TypeError) as exc:
-        log.error("%s cannot be read (%s): starting afresh", path, exc)
+    except (OSError, ValueError, TypeError) as exc:  # (another version's, say: its keyframes
+        keep = _move_aside(directory, f"unreadable-{int(time.time())}")  # had been deleted)
+        log.error("%s cannot be read (%s): starting afresh%s", path, exc,
+                  "" if keep is None else f"; its keyframes kept in {keep}, not sent")  # fmt: skip
         return _start_afresh(directory, None)
     age = time.time() - point.saved_unix
     if not abs(age) <= max_age_s:  # (< 0: the host's clock was set back meanwhile)
@@ -181,21 +183,31 @@ def _keep_unsent(directory: Path, point: ResumePoint, why: str) -> None:
     had lost all it mapped meanwhile. They are not sent: that mission's base station may
     be gone, and a new one would map them into its own mission."""
     unsent = point.next_seq - point.acked_seq - 1
-    logs = sorted(directory.glob("keyframes-*.log"))
-    if unsent <= 0 or not logs:
+    if unsent <= 0:
         return
-    keep = directory / f"unsent-{int(point.saved_unix)}"
+    keep = _move_aside(directory, f"unsent-{int(point.saved_unix)}")
+    if keep is not None:
+        log.error("%s: another mission's state, %s, with %d keyframes (seqs %d-%d of chain "
+                  "%d) no base station acknowledged: kept in %s, not sent", directory, why,
+                  unsent, point.acked_seq + 1, point.next_seq - 1, point.chain,
+                  keep)  # fmt: skip
+
+
+def _move_aside(directory: Path, name: str) -> Path | None:
+    """The keyframes, state and path files into `directory / name` (None: there were no
+    keyframes, or they could not be moved: they are deleted with the rest)."""
+    logs = sorted(directory.glob("keyframes-*.log"))
+    if not logs:
+        return None
+    keep = directory / name
     try:
         keep.mkdir(exist_ok=True)
-        for p in (*logs, *directory.glob("path-*.json"), directory / STATE_FILE):
+        for p in (*logs, *directory.glob("path-*.json"), *directory.glob(STATE_FILE)):
             os.replace(p, keep / p.name)
     except OSError as exc:
-        log.error("%s: could not keep another mission's %d unacknowledged keyframes in %s "
-                  "(%s): deleted", directory, unsent, keep, exc)  # fmt: skip
-        return
-    log.error("%s: another mission's state, %s, with %d keyframes (seqs %d-%d of chain "
-              "%d) no base station acknowledged: kept in %s, not sent", directory, why,
-              unsent, point.acked_seq + 1, point.next_seq - 1, point.chain, keep)  # fmt: skip
+        log.error("%s: could not keep its keyframes in %s (%s): deleted", directory, keep, exc)
+        return None
+    return keep
 
 
 def _start_afresh(directory: Path, why: str | None) -> None:

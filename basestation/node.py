@@ -137,6 +137,9 @@ class BaseStationNode:
         self.epochs.resume(rec.epoch)
         self._path_id = max(self._path_id, rec.path_id)
         self.gnss.restore(rec.gnss_origin)  # (before its fixes are replayed)
+        if self.gnss.not_enu and rec.fixes:  # (stored by an earlier version: they bent it)
+            log.warning("%d stored GNSS fixes not replayed: %s", len(rec.fixes), self.gnss.not_enu)
+            rec.fixes = []
         if rec.empty:
             return
         self.slam.restore(rec)

@@ -383,6 +383,10 @@ def _validate_gps(cfg: Config) -> None:
         log.warning("basestation.gps.weighting = 'affine' is 'inverse' now: a and b "
                     "apply to either weighting")  # fmt: skip
         p.weighting = "inverse"
+    elif p.enabled and (p.a, p.b) != (1.0, 0.0):  # (an earlier version's config kept them)
+        log.warning("basestation.gps.a = %g, b = %g weight the %s fixes (eq. 7: a / sigma "
+                    "+ b); before the 70th session they applied to 'affine' only",
+                    p.a, p.b, p.weighting)  # fmt: skip
     if p.weighting not in ("inverse", "isotropic"):
         raise ConfigError(
             f"basestation.gps.weighting: expected inverse or isotropic, got {p.weighting!r}"

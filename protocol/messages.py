@@ -300,7 +300,7 @@ class KeyframeAck(Message):
 
     robot_id: str
     acked_seq: int
-    chain: int = 0
+    chain: int = later_field(0)  # (sent always, agents before it refused every ack)
     session: int = later_field(0)
 
 

@@ -250,3 +250,16 @@ def test_the_path_is_written_when_it_changes_not_at_every_state(tmp_path: Path) 
     assert load(tmp_path, max_age_s=60.0).path == [[1.0, 2.0]]
     (tmp_path / "path-1.json").unlink()  # the state names a file that is gone: afresh
     assert load(tmp_path, max_age_s=60.0) is None and not list(tmp_path.iterdir())
+
+
+def test_an_unreadable_state_keeps_its_keyframes_aside(tmp_path: Path, caplog) -> None:
+    """A state this program cannot read (another version's, after a rollback: its path in
+    a file the older one does not know) had been deleted with its keyframes."""
+    save(tmp_path, ResumePoint(0, 5, 1, keyframe_pose=[0.0, 0.0, 1.0, 0.0]))
+    (tmp_path / "keyframes-0000000000.log").write_bytes(b"kept")
+    (tmp_path / STATE_FILE).write_text('{"chain": 0}')
+    with caplog.at_level(logging.ERROR):
+        assert load(tmp_path, max_age_s=60.0) is None
+    (kept,) = tmp_path.iterdir()
+    assert kept.name.startswith("unreadable-") and "its keyframes kept in" in caplog.text
+    assert (kept / "keyframes-0000000000.log").read_bytes() == b"kept"

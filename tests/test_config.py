@@ -115,6 +115,10 @@ def test_a_config_written_by_an_earlier_version_is_taken(
     with caplog.at_level("WARNING"):
         old_gps = load_config(overrides={"basestation.gps.weighting": "affine"})
     assert old_gps.basestation.gps.weighting == "inverse" and "'affine' is 'inverse'" in caplog.text
+    with caplog.at_level("WARNING"):  # a, b kept with another weighting: they count now
+        gps = {"basestation.gps.enabled": True, "basestation.gps.weighting": "isotropic"}
+        load_config(overrides={**gps, "basestation.gps.a": 2.0})
+    assert "a = 2, b = 0 weight the isotropic fixes" in caplog.text
     path.write_text(text.replace("match_sigma_per_m", "match_sigma_typo"))
     with pytest.raises(ConfigError, match="unknown config key agent.local_slam.match_sigma_typo"):
         load_config(path)

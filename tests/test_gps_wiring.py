@@ -319,3 +319,33 @@ def test_the_ground_truth_is_georeferenced_where_the_fixes_are_made(
         sim.robots["r0"].gt.append([0.0, 1.0, 1.0, 1.0, 0.0])
         sim.write_outputs(tmp_path)
     assert read_tum(tmp_path / "ground_truth" / "r0.tum").wgs84_origin == own
+
+
+def test_fixes_an_earlier_version_stored_are_not_replayed_where_the_map_is_not_enu(
+    tmp_path: Path, endpoint: str, caplog: pytest.LogCaptureFixture
+) -> None:
+    """A database written before fixes were ignored on a map that is not ENU: restored,
+    its stored fixes had been replayed as GPS factors, and the bend stayed (4.99 m)."""
+    from basestation.persistence import KeyframeDatabase
+
+    grid = GridMap(np.zeros((10, 10), np.int8), 0.1, (0.0, 0.0, 0.0))  # no wgs84_origin
+    write_map(grid, tmp_path / "w.yaml")
+    start = np.array([20.0, 10.0, 0.0])
+    old = GlobalSlam(_cfg(), {"r0": start})  # as the earlier version took them
+    db = KeyframeDatabase(tmp_path / "base.db")
+    for seq in range(10):
+        old.admit(_keyframe(seq))
+        old.add_gps_fix("r0", 0.5 * seq + 0.25, np.array([0.2 * seq, 0.0]), SIG)
+        db.commit(old.take_journal())
+    old.close()
+    db.close()
+    assert len(KeyframeDatabase(tmp_path / "base.db").load().fixes) == 10
+    cfg = _cfg()
+    cfg.basestation.db_path = str(tmp_path / "base.db")
+    scenario = Scenario(str(tmp_path / "w.yaml"), [RobotScenario("r0", start)])
+    with Bus(ZenohConfig(listen=[endpoint]), "default") as bus, caplog.at_level("WARNING"):
+        node = BaseStationNode(cfg, bus, scenario)
+        node.recover()
+        assert node.slam.graph.num_gps_factors == 0 and node.slam.graph.is_anchored("r0")
+        node.db.close()
+    assert "10 stored GNSS fixes not replayed" in caplog.text

@@ -227,7 +227,8 @@ def test_fields_added_later_are_left_out_at_their_defaults() -> None:
     """A base station sending `session` 0 to an agent of the version before (which
     refuses fields it does not know) had every ack, correction and path refused."""
     raw = msgpack.unpackb(encode(KeyframeAck("r0", 4)))["d"]
-    assert raw == {"robot_id": "r0", "acked_seq": 4, "chain": 0}  # as the version before
+    assert raw == {"robot_id": "r0", "acked_seq": 4}  # chain 0 too: agents before chains
+    assert msgpack.unpackb(encode(KeyframeAck("r0", 4, 2)))["d"]["chain"] == 2
     assert msgpack.unpackb(encode(KeyframeAck("r0", 4, 0, 7)))["d"]["session"] == 7
     assert decode(encode(KeyframeAck("r0", 4)), KeyframeAck).session == 0
     kf = _kf(0)

@@ -225,7 +225,8 @@ def test_a_new_chain_replaces_the_files_whole_or_not_at_all(tmp_path: Path) -> N
 
 def test_fields_added_later_are_left_out_at_their_defaults() -> None:
     """A base station sending `session` 0 to an agent of the version before (which
-    refuses fields it does not know) had every ack, correction and path refused."""
+    refuses fields it does not know) had every ack, correction and path refused; `chain`
+    sent always had every ack refused by agents from before keyframe chains."""
     raw = msgpack.unpackb(encode(KeyframeAck("r0", 4)))["d"]
     assert raw == {"robot_id": "r0", "acked_seq": 4}  # chain 0 too: agents before chains
     assert msgpack.unpackb(encode(KeyframeAck("r0", 4, 2)))["d"]["chain"] == 2

@@ -283,14 +283,3 @@ def test_positions_beyond_ten_thousand_km_are_refused() -> None:
         decode(encode(Path("r0", 1, 0.0, "map", 1, wp)))
     decode(encode(Path("r0", 1, 0.0, "map", 1, wp[:1])))  # a sane one passes
     decode(encode(PoseCorrection("r0", 1, 0.0, pose4_to_pose7([5e6, 0.0, 0.0, 0.0]))))
-
-
-def test_an_ack_of_chain_0_reads_in_an_agent_that_predates_chains() -> None:
-    """`KeyframeAck.chain` had been sent always: agents from before it refused every ack
-    of an upgraded base station ("unknown fields ['chain']"), so operations.md's "upgrade
-    the base station first" left them resending for good. Left out at 0, as `session`."""
-    import msgpack
-
-    wire = msgpack.unpackb(encode(KeyframeAck("r0", 7)), raw=False)
-    assert set(wire["d"]) == {"robot_id", "acked_seq"}
-    assert decode(encode(KeyframeAck("r0", 7, chain=2))).chain == 2

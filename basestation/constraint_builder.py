@@ -274,6 +274,12 @@ class ConstraintBuilder:
         with self._lock:
             return not self._busy and not self._global and not any(self._queues.values())
 
+    def drained(self) -> bool:
+        """Idle, and every result taken: each job queued so far has its answer in."""
+        with self._lock:
+            idle = not self._busy and not self._global and not any(self._queues.values())
+            return idle and not self._results
+
     def close(self) -> None:
         self._stop.set()
         self._wake.set()

@@ -46,7 +46,7 @@ from basestation.persistence import Batch, Fix, Recovered, Start
 from basestation.pose_graph import PoseGraph
 from basestation.robot_segments import SEGMENT_START_SIGMAS, robot_of, segment_start
 from basestation.scan_archive import ScanArchive, ScanReader
-from basestation.slam_restore import replay_matches, replay_order
+from basestation.slam_restore import restore
 from basestation.slam_stats import slam_stats
 from basestation.update_series import UpdateSeries
 from basestation.whole_map_search import WholeMapSearch, tie
@@ -101,6 +101,8 @@ class GlobalSlam:
         self.whole_map = WholeMapSearch(self.cc, self.store.points)
         self._last_candidate: dict[tuple[str, str], int] = {}  # (robot, target robot) -> index
         self._together: dict[str, frozenset[str]] = {}  # robot -> its map's robots, last search
+        self.backfill_open: set[tuple[str, str]] = set()  # joins whose backfill runs (sorted)
+        self.backfilled: set[tuple[str, str]] = set()  # ... and whose backfill is done
         self._unsaved: list[Keyframe] = []  # admitted since the last take_journal()
         self._unsaved_fixes: list[Fix] = []  # GNSS fixes given since then
         self._unsaved_starts: dict[str, Start] = {}  # chains started since then
@@ -139,6 +141,10 @@ class GlobalSlam:
         batch = Batch(self._unsaved, constraints, changes, fixes=self._unsaved_fixes,
                       chain_starts=self._unsaved_starts)  # fmt: skip
         self._unsaved, self._unsaved_fixes, self._unsaved_starts = [], [], {}
+        if self.backfill_open and (self.builder is None or self.builder.drained()):
+            batch.backfilled = sorted(self.backfill_open)  # (verified, results in this batch)
+            self.backfilled |= self.backfill_open
+            self.backfill_open = set()
         return batch
 
     def saved(self, batch: Batch) -> None:
@@ -146,34 +152,8 @@ class GlobalSlam:
         self.store.saved([(k.robot_id, k.seq) for k in batch.keyframes])
 
     def restore(self, rec: Recovered) -> None:
-        """Rebuild the graph from the database: GNSS fixes, keyframes and stored matches
-        are replayed through the same paths (admission, loop-closure manager and PCM) in
-        the order they were first taken (`slam_restore`); the graph is optimized before
-        each batch of matches, as it was then. Stored matches are not verified again."""
-        self._stored_starts = dict(rec.chain_starts)
-        for kind, items in replay_order(rec):
-            if kind == "fixes":
-                for fix in items:
-                    self.add_gps_fix(*fix)
-            elif kind == "matches":
-                replay_matches(self, items)
-            else:
-                for kf in items:
-                    if self.admit(kf, replay=True) == 0:
-                        log.error("stored keyframe %s/%d not admitted", kf.robot_id, kf.seq)
-                self.saved(Batch(items))  # on disk already: the scans may leave memory, and
-                self._unsaved.clear()  # the journal need not keep the keyframes till the end
-        self.optimize()
-        self._new_nodes.clear()  # their candidates were searched before the crash
-        # joined maps join again at the first search and are backfilled: a join's jobs were
-        # lost with the crash (robots started known on the map were never joined)
-        known = frozenset(r for r in self.graph.robots() if r in self.known_starts)
-        self._together = {r: known if r in known else frozenset([r]) for r in self.graph.robots()}
-        self.take_journal()  # all of it is on disk already
-        accepted = self.loops.accepted
-        differ = sum(c.in_graph != (c.measurement.id in accepted) for c in rec.constraints)
-        if differ:
-            log.warning("%d restored matches changed in/out of the graph on replay", differ)
+        """Rebuild the graph from the database (`slam_restore.restore`)."""
+        restore(self, rec)
 
     def _add_node(self, kf: Keyframe) -> None:
         rid = kf.robot_id
@@ -365,6 +345,7 @@ class GlobalSlam:
         n = self.cc.backfill_max_candidates
         keep = np.unique(np.linspace(0, len(found) - 1, n).astype(int)) if found else []
         chosen = [found[k] for k in keep]
+        self.backfill_open.add((min(robot, other), max(robot, other)))
         for key, target in chosen:
             query = self._query(key, self._neighbours(key, 1), poses)
             self._submit_match("inter", key, target, poses, query)

@@ -87,6 +87,9 @@ CREATE TABLE IF NOT EXISTS gnss_fixes (
 );
 CREATE TABLE IF NOT EXISTS gnss_origin (lat_deg REAL, lon_deg REAL, alt_m REAL);
 CREATE TABLE IF NOT EXISTS chain_starts (robot_id TEXT PRIMARY KEY, start BLOB NOT NULL);
+CREATE TABLE IF NOT EXISTS backfilled (
+    robot_a TEXT NOT NULL, robot_b TEXT NOT NULL, PRIMARY KEY (robot_a, robot_b)
+);
 """
 # a GNSS fix as the graph took it: (robot segment, stamp, east-north in map, ENU sigmas)
 Fix = tuple[str, float, np.ndarray, np.ndarray]
@@ -115,11 +118,12 @@ class Batch:
     fixes: list[Fix] = field(default_factory=list)  # given to the graph, in order
     origin: list[float] | None = None  # the map's WGS84 origin, once set: [lat, lon, alt]
     chain_starts: dict[str, Start] = field(default_factory=dict)  # chains started
+    backfilled: list[tuple[str, str]] = field(default_factory=list)  # joins' backfills done
 
     def __bool__(self) -> bool:
         return bool(
             self.keyframes or self.constraints or self.in_graph or self.paths or self.fixes
-            or self.origin or self.chain_starts
+            or self.origin or self.chain_starts or self.backfilled
         )  # fmt: skip
 
 
@@ -166,6 +170,7 @@ class Recovered:
     fixes: list[tuple[int, Fix]] = field(default_factory=list)  # (batch, fix) in order
     gnss_origin: list[float] | None = None  # the map's WGS84 origin, if it was set
     chain_starts: dict[str, Start] = field(default_factory=dict)  # where each chain began
+    backfilled: set[tuple[str, str]] = field(default_factory=set)  # pairs, names in order
 
     @property
     def empty(self) -> bool:
@@ -247,6 +252,9 @@ class KeyframeDatabase:
                     "INSERT OR REPLACE INTO chain_starts VALUES (?, ?)",
                     [(r, _start_blob(*st)) for r, st in batch.chain_starts.items()],
                 )
+                self._db.executemany(
+                    "INSERT OR IGNORE INTO backfilled VALUES (?, ?)", batch.backfilled
+                )
                 if batch.origin is not None:
                     self._db.execute("DELETE FROM gnss_origin")
                     self._db.execute("INSERT INTO gnss_origin VALUES (?, ?, ?)", batch.origin)
@@ -305,6 +313,7 @@ class KeyframeDatabase:
         origin = self._db.execute("SELECT lat_deg, lon_deg, alt_m FROM gnss_origin").fetchone()
         rows = self._db.execute("SELECT robot_id, start FROM chain_starts").fetchall()
         chain_starts = {r: _start_of(blob) for r, blob in rows}
+        backfilled = set(self._db.execute("SELECT robot_a, robot_b FROM backfilled").fetchall())
         return Recovered(
             keyframes,
             constraints,
@@ -315,6 +324,7 @@ class KeyframeDatabase:
             fixes,
             None if origin is None else [float(v) for v in origin],
             chain_starts,
+            backfilled,
         )
 
     def counts(self) -> dict[str, int]:

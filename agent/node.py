@@ -20,6 +20,7 @@ import logging
 import threading
 import time
 from collections import deque
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -101,10 +102,7 @@ class AgentNode:
         self.outbox = self.uplink.outbox
         self.follower = PathFollower.from_config(a)
         self.guard = SafetyGuard(
-            a.vehicle_radius_m,
-            a.safety_margin_m,
-            a.max_accel_mps2,
-            a.safety_reaction_s,
+            a.vehicle_radius_m, a.safety_margin_m, a.max_accel_mps2, a.safety_reaction_s,
             a.blocked_after_s,
             # scripted tours are not deconflicted: drones meeting in a corridor would hold
             # each other for good (docs/architecture.md, neighbour guard)
@@ -112,7 +110,8 @@ class AgentNode:
             if cfg.exploration.enabled or a.neighbour_guard_tours
             else 0.0,
             velocity_lag_s=a.velocity_lag_s,
-        )
+        )  # fmt: skip
+        self.source_stats: Callable[[], dict[str, Any]] = dict  # the sensor source's counts
         # the base station's relays, the latest and the one before (see `_command`)
         self._neighbours: list[Neighbours] = []
         self.downlink = DownlinkGate(cfg.sim.sync_wait_s, resumed=resume is not None)
@@ -262,6 +261,7 @@ class AgentNode:
         `max_unacked`: flow control for sources that can run ahead of the base
         station (a log replay): wait while this many keyframes are unacknowledged.
         """
+        self.source_stats = getattr(source, "stats", dict)
         for msg in source.messages(stop):
             if msg is not None:
                 self.handle(msg)
@@ -484,6 +484,7 @@ class AgentNode:
             "lockstep_downlink_timeouts": self.downlink.timeouts,
             "scans": self.scans,
             **self.clock.stats(),
+            **self.source_stats(),
             **frontend_stats(self.frontend),
             **self.guard.stats(),
             # sim time since the state the neighbours' relay answered (the latest ticks)

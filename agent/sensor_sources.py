@@ -49,6 +49,77 @@ class SensorSource(Protocol):
         ...
 
 
+class SensorQueue:
+    """A live drone's sensor messages waiting for the agent, bounded.
+
+    Local SLAM that falls behind its laser (a slow computer, a stall) would work through
+    ever older scans, its control pose and keyframes lagging more and more, and the
+    queue would grow without end. A scan waiting more than `max_scan_lag_s` of sensor
+    time behind the newest scan is dropped (0: never), and past `queue_max` messages
+    the newest are dropped; both counted, and logged (the first, then every 100th).
+    Sensor time, not wall time: a lock-step simulator's ticks wait for the agent, so
+    none is dropped there however loaded the machine is."""
+
+    def __init__(self, robot_id: str, max_scan_lag_s: float, queue_max: int) -> None:
+        self._robot_id = robot_id
+        self._max_lag = max_scan_lag_s
+        self._queue: queue.Queue[list[Any]] = queue.Queue(maxsize=queue_max)
+        self._scans: deque[list[Any]] = deque()  # cells of the scans waiting, oldest first
+        self._lock = threading.Lock()
+        self.scans_dropped = 0  # behind the newest scan by more than max_scan_lag_s
+        self.overflow = 0  # past queue_max
+
+    def put(self, msg: Any) -> None:
+        cell = [msg]  # a dropped scan's cell is emptied: skipped when taken
+        with self._lock:
+            if isinstance(msg, LaserScan):
+                self._drop_lagging(msg.stamp)
+            try:
+                self._queue.put_nowait(cell)
+            except queue.Full:
+                self.overflow += 1
+                if self.overflow % 100 == 1:
+                    log.error("robot %s: %d sensor messages waiting: %d dropped so far (the "
+                              "agent has stalled)", self._robot_id, self._queue.maxsize,
+                              self.overflow)  # fmt: skip
+                return
+            if isinstance(msg, LaserScan):
+                self._scans.append(cell)
+
+    def _drop_lagging(self, newest: float) -> None:
+        while (
+            self._max_lag > 0.0
+            and self._scans
+            and (self._scans[0][0].stamp < newest - self._max_lag)
+        ):
+            self._scans.popleft()[0] = None
+            self.scans_dropped += 1
+            if self.scans_dropped % 100 == 1:
+                log.warning("robot %s: local SLAM falls behind the laser: scans more than "
+                            "%.1f s behind the newest dropped (%d so far)", self._robot_id,
+                            self._max_lag, self.scans_dropped)  # fmt: skip
+
+    def get(self, timeout: float) -> Any | None:
+        """The oldest message waiting; None if none came within ``timeout`` s."""
+        deadline = time.monotonic() + timeout
+        while (left := deadline - time.monotonic()) > 0.0:
+            try:
+                cell = self._queue.get(timeout=left)
+            except queue.Empty:
+                return None
+            with self._lock:
+                msg = cell[0]
+                if self._scans and self._scans[0] is cell:
+                    self._scans.popleft()
+            if msg is not None:
+                return msg
+        return None
+
+    def stats(self) -> dict[str, int]:
+        return {"sensor_scans_dropped_lagging": self.scans_dropped,
+                "sensor_messages_overflow": self.overflow}  # fmt: skip
+
+
 class ZenohSensors:
     """A drone's sensors over Zenoh (`robot/<id>/sensor/*`), from the simulator or a driver.
 
@@ -61,9 +132,15 @@ class ZenohSensors:
     (warned once)."""
 
     def __init__(
-        self, bus: Bus, robot_id: str, max_scans_before_altitude: int = 5, relay_gnss: bool = False
+        self,
+        bus: Bus,
+        robot_id: str,
+        max_scans_before_altitude: int = 5,
+        relay_gnss: bool = False,
+        max_scan_lag_s: float = 1.0,
+        queue_max: int = 100_000,
     ) -> None:
-        self._queue: queue.Queue[Any] = queue.Queue()
+        self._queue = SensorQueue(robot_id, max_scan_lag_s, queue_max)
         self._robot_id = robot_id
         # GnssFix from the drone's driver on to the base station (`agent.relay_gnss`): a
         # Zenoh peer routes nothing between its links, and the base station heard none
@@ -80,11 +157,12 @@ class ZenohSensors:
         if not isinstance(msg, GnssFix) or self._bus is not None:  # (else the base's only)
             self._queue.put(msg)
 
+    def stats(self) -> dict[str, int]:
+        return self._queue.stats()
+
     def messages(self, stop: threading.Event) -> Iterator[Any | None]:
         while not stop.is_set():
-            try:
-                msg = self._queue.get(timeout=0.05)
-            except queue.Empty:
+            if (msg := self._queue.get(timeout=0.05)) is None:
                 yield None
                 continue
             if isinstance(msg, GnssFix):

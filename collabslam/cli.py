@@ -99,7 +99,11 @@ def cmd_agent(args: argparse.Namespace) -> int:
             )  # fmt: skip
             node = AgentNode(cfg, args.robot_id, bus, tour, T_map_odom, NullVehicle())
         else:
-            source = ZenohSensors(bus, args.robot_id, relay_gnss=cfg.agent.relay_gnss)
+            a = cfg.agent
+            source = ZenohSensors(
+                bus, args.robot_id, relay_gnss=a.relay_gnss, max_scan_lag_s=a.max_scan_lag_s,
+                queue_max=a.sensor_queue_max,
+            )  # fmt: skip
             node = AgentNode(cfg, args.robot_id, bus, tour, T_map_odom)
         node.start()
         log.info("agent %s running", args.robot_id)

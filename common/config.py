@@ -146,6 +146,11 @@ class AgentConfig:
     # sets it); off in simulation, where the simulator reaches the base station itself
     relay_gnss: bool = False
     drain_timeout_s: float = 15.0  # s wall: on shutdown wait this long for acks
+    # a live drone's sensor queue (agent/sensor_sources.py): local SLAM falling behind its
+    # laser drops the scans waiting this far (sensor time) behind the newest, and holds
+    # at most sensor_queue_max messages (the newest dropped past it); 0: no lag limit
+    max_scan_lag_s: float = 1.0
+    sensor_queue_max: int = 100_000
     replay_max_unacked: int = 200  # --replay: pause the log while this many keyframes wait
     # --replay: log seconds per wall second (0: as fast as the acks allow), from the wall
     # clock time replay_start_unix (0: when the agent starts). Replays sharing a start

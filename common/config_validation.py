@@ -238,12 +238,14 @@ def _validate_agent(cfg: Config) -> None:
             "max_accel_mps2",
             "yaw_gain",
             "state_period_s",
+            "sensor_queue_max",
         ),
     )
     _non_negative_fields(
         "agent",
         a,
         (
+            "max_scan_lag_s",  # 0: no lag limit
             "safety_margin_m",
             "safety_reaction_s",
             "velocity_lag_s",

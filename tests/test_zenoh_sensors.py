@@ -9,7 +9,7 @@ import time
 import numpy as np
 import pytest
 
-from agent.sensor_sources import ZenohSensors
+from agent.sensor_sources import SensorQueue, ZenohSensors
 from collabslam.supervisor import free_port
 from common.bus import Bus
 from common.config import ZenohConfig
@@ -88,3 +88,28 @@ def test_a_drivers_gnss_fixes_reach_the_base_station_through_the_agent(relay: bo
             if time.monotonic() > deadline:
                 break
     assert got == ([0.0, 1e9, 1.0, 2.0] if relay else [])
+
+
+def test_scans_lagging_behind_the_newest_are_dropped(endpoint: str) -> None:
+    """Local SLAM behind its laser (a stall): the scans waiting more than
+    `agent.max_scan_lag_s` of sensor time behind the newest are dropped and counted, the
+    other messages kept in order (the queue had grown without end, control lagging)."""
+    with Bus(ZenohConfig(listen=[endpoint]), "default") as bus:
+        source = ZenohSensors(bus, "r0", max_scans_before_altitude=0, max_scan_lag_s=1.0)
+        bus.publish(bus.keys.sensor("r0", "altimeter"), Altimeter("r0", 0.0, 1.0))
+        for k in range(31):  # 3 s of a 10 Hz laser, while the agent is busy
+            bus.publish(bus.keys.sensor("r0", "scan"), _scan(0.1 * k))
+        time.sleep(0.3)
+        got = _take(source, 12)
+    assert type(got[0]).__name__ == "Altimeter"
+    assert [round(m.stamp, 1) for m in got[1:]] == [round(2.0 + 0.1 * k, 1) for k in range(11)]
+    assert source.stats() == {"sensor_scans_dropped_lagging": 20, "sensor_messages_overflow": 0}
+
+
+def test_a_full_sensor_queue_drops_the_newest_and_counts_them() -> None:
+    queue = SensorQueue("r0", max_scan_lag_s=0.0, queue_max=3)
+    for k in range(5):
+        queue.put(_scan(0.1 * k))
+    got = [queue.get(timeout=0.01) for _ in range(4)]
+    assert [round(m.stamp, 1) for m in got[:3]] == [0.0, 0.1, 0.2] and got[3] is None
+    assert queue.stats()["sensor_messages_overflow"] == 2

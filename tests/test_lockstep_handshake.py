@@ -108,7 +108,8 @@ def test_a_drones_sensor_messages_arrive_in_the_order_they_were_sent(endpoint: s
         Bus(ZenohConfig(listen=[endpoint]), "default") as sim,
         Bus(ZenohConfig(connect=[endpoint]), "default") as agent,
     ):
-        source = ZenohSensors(agent, "r0", max_scans_before_altitude=0)
+        # (7.5 s of sensor time sent before any is taken: no lag limit here)
+        source = ZenohSensors(agent, "r0", max_scans_before_altitude=0, max_scan_lag_s=0.0)
         time.sleep(0.5)
         sent = []
         pose = pose4_to_pose7([0.0, 0.0, 1.0, 0.0])

@@ -83,7 +83,7 @@ def record_tour(
                 laser.angle_increment,
                 laser.range_min,
                 laser.range_max,
-                laser.measure(world, v.pose[[0, 1, 3]], rng),
+                laser.measure(world, v.pose[[0, 1, 3]], rng, v.roll, v.pitch, v.pose[2]),
             ),
         ]
         gt.append([t, *v.pose])

@@ -6,7 +6,9 @@ a simulation seeded once is reproducible.
 
 Frames: "body" is the drone's FLU frame. Velocities handed to the odometry are
 in the yaw-aligned body frame (x forward, y left, z up; roll and pitch ignored,
-the 2.5-D convention of `common.geometry`); the IMU takes the full body frame.
+the 2.5-D convention of `common.geometry`); the IMU takes the full body frame, and so
+does the laser: it is fixed to the body and tilts with it (the agent levels its
+points with the IMU's roll and pitch).
 """
 
 from __future__ import annotations
@@ -83,18 +85,40 @@ class LaserModel:
         return float(self.angles[1] - self.angles[0]) if self.beams > 1 else 0.0
 
     def measure(
-        self, world: World, T_world_sensor: ArrayLike, rng: np.random.Generator
+        self,
+        world: World,
+        T_world_sensor: ArrayLike,
+        rng: np.random.Generator,
+        roll: float = 0.0,
+        pitch: float = 0.0,
+        height: float = math.inf,
     ) -> NDArray[np.float32]:
-        """(beams,) noisy ranges (m) from a sensor at [x, y, yaw] in the map frame."""
+        """(beams,) noisy ranges (m) from a sensor at [x, y, yaw] in the map frame, tilted
+        by roll and pitch (rad, the body's: the laser is fixed to it) at ``height`` m
+        above the floor: walls stand from the floor up without end, so a tilted beam
+        meets a wall farther than level, and a beam pointing down may meet the floor
+        (at 1 m, 5.8 degrees of pitch meets it ~10 m ahead, as on a real drone)."""
+        angles, horizontal = self.angles, 1.0
+        down = np.zeros(0)
+        if roll or pitch:  # beam (cos a, sin a, 0) turned by Ry(pitch) Rx(roll)
+            ca, sa = np.cos(self.angles), np.sin(self.angles)
+            cr, sr, cp, sp = math.cos(roll), math.sin(roll), math.cos(pitch), math.sin(pitch)
+            x, y = cp * ca + sp * sr * sa, cr * sa
+            down = sp * ca - cp * sr * sa  # -z: the beam's fall per metre along it
+            angles, horizontal = np.arctan2(y, x), np.hypot(x, y)
         true = cast_rays(
             world.occupied,
             world.resolution,
             world.origin_xy,
             T_world_sensor,
-            self.angles,
+            angles,
             self.range_max,
             blocks=world.ray_blocks,
         )
+        if len(down):
+            with np.errstate(divide="ignore"):
+                floor = np.where(down > 0.0, max(height, 0.0) / down, np.inf)
+            true = np.minimum(true / horizontal, floor).astype(np.float32)
         noisy = true + rng.normal(0.0, self.range_noise_std, true.shape).astype(np.float32)
         invalid = ~np.isfinite(true) | (noisy < self.range_min) | (noisy >= self.range_max)
         noisy[invalid] = self.range_max

@@ -347,7 +347,9 @@ class Simulator:
             self.gnss_fixes += 1
             msgs.append((keys.sensor(rid, "gnss"), GnssFix(rid, t, fix.lla, fix.sigmas_enu)))
         pose = v.pose
-        ranges = self.laser.measure(self.world, np.array([pose[0], pose[1], pose[3]]), r.rng)
+        ranges = self.laser.measure(
+            self.world, np.array([pose[0], pose[1], pose[3]]), r.rng, v.roll, v.pitch, pose[2]
+        )
         angles = self.laser.angles
         scan = LaserScan(
             rid,

@@ -7,6 +7,8 @@ import math
 import numpy as np
 import pytest
 
+from agent.scan_preprocessor import ScanPreprocessor
+from common.config import LocalSlamConfig
 from common.errors import ConfigError
 from common.geometry import quat_to_rpy
 from common.map_io import GridMap
@@ -70,6 +72,36 @@ def test_laser_is_deterministic_per_seed(room: World) -> None:
     c = laser.measure(room, [2.0, 2.0, 1.0], np.random.default_rng(8))
     np.testing.assert_array_equal(a, b)
     assert not np.array_equal(a, c)
+
+
+def test_a_tilted_laser_sees_walls_farther_and_the_floor_and_the_agent_levels_it(
+    room: World,
+) -> None:
+    """The laser is fixed to the body: pitched 0.1 rad (a 1 m/s^2 acceleration) its beam
+    ahead meets the wall 4.95 m away at 4.95 / cos(0.1), and from 0.3 m up the floor at
+    0.3 / sin(0.1); the agent's levelling with the IMU's roll and pitch gives back the
+    level scan's points and drops the floor's (the laser had stayed level while the IMU
+    reported the tilt, so the agent's levelling shortened level walls' points)."""
+    laser = LaserModel(beams=1081, range_noise_std=0.0)
+    ahead = np.argmin(np.abs(laser.angles))
+    pose, rng = np.array([3.0, 1.5, 0.0]), np.random.default_rng(0)
+    level = laser.measure(room, pose, rng)
+    tilted = laser.measure(room, pose, rng, roll=0.05, pitch=0.1, height=1.0)
+    assert tilted[ahead] == pytest.approx(4.95 / math.cos(0.1), abs=1e-4)
+    low = laser.measure(room, pose, rng, pitch=0.1, height=0.3)
+    assert low[ahead] == pytest.approx(0.3 / math.sin(0.1), abs=1e-4)
+
+    prep = ScanPreprocessor(LocalSlamConfig())
+    inc = laser.angle_increment
+    want = prep.prepare(laser.angles[0], inc, laser.range_max, level).points
+    got = prep.prepare(laser.angles[0], inc, laser.range_max, tilted, 0.05, 0.1, 1.0).points
+    assert len(got) > 0.95 * len(want)
+    # every levelled point lies on a wall of the level scan (within its beam spacing)
+    dist = np.linalg.norm(got[:, None, :] - want[None, :, :], axis=2).min(axis=1)
+    assert np.quantile(dist, 0.99) < 0.03
+    floor = prep.prepare(laser.angles[0], inc, laser.range_max, low, 0.0, 0.1, 0.3).points
+    assert not np.any(np.hypot(*floor.T)[np.abs(np.arctan2(floor[:, 1], floor[:, 0])) < 0.5]
+                      > 2.9)  # fmt: skip
 
 
 def test_laser_rejects_bad_config() -> None:

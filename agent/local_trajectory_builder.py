@@ -190,6 +190,7 @@ class LocalTrajectoryBuilder:
             self.roll,
             self.pitch,
             self.altitude,
+            scan.range_min,
         )
         few = len(prep.points) < self.cfg.min_num_points  # (a dropout, open space, fog)
         if few and self.few_point_scans % 400 == 0:  # ~10 s of scans at 40 Hz a line

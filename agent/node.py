@@ -179,9 +179,7 @@ class AgentNode:
     # --- wiring -------------------------------------------------------------------------
     def start(self) -> None:
         """Declare subscriptions, then the liveliness token (so the token implies routes).
-
-        The sensor source must be created before this (its subscriptions count too).
-        """
+        The sensor source must be created before this (its subscriptions count too)."""
         rid, mine = self.robot_id, self.uplink.mine  # what is sent to this agent's session
         for topic, kind, on in (
             ("ack", KeyframeAck, self._on_ack), ("correction", PoseCorrection, self._on_correction),
@@ -325,7 +323,7 @@ class AgentNode:
         pose, last = result.pose, self.selector.last_pose
         delta, cov = self.selector.cut(pose, result.covariance)
         scan2d = Scan2D.from_ranges(
-            scan.angle_min, scan.angle_increment, scan.range_max, scan.ranges
+            scan.angle_min, scan.angle_increment, scan.range_max, scan.ranges, scan.range_min
         )
         sent = self.uplink.send(
             stamp=scan.stamp,
@@ -362,12 +360,12 @@ class AgentNode:
         with self._corr_lock:
             pending, self._smoother_pending = self._smoother_pending, None
             epoch = self.epoch
-        if pending is not None:
+        if pending is not None and self.fresh.in_flight and not self.fresh.placed:
+            self.smoother = PoseSmoother(self.cfg.agent.smoothing, pending)  # its placement
+        elif pending is not None:  # (a start pose known wrong: nothing to blend from)
             self.smoother.on_correction(pending, stamp)
         T_odom_base = pose4_to_pose7(pose_odom)
-        raw = self.smoother.target
-        if raw is None:
-            raw = np.array(IDENTITY7)
+        raw = self.smoother.target if self.smoother.target is not None else np.array(IDENTITY7)
         applied = self.smoother.applied(stamp)
         self.control_log.add(stamp, T_odom_base, raw, applied)
         self.bus.publish(

@@ -51,13 +51,16 @@ class ScanPreprocessor:
         roll: float = 0.0,
         pitch: float = 0.0,
         altitude: float | None = None,
+        range_min: float = 0.0,
     ) -> PreparedScan:
+        """`range_min`: the laser's; readings below it (its own frame, an error code)
+        are neither returns nor free space, as below `min_range_m`."""
         c = self.cfg
         r = np.asarray(ranges, dtype=np.float64)
         cs = self._trig(angle_min, angle_increment, r.size)
         finite = np.isfinite(r)
         hit_max = min(c.max_range_m, range_max)
-        valid = finite & (r >= max(c.min_range_m, 1e-3)) & (r < hit_max)
+        valid = finite & (r >= max(c.min_range_m, range_min, 1e-3)) & (r < hit_max)
         no_return = (finite & (r >= range_max)) | (np.isposinf(r))
         hits = cs[valid] * r[valid, None]
         misses = cs[no_return] * c.missing_data_ray_length_m

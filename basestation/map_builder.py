@@ -35,7 +35,7 @@ from common.geometry import wrap_angle
 from common.growable import empty, grown
 from common.map_io import GridMap
 from common.occupancy_grid import OccupancyGrid
-from protocol.messages import Scan2D
+from protocol.messages import NO_READING_MM, Scan2D
 
 log = logging.getLogger(__name__)
 
@@ -78,6 +78,19 @@ class _TileJob:
 # beam geometries whose angles are kept (a fleet has a few lasers; a driver whose
 # angle_min jitters had made one per keyframe, 430 MB at 100,000)
 ANGLE_GEOMETRIES_KEPT = 64
+
+
+def _metres(mm: np.ndarray, range_max: float) -> np.ndarray:
+    """Scan2D ranges (mm) as float32 m: a no return `range_max`, a no reading NaN."""
+    r = mm.astype(np.float32) * np.float32(1e-3)
+    r[mm == 0] = np.float32(range_max)
+    r[mm == NO_READING_MM] = np.nan
+    return r
+
+
+def _returns(mm: np.ndarray) -> np.ndarray:
+    """The returns (neither no return nor no reading) in each scan of ``mm``."""
+    return np.count_nonzero((mm > 0) & (mm != NO_READING_MM), axis=-1)
 
 
 class MapBuilder:
@@ -123,11 +136,11 @@ class MapBuilder:
         }
 
     def _beams(self, scan: Scan2D) -> tuple[np.ndarray, np.ndarray]:
-        """Ranges (m, float32; a no-return is a max-range beam that clears free space)
-        and angles (rad, sensor frame; shared by scans of one geometry)."""
+        """Ranges (m, float32; a no-return is a max-range beam that clears free space,
+        a no-reading NaN, not drawn) and angles (rad, sensor frame; shared by scans of
+        one geometry)."""
         mm = scan.ranges_mm
-        r = mm.astype(np.float32) * np.float32(1e-3)
-        r[mm == 0] = np.float32(scan.range_max)
+        r = _metres(mm, scan.range_max)
         geom = (scan.angle_min, scan.angle_increment, mm.size)
         a = self._angles.get(geom)
         if a is None:  # (a driver whose angle_min jitters: one each; the oldest go)
@@ -137,11 +150,11 @@ class MapBuilder:
         return r, a
 
     def _reach_of(self, scan: Scan2D) -> float:
-        if np.count_nonzero(scan.ranges_mm) < MIN_SCAN_RETURNS:
+        if _returns(scan.ranges_mm) < MIN_SCAN_RETURNS:
             return 0.0  # (not drawn)
         r, _ = self._beams(scan)  # no-return beams clear up to max_free_range_m
         r = np.where(r >= scan.range_max, np.minimum(r, self.cfg.max_free_range_m), r)
-        return float(r.max(initial=0.0))
+        return float(np.nanmax(r, initial=0.0))
 
     def _scans_of(self, idx: Sequence[int]) -> list[Scan2D]:
         if self._source is None:
@@ -166,10 +179,9 @@ class MapBuilder:
                 end += 1
             run = list(idx[start:end])
             mm = np.stack([s.ranges_mm for s in scans[start:end]])
-            r = mm.astype(np.float32) * np.float32(1e-3)
-            r[mm == 0] = np.float32(first.range_max)  # as in _beams
+            r = _metres(mm, first.range_max)  # as in _beams
             _, a = self._beams(first)
-            seen = np.count_nonzero(mm, axis=1) >= MIN_SCAN_RETURNS
+            seen = _returns(mm) >= MIN_SCAN_RETURNS
             if seen.any():
                 grid.insert_scans(
                     self._pose[run][seen].astype(np.float64), r[seen], a, 0.0,

@@ -21,7 +21,7 @@ from typing import Any
 import numpy as np
 
 from agent.carmen_log import carmen_time_span
-from collabslam.supervisor import ProcessGroup, free_port
+from collabslam.supervisor import ProcessGroup, clear_run_outputs, free_port
 from common.bus import endpoint
 from common.config import Config, dump_config
 from common.errors import CollabSlamError
@@ -87,6 +87,7 @@ def eval_carmen(
     edges[-1] += 1.0
     out = json_out.parent / json_out.stem
     out.mkdir(parents=True, exist_ok=True)
+    clear_run_outputs(out)
     # A replay runs many times faster than the robots drove: pace it to what the
     # verifier keeps up with (the base station delays acks, the agents wait), as a
     # live run at sensor rate would be, instead of dropping candidates.

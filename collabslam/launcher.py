@@ -22,7 +22,7 @@ from typing import Any
 
 import numpy as np
 
-from collabslam.supervisor import Child, ProcessGroup, free_port
+from collabslam.supervisor import Child, ProcessGroup, clear_run_outputs, free_port
 from common.bus import endpoint
 from common.config import Config, dump_config
 from common.errors import ProcessError
@@ -98,6 +98,7 @@ class Launcher:
     def run(self) -> dict[str, Any]:
         t0 = time.monotonic()
         self.out.mkdir(parents=True, exist_ok=True)
+        clear_run_outputs(self.out)
         scenario = self.scenario or make_scenario(self.cfg, self.world_yaml, self.n_robots)
         scenario = with_gnss_origin(self.cfg, scenario)
         write_scenario(self.out / "scenario.json", scenario)

@@ -110,8 +110,9 @@ def _segments_trajectory(out: Path, rid: str, base: dict[str, Any]) -> Trajector
     basestation/robot_segments.py) in time order, those the base station had anchored;
     None if none was written."""
     paths = [out / "trajectories" / f"{rid}.tum", *(out / "trajectories").glob(f"{rid}~*.tum")]
-    robots = base.get("robots", {})
-    paths = [p for p in paths if robots.get(p.stem, {}).get("anchored", True)]
+    robots = base.get("robots", {})  # (a segment this run's base station did not map: none)
+    paths = [p for p in paths if (p.stem == rid or p.stem in robots)
+             and robots.get(p.stem, {}).get("anchored", True)]  # fmt: skip
     parts = [read_tum(p) for p in paths if p.is_file()]
     if not parts:
         return None

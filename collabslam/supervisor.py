@@ -11,6 +11,7 @@ from __future__ import annotations
 import logging
 import os
 import random
+import shutil
 import socket
 import subprocess
 import sys
@@ -80,6 +81,34 @@ class Child:
 # a child given this (its supervisor's pid) stops (SIGTERM) when the supervisor dies,
 # even by SIGKILL or a second Ctrl-C (`common.shutdown.stop_with_supervisor`)
 SUPERVISOR_ENV = "COLLABSLAM_SUPERVISOR_PID"
+
+
+# what a mission writes into its --out folder: deleted before the next mission there, so
+# none is read as this mission's (a 10 s tour had reported the exploration's time_to_95_s
+# from an earlier run's map history, and an old segment's r0~2.tum had made r0's ATE 4 m)
+RUN_OUTPUTS = (
+    "agents", "control_poses", "ground_truth", "local_trajectories", "logs", "trajectories",
+    "basestation.json", "simulator.json", "summary.json", "map.pgm", "map.yaml", "map.png",
+    "map_history.npz", "trajectory.tum",
+)  # fmt: skip
+
+
+RUN_MARKER = ".collabslam-run"  # in a folder a mission wrote into
+
+
+def clear_run_outputs(out: Path) -> None:
+    """Delete an earlier mission's outputs in ``out``: those names only, and only in a
+    folder that holds a mission's marker (`--out .` in a user's own folder keeps its
+    `logs/`); then mark the folder as this mission's."""
+    if not (out / RUN_MARKER).is_file():
+        (out / RUN_MARKER).write_text("outputs of collabslam missions: replaced by the next\n")
+        return
+    for name in RUN_OUTPUTS:
+        path = out / name
+        if path.is_dir() and not path.is_symlink():
+            shutil.rmtree(path)
+        elif path.exists() or path.is_symlink():
+            path.unlink()
 
 
 class ProcessGroup:

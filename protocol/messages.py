@@ -182,9 +182,16 @@ class VehicleCommand(Message):
 # --- agent <-> base station ---------------------------------------------------------------
 
 
+# Scan2D.ranges_mm: a reading the laser refused (below its range_min: the drone's own
+# frame, a driver's error code), neither a return nor free space. (Valid readings stay
+# below 65 m, 65000 mm; a base station from before takes it as a no return.)
+NO_READING_MM = 65535
+
+
 @message
 class Scan2D:
-    """A keyframe's planar scan, ranges quantized to millimetres (0 = no return)."""
+    """A keyframe's planar scan, ranges quantized to millimetres (0 = no return,
+    `NO_READING_MM` = no reading)."""
 
     angle_min: float
     angle_increment: float
@@ -192,9 +199,9 @@ class Scan2D:
     ranges_mm: np.ndarray = array_field("u2", (None,))
 
     def ranges(self) -> np.ndarray:
-        """Ranges in metres as float32, NaN for no return."""
+        """Ranges in metres as float32, NaN for no return and for no reading."""
         r = self.ranges_mm.astype(np.float32) * np.float32(1e-3)
-        r[self.ranges_mm == 0] = np.nan
+        r[(self.ranges_mm == 0) | (self.ranges_mm == NO_READING_MM)] = np.nan
         return r
 
     def angles(self) -> np.ndarray:
@@ -204,13 +211,20 @@ class Scan2D:
 
     @staticmethod
     def from_ranges(
-        angle_min: float, angle_increment: float, range_max: float, ranges: np.ndarray
+        angle_min: float,
+        angle_increment: float,
+        range_max: float,
+        ranges: np.ndarray,
+        range_min: float = 0.0,
     ) -> Scan2D:
-        """Quantize metres to mm; NaN/inf/>= range_max/<= 0 become 0 (no return)."""
+        """Quantize metres to mm; NaN/inf/>= range_max/<= 0 become 0 (no return), and
+        finite readings below a positive ``range_min`` `NO_READING_MM`."""
         r = np.asarray(ranges, dtype=np.float64)
-        valid = np.isfinite(r) & (r > 0.0) & (r < min(range_max, 65.0))
+        valid = np.isfinite(r) & (r > 0.0) & (r < min(range_max, 65.0)) & (r >= range_min)
         mm = np.zeros(r.shape, dtype=np.uint16)
-        mm[valid] = np.clip(np.rint(r[valid] * 1000.0), 1, 65535).astype(np.uint16)
+        mm[valid] = np.clip(np.rint(r[valid] * 1000.0), 1, 65000).astype(np.uint16)
+        if range_min > 0.0:
+            mm[np.isfinite(r) & (r < range_min)] = NO_READING_MM
         return Scan2D(float(angle_min), float(angle_increment), float(range_max), mm)
 
 

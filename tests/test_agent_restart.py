@@ -15,9 +15,11 @@ import sqlite3
 import time
 from pathlib import Path
 
+import numpy as np
 import pytest
 from process_helpers import TourMission, end_mission, stored_keyframes, tour_mission, wait_for
 
+from agent.control_log import control_positions, read_control_log
 from collabslam.summary import build_summary
 from collabslam.supervisor import ProcessGroup
 from protocol import Keyframe, decode
@@ -148,3 +150,11 @@ def test_an_agent_restarted_afresh_maps_on_as_a_new_segment(tmp_path: Path) -> N
     r0 = next(r for r in summary["robots"] if r["id"] == "r0")  # both segments
     assert r0["keyframes_in_graph"] == first["keyframes_in_graph"] + agent["keyframes_sent"]
     assert all(r["ate_rmse_m"] < 0.5 for r in summary["robots"])
+    # its control pose takes the placement at once: it had slid there over ~7 s from the
+    # scenario's start pose, a placeholder 10 m off (9.5 m, then 6 m 2 s later)
+    c = read_control_log(out / "control_poses" / "r0.csv")
+    placed = np.any(c.T_map_odom_raw != c.T_map_odom_raw[0], axis=1)
+    applied = control_positions(c.T_map_odom_applied, c.T_odom_base)[placed, :2]
+    gt = np.loadtxt(out / "ground_truth" / "r0.tum")
+    true = np.column_stack([np.interp(c.stamps[placed], gt[:, 0], gt[:, i]) for i in (1, 2)])
+    assert placed.sum() > 100 and np.linalg.norm(applied - true, axis=1).max() < 0.5

@@ -32,6 +32,9 @@ def test_preprocessor_drops_invalid_returns(cfg) -> None:
     assert len(p.miss_points) == 3  # 30.0 (= range_max), 45.0 and +inf: no return
     assert np.allclose(np.hypot(*p.miss_points.T), cfg.agent.local_slam.missing_data_ray_length_m)
     assert p.dropped_invalid == 3  # NaN, -inf, too close
+    # the laser's own range_min (0.3 m: its frame in view) drops 0.2 m as well
+    own = pre.prepare(-0.5, 0.1, 30.0, np.array([0.2, 1.0], np.float32), range_min=0.3)
+    assert np.allclose(np.hypot(*own.points.T), [1.0]) and len(own.miss_points) == 0
 
 
 def test_preprocessor_levels_a_tilted_scan(cfg) -> None:

@@ -308,3 +308,25 @@ def test_keyframes_beyond_max_radius_are_not_drawn_and_the_map_stays_bounded() -
     assert w * cfg.resolution_m < 2 * cfg.max_radius_m + 5.0 and mb.pending == 0
     ref = _full_render(mb, scans[:10], moved[:10])  # what is left in reach is drawn
     assert (np.abs(mb.grid.log_odds - ref) > 1e-5).sum() <= 30
+
+
+def test_readings_below_the_lasers_range_min_are_neither_walls_nor_free_space() -> None:
+    """A drone whose laser sees its own frame (0.15 m, under the driver's range_min of
+    0.3 m): those readings had gone into keyframes as returns, and the map had occupied
+    cells along the flight line. They are no readings now: not drawn, nor taken as no
+    return (which clears free space 10 m along the beam, through the walls behind)."""
+    n = 181
+    r = np.full(n, 3.0)
+    r[:20] = 0.15  # -90..-71 degrees: a frame arm
+    scan = Scan2D.from_ranges(-np.pi / 2, np.pi / (n - 1), 8.0, r, range_min=0.3)
+    assert np.all(np.isnan(scan.ranges()[:20])) and np.allclose(scan.ranges()[20:], 3.0)
+    no_return = Scan2D.from_ranges(-np.pi / 2, np.pi / (n - 1), 8.0, np.where(r < 0.3, np.nan, r))
+    probe = np.array([[0.0, -1.5], [0.0, -0.15]])  # 1.5 m along the arm, and the arm
+    values = []
+    for s in (scan, no_return):
+        mb = MapBuilder(MapConfig())
+        mb.update([("a", i) for i in range(5)], [s] * 5, np.tile([0.01, 0.01, 0.0], (5, 1)),
+                  budget_s=None)  # fmt: skip
+        values.append(mb.gridmap().sample(probe).tolist())
+    assert values[0] == [-1, -1]  # unknown
+    assert values[1][0] == 0  # (no return: free)

@@ -1,5 +1,5 @@
-"""summary.json's per-robot figures: ATE only over a robot's segments on the map, and
-horizontal (the height is the altimeter's)."""
+"""summary.json's per-robot figures: ATE only over a robot's segments on the map (and
+this mission's), and horizontal (the height is the altimeter's)."""
 
 from __future__ import annotations
 
@@ -9,6 +9,7 @@ from pathlib import Path
 import numpy as np
 
 from collabslam.summary import build_summary
+from collabslam.supervisor import RUN_MARKER, clear_run_outputs
 from common.trajectory_io import Trajectory, write_tum
 from simulation.world import resolve_world
 
@@ -42,3 +43,31 @@ def test_given_up_lock_step_waits_are_counted(tmp_path: Path) -> None:
     (tmp_path / "agents" / "r0.json").write_text(json.dumps({"lockstep_downlink_timeouts": 2}))
     summary = build_summary(tmp_path, resolve_world("bshape"), ["r0", "r1"], 1.0)
     assert summary["lockstep_timeouts"] == 15
+
+
+def test_a_folder_used_again_holds_this_missions_outputs_only(tmp_path: Path) -> None:
+    """`make run` writes to runs/latest every time: an earlier mission's map history had
+    given a 10 s tour the exploration's time_to_95_s, and its segment r0~2.tum (an agent
+    restart) made r0's ATE 4.4 m. A folder a mission wrote into is cleared of the names
+    a mission writes; a user's own folder (`--out .`) is left as it is."""
+    own = tmp_path / "own"
+    (own / "logs").mkdir(parents=True)
+    clear_run_outputs(own)
+    assert (own / "logs").is_dir() and (own / RUN_MARKER).is_file()
+    run = tmp_path / "run"
+    run.mkdir()
+    clear_run_outputs(run)  # the first mission
+    t = np.linspace(0.0, 5.0, 20)
+    truth = Trajectory.from_pose4(t, np.column_stack([t, np.zeros(20), np.ones(20), 0.0 * t]))
+    far = Trajectory.from_pose4(t + 9.0, np.column_stack([t, 4 + 0 * t, np.ones(20), 0.0 * t]))
+    for name, traj in (("ground_truth/r0", truth), ("trajectories/r0", truth),
+                       ("trajectories/r0~2", far)):  # fmt: skip
+        write_tum(run / f"{name}.tum", traj)
+    (run / "map_history.npz").write_bytes(b"")
+    (run / "notes.txt").write_text("mine")
+    robots = {"r0": {"anchored": True}}  # this run's base station mapped no r0~2
+    (run / "basestation.json").write_text(json.dumps({"robots": robots}))
+    r0 = build_summary(run, resolve_world("bshape"), ["r0"], 1.0)["robots"][0]
+    assert r0["ate_rmse_m"] == 0.0  # the stale segment left out
+    clear_run_outputs(run)  # the next mission
+    assert sorted(p.name for p in run.iterdir()) == [RUN_MARKER, "notes.txt"]

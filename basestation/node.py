@@ -28,12 +28,7 @@ from typing import Any
 import numpy as np
 
 from basestation.correction_epochs import CorrectionEpochs
-from basestation.exploration_setup import (
-    explorer_stats,
-    make_explorer,
-    path_message,
-    planar_pose,
-)
+from basestation.exploration_setup import explorer_stats, make_explorer, path_message, planar_pose
 from basestation.global_slam import GlobalSlam
 from basestation.gnss_intake import GnssIntake, map_georeference
 from basestation.gps_fixes import local_pose
@@ -331,10 +326,12 @@ class BaseStationNode:
         state = self.states.get(rid)  # one dict read: atomic
         return seq + 1, -1.0 if state is None else state.stamp
 
-    def _release_lost(self) -> None:
-        """Goals of agents whose liveliness token went away go back to the queue."""
-        with self._lock:
-            lost, self._lost = self._lost, []
+    def _release_lost(self, lost: list[tuple[str, Any]] | None = None) -> None:
+        """Goals of agents whose liveliness token went away go back to the queue, their
+        ways kept clear (`lost`: taken from `_lost` under the lock already)."""
+        if lost is None:
+            with self._lock:
+                lost, self._lost = self._lost, []
         for name, pose in lost:
             if self.explorer is not None:
                 self.explorer.release(name, pose)
@@ -344,8 +341,11 @@ class BaseStationNode:
         grid = self.map.gridmap(free_thresh=EXPLORATION_FREE_THRESH)
         if grid is None or self.explorer is None:
             return
-        with self._lock:
+        with self._lock:  # one lost by now is released first: the step had taken it for
+            # gone for good, given its goal away, and kept none of its way clear
             states, alive = dict(self.states), set(map(self.segments.current, self._alive))
+            lost, self._lost = self._lost, []
+        self._release_lost(lost)
         graph = self.slam.graph
         poses: dict[str, np.ndarray] = {}
         for rid in graph.robots():
@@ -353,7 +353,8 @@ class BaseStationNode:
                 continue
             if rid in states:
                 poses[rid] = planar_pose(states[rid])
-            elif rid in alive:  # no state yet (it may be lost at the start): its newest keyframe
+            elif rid in alive and rid not in self.explorer.silent:  # no state yet (it may be
+                # lost at the start): its newest keyframe; back from a lost link: its state
                 poses[rid] = graph.pose(rid, graph.latest_index(rid))
         blocked = {rid for rid, st in states.items() if st.status == "blocked"}
         z = self.cfg.agent.cruise_altitude_m

@@ -34,7 +34,10 @@ def wall_distance(occupied: NDArray[np.bool_], resolution: float) -> NDArray[np.
     global _last_wall_distance
     key = (occupied.shape, float(resolution), zlib.crc32(np.ascontiguousarray(occupied)))
     if _last_wall_distance is None or _last_wall_distance[0] != key:
-        dist = ndimage.distance_transform_edt(~occupied) * resolution
+        if occupied.any():
+            dist = ndimage.distance_transform_edt(~occupied) * resolution
+        else:  # (scipy measures from a point beside cell (0, 0): a wall zone in a corner)
+            dist = np.full(occupied.shape, np.inf)
         dist.flags.writeable = False
         _last_wall_distance = (key, dist)
     return _last_wall_distance[1]

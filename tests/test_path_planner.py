@@ -285,3 +285,15 @@ def test_unknown_length_of_a_path() -> None:
     grid = _grid(_known_l_shape())
     assert unknown_length(grid, np.array([[0.5, 1.0], [9.5, 1.0]])) == 0.0
     assert abs(unknown_length(grid, np.array([[1.0, 0.5], [1.0, 6.5]])) - 4.5) < 0.05
+
+
+def test_a_map_with_no_wall_has_no_wall_zone() -> None:
+    """An open field (nothing occupied): scipy's distance transform measured every cell
+    from a point beside cell (0, 0), so a phantom wall zone blocked the map's corner and
+    a goal there was unreachable."""
+    data = np.zeros((100, 100), np.int8)
+    data[:, 80:] = -1
+    grid = GridMap(data, 0.05, (0.0, 0.0, 0.0))
+    pm = PlanningMap(grid, 0.4)
+    assert not pm.blocked.any() and not pm.in_wall_zone(np.array([0.1, 0.1]))
+    assert PathPlanner(check_budget=2000).plan(grid, [2.0, 2.0], [0.1, 0.1]) is not None

@@ -28,6 +28,9 @@ MAX_ODOMETRY = 512
 # last velocity for up to this long (s), then held. Holding it instead would predict no
 # motion for that gap, and the matcher's prior pulls toward the prediction.
 MAX_EXTRAPOLATION_S = 0.5
+# s: the last velocity is measured over at least this much odometry (stamped on arrival,
+# two messages can be 1 ms apart with 20 ms of motion between them)
+MIN_VELOCITY_BASE_S = 0.05
 
 
 class PoseExtrapolator:
@@ -79,10 +82,17 @@ class PoseExtrapolator:
     def _oldest_needed(self) -> int:
         """Index of the oldest odometry still needed: the last one at or before the
         newest matched pose's stamp (it brackets that stamp)."""
-        last_two = max(0, len(self._odom_t) - 2)  # the last velocity, to extrapolate
+        last_two = self._velocity_base()  # the last velocity, to extrapolate
         if not self._poses:
             return last_two
         return min(max(0, bisect.bisect_right(self._odom_t, self._poses[-1][0]) - 1), last_two)
+
+    def _velocity_base(self) -> int:
+        n = len(self._odom_t)
+        if n < 2:
+            return 0
+        j = bisect.bisect_right(self._odom_t, self._odom_t[-1] - MIN_VELOCITY_BASE_S) - 1
+        return max(0, min(j, n - 2))
 
     def odometry_at(self, stamp: float) -> np.ndarray | None:
         """The odometry pose at ``stamp``: interpolated between the messages around it;
@@ -96,7 +106,11 @@ class PoseExtrapolator:
         if k == len(self._odom_t):  # newer than all: the last odometry velocity, briefly
             if k == 1 or stamp - self._odom_t[-1] > MAX_EXTRAPOLATION_S:
                 return self._odom[-1].copy()
-            k -= 1  # extrapolate along the last two messages (s > 1 below)
+            j = self._velocity_base()  # along the last MIN_VELOCITY_BASE_S of odometry
+            t0, t1, p0, p1 = self._odom_t[j], self._odom_t[-1], self._odom[j], self._odom[-1]
+            s = (stamp - t0) / (t1 - t0)
+            xy = p0[:2] + s * (p1[:2] - p0[:2])
+            return np.array([xy[0], xy[1], wrap_angle(p0[2] + s * wrap_angle(p1[2] - p0[2]))])
         if self._odom_t[k] == stamp:
             return self._odom[k].copy()
         t0, t1 = self._odom_t[k - 1], self._odom_t[k]

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+import time
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -53,6 +54,39 @@ STEP_CONFIRM = 5  # messages in a row from the stepped-back clock before it coun
 
 
 @dataclass
+class ClockAgreement:
+    """Names a sensor that stamps by another clock than the laser's (a driver's IMU on Unix
+    time, its laser on time since boot). All of a drone's sensors must share one clock:
+    an IMU far ahead became the latest stamp and every scan after it was dropped, odometry
+    far ahead predicted no motion, without a word. A message that comes within
+    `window_s` (wall) of the latest scan and whose stamp is more than `max_apart` (plus
+    the wall time between them) from the scan's is a disagreement: counted, and an error
+    line names the sensor and the offset (the first, then every 1000th)."""
+
+    max_apart: float = MAX_STAMP_BACK_S
+    window_s: float = 0.5
+    disagreements: int = 0
+    _scan: tuple[float, float] | None = None  # the latest scan's (stamp, wall time)
+
+    def check(self, msg: Any) -> None:
+        now = time.monotonic()
+        kind = type(msg).__name__
+        if kind == "LaserScan":
+            self._scan = (msg.stamp, now)
+            return
+        if self._scan is None or now - self._scan[1] > self.window_s:
+            return
+        ahead = msg.stamp - self._scan[0]
+        if abs(ahead) <= self.max_apart + (now - self._scan[1]):
+            return
+        if self.disagreements % 1000 == 0:
+            log.error("%s stamps are %.3f s %s the laser's: another clock? (all of a drone's "
+                      "sensors must stamp by one clock; %d such so far)", kind, abs(ahead),
+                      "ahead of" if ahead > 0 else "behind", self.disagreements + 1)  # fmt: skip
+        self.disagreements += 1
+
+
+@dataclass
 class BackStepRepair:
     """A sensor clock that steps back (the host's time set back: NTP, GPS time) taken up:
     its later stamps are moved on by the step, so what is made of them (local SLAM,
@@ -77,6 +111,7 @@ class BackStepRepair:
     dropped: int = 0  # messages `take` dropped
     _back: tuple[float, ...] = ()  # raw stamps of a step not yet confirmed
     _ahead: JumpGate = field(default_factory=JumpGate)
+    agreement: ClockAgreement = field(default_factory=ClockAgreement)
 
     def __call__(self, stamp: float) -> float | None:
         """`stamp` as the agent takes it (moved on by the offset), None: dropped."""
@@ -104,12 +139,14 @@ class BackStepRepair:
             "sensor_clock_steps": self.steps,
             "sensor_clock_offset_s": self.offset,
             "sensor_messages_dropped": self.dropped,
+            "sensor_clock_disagreements": self.agreement.disagreements,
         }
 
     def take(self, msg: Any) -> Any:
         """A sensor message on the agent's timeline: its stamp moved on by the offset
         (a copy if it changes), None if dropped; both logged."""
         steps = self.steps
+        self.agreement.check(msg)
         stamp = self(msg.stamp)
         if stamp is None:
             if self.dropped % 400 == 0:  # ~10 s of scans at 40 Hz between two lines

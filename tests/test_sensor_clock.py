@@ -12,7 +12,7 @@ from common.bus import Bus
 from common.config import Config, ZenohConfig
 from common.geometry import pose4_to_pose7
 from common.stamps import STEP_CONFIRM, BackStepRepair
-from protocol import Altimeter, Keyframe, LaserScan, Odometry, decode
+from protocol import Altimeter, Imu, Keyframe, LaserScan, Odometry, decode
 
 
 def test_a_step_back_is_taken_up_and_a_stray_stamp_is_not() -> None:
@@ -54,3 +54,18 @@ def test_agent_flies_on_after_its_sensor_clock_steps_back(cfg: Config, endpoint:
     assert np.all(np.diff(stamps) > 0.0)
     assert np.all(np.diff([kf.stamp for kf in sent]) > 0.0)
     assert sent[-1].pose_odom[0] > 0.05 * (n - 6)  # keyframes to the end
+
+
+def test_a_sensor_on_another_clock_is_named(caplog) -> None:  # noqa: ANN001
+    """A driver's IMU on Unix time, its laser and odometry on time since boot: the IMU
+    became the latest stamp and every scan was dropped for good, with only "sensor stamp
+    ... dropped" in the log. The IMU is named, with its offset, and counted."""
+    c = BackStepRepair()
+    q = np.array([0.0, 0.0, 0.0, 1.0])
+    for k in range(3):
+        t = 100.0 + 0.025 * k
+        c.take(LaserScan("r0", t, -1.0, 0.01, 0.1, 30.0, np.ones(201, np.float32)))
+        c.take(Odometry("r0", t, pose4_to_pose7([0.0, 0.0, 0.0, 0.0]), np.zeros(4)))
+        c.take(Imu("r0", 1.7e9 + t, np.zeros(3), np.zeros(3), q))
+    assert c.stats()["sensor_clock_disagreements"] == 3  # the IMU's, not the odometry's
+    assert "Imu stamps are 1700000000.000 s ahead of the laser's" in caplog.text

@@ -22,7 +22,7 @@ from agent.grid_refiner import CeresLikeRefiner
 from agent.motion_filter import MotionFilter
 from agent.pose_extrapolator import PoseExtrapolator
 from agent.scan_matcher import MatchResult, ScanMatcher
-from agent.scan_preprocessor import ScanPreprocessor
+from agent.scan_preprocessor import PreparedScan, ScanPreprocessor
 from agent.submaps import ActiveSubmaps, Submap
 from common.config import LocalSlamConfig
 from common.geometry import (
@@ -39,6 +39,8 @@ log = logging.getLogger(__name__)
 
 MAX_SPEED_MPS = 50.0  # m/s: no drone flown with this goes faster (odometry sanity check)
 JUMP_SLACK_M = 5.0  # m
+SUSPECT_TURN_RAD = math.radians(10.0)  # one scan's odometry turn checked against the scan
+SUSPECT_STEP_M = 1.0  # m, the same for its step
 
 
 @dataclass
@@ -92,6 +94,7 @@ class LocalTrajectoryBuilder:
         self.few_point_scans = 0  # gone on with the odometry's prediction (min_num_points)
         self.jumped_scans = 0  # of them: the odometry jumped farther than a drone flies
         self._jump = JumpGate()  # a stamp far ahead of the last (`common.stamps`)
+        self.odometry_resets = 0  # odometry steps the scan refused (matched from the last pose)
         self.gated_matches = 0  # matches that turned too far from the prediction
         self.distance_m = 0.0
 
@@ -143,6 +146,34 @@ class LocalTrajectoryBuilder:
             self.cfg.max_match_yaw_jump_deg,
         )
         return True
+
+    def _refuse_odometry_reset(
+        self,
+        m: MatchResult,
+        predicted: np.ndarray,
+        submap: Submap,
+        prep: PreparedScan,
+        stamp: float,
+    ) -> tuple[MatchResult, np.ndarray]:
+        """An odometry that turned or moved a lot in one scan (an EKF's heading reset, a
+        VIO relocalisation: under the jump check, it had gone into the pose for good):
+        the scan is matched from the last pose too, and the better match wins; the
+        odometry before is then forgotten. (match, prediction) to go on with."""
+        last = self.pose[[0, 1, 3]]
+        step = se2_compose(se2_inverse(last), predicted)
+        if not self.scans or (
+            abs(step[2]) <= SUSPECT_TURN_RAD and np.hypot(*step[:2]) <= SUSPECT_STEP_M
+        ):
+            return m, predicted
+        alt = self.matcher.match(submap.grid, prep.match_points, submap.to_submap(last))
+        if not alt.score > m.score + 0.02:
+            return m, predicted
+        self.odometry_resets += 1
+        log.warning("scan at %.3f: the odometry's step (%.2f m, %.1f deg) does not fit the "
+                    "scan: matched from the last pose, the odometry before forgotten", stamp,
+                    np.hypot(*step[:2]), math.degrees(step[2]))  # fmt: skip
+        self.extrapolator.forget_odometry()
+        return alt, last
 
     def _jumped(self, predicted: np.ndarray, stamp: float) -> bool:
         """Whether the odometry put the drone farther from its last pose than it can fly
@@ -208,6 +239,7 @@ class LocalTrajectoryBuilder:
         submap = None if few else self.submaps.matching_submap()
         if submap is not None:
             m = self.matcher.match(submap.grid, prep.match_points, submap.to_submap(predicted))
+            m, predicted = self._refuse_odometry_reset(m, predicted, submap, prep, scan.stamp)
             # LM never accepts a step that raises the cost, so a refinement that ran out
             # of iterations (slow convergence along a corridor: ~4 % of the Intel scans)
             # is still at least as good as its start: use it rather than the odometry

@@ -32,6 +32,7 @@ class OdometryTracker:
         self.few_point_scans = 0  # (local SLAM's: no scan is matched here)
         self.rejected_odometry = 0
         self.gated_matches = 0  # no scan matching here: always 0
+        self.odometry_resets = 0  # (the same)
         self._last_odom: np.ndarray | None = None
         self._last_odom_stamp = -math.inf
         # a stamp far ahead of the last (`common.stamps`; without, one glitch of 1e9 s had

@@ -34,5 +34,6 @@ def frontend_stats(frontend: Any) -> dict[str, Any]:
         "scans_rejected": frontend.rejected_scans,
         "scans_too_few_points": frontend.few_point_scans,  # on the odometry's prediction
         "matches_gated": frontend.gated_matches,
+        "odometry_resets": frontend.odometry_resets,  # odometry steps the scan refused
         "odometry_rejected": frontend.rejected_odometry,
     }

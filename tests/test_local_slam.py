@@ -3,6 +3,7 @@ simulated flight, and a replayed piece of a real log reaching a base station."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import logging
 import signal
@@ -18,6 +19,7 @@ from agent.scan_preprocessor import ScanPreprocessor
 from benchmarks.local_slam import run_local_slam
 from benchmarks.sensor_recording import record_tour
 from common.drift_metrics import drift_percent
+from common.geometry import pose4_to_pose7, pose7_to_pose4, se2_compose, se2_inverse
 from common.metrics import ate_rmse
 from common.trajectory_io import Trajectory
 from protocol import LaserScan, Odometry
@@ -106,6 +108,31 @@ def test_local_slam_beats_odometry_on_a_simulated_flight(cfg) -> None:
     assert slam_drift < 1.0
     assert slam_drift < odo_drift
     # Known start: put the estimate in the world frame and compare directly.
+    assert ate_rmse(traj, rec.ground_truth, align=True) < 0.1
+
+
+@pytest.mark.parametrize("reset", ["yaw", "xy"])
+def test_an_odometry_reset_is_refused_by_the_scan(cfg, reset: str) -> None:  # noqa: ANN001
+    """An odometry source that resets its heading by 30 degrees (an EKF's yaw reset) or
+    steps 3 m (a VIO relocalisation) half way: under the 6 m jump check, it had gone
+    straight into the pose (10.3 m and 38 degrees off at the end of a 30 m tour, no
+    line in the log). The scan is matched from the last pose too, and that one wins."""
+    rec = record_tour(cfg, "rooms15", length_m=25.0, seed=3)
+    half = rec.messages[len(rec.messages) // 2].stamp
+    reset_at = None  # the odometry frame turned 30 degrees about the drone, or moved 3 m
+    messages = []
+    for m in rec.messages:
+        if isinstance(m, Odometry) and m.stamp >= half:
+            x, y, z, yaw = pose7_to_pose4(m.pose)
+            if reset_at is None:
+                reset_at = np.array([x, y, yaw])
+                turn = se2_compose(se2_compose(reset_at, [0.0, 0.0, np.radians(30.0)]),
+                                   se2_inverse(reset_at))  # fmt: skip
+                step = turn if reset == "yaw" else np.array([3.0, 0.0, 0.0])
+            x, y, yaw = se2_compose(step, [x, y, yaw])
+            m = dataclasses.replace(m, pose=pose4_to_pose7([x, y, z, yaw]))
+        messages.append(m)
+    traj, _, _ = run_local_slam(cfg, messages)
     assert ate_rmse(traj, rec.ground_truth, align=True) < 0.1
 
 

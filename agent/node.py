@@ -46,7 +46,7 @@ from common.geometry import map_to_odom, odom_to_map, pose4_to_pose7, pose7_to_p
 from common.memory import HeapTrimmer
 from common.metrics import percentiles
 from common.row_spool import RowSpool
-from common.stamps import MAX_EPOCH_JUMP, STAMP_SLACK_S, BackStepRepair, JumpGate, due
+from common.stamps import MAX_EPOCH_JUMP, STAMP_SLACK_S, BackStepRepair, JumpGate, ScanRepeats, due
 from protocol import (
     Altimeter,
     ClockSync,
@@ -137,6 +137,7 @@ class AgentNode:
         self.mission_over = False
         self.clock = BackStepRepair()  # sensor stamps, across a step back of their clock
         self.last_scan_stamp: float | None = None
+        self.repeats = ScanRepeats()  # a scan stamped like the last one used
         self.last_state_stamp = -np.inf
         self.scans = 0
         self.local_trajectory = RowSpool(5)  # every scan: stamp, T_odom_base [x y z yaw]
@@ -287,17 +288,18 @@ class AgentNode:
             self.downlink.on_clock(msg.stamp)
 
     def on_scan(self, scan: LaserScan) -> None:
-        if self.last_scan_stamp is not None and scan.stamp == self.last_scan_stamp:
-            self._command(scan.stamp)  # a re-sent lock-step tick: answer again
+        if repeat := self.repeats.check(scan.stamp, scan.ranges):  # answered again; or not
+            self._command(scan.stamp, hover=repeat == "stale")  # used: from no new pose
             return
         self.downlink.wait()  # lock-step: the base station's paths and answers for it
         angles = scan.angle_min + scan.angle_increment * np.arange(len(scan.ranges))
         self.guard.update(angles, np.asarray(scan.ranges, dtype=np.float64), scan.range_min)
         result = self.frontend.add_scan(scan)
         if result is None:  # rejected (time going back, an odometry jump): logged there
-            self._command(scan.stamp)
+            self._command(scan.stamp, hover=True)  # its pose was not updated: none stale
             return
         self.last_scan_stamp = scan.stamp
+        self.repeats.used(scan.stamp, scan.ranges)
         self.scans += 1
         self.local_trajectory.append([scan.stamp, *result.pose])
         if not self.fresh.settled:  # a fresh agent's start (agent/fresh_start.py)
@@ -392,7 +394,9 @@ class AgentNode:
                 self.follower.set_path(tour_odom[:, :2], not self._new_path, here)
                 self._new_correction = self._new_path = False
 
-    def _command(self, stamp: float) -> None:
+    def _command(self, stamp: float, hover: bool = False) -> None:
+        """The vehicle command for the scan at `stamp`; `hover`: no new pose (a scan not
+        used): none from a stale one, the drone had flown on blind 16 m."""
         self._take_path()
         with self._corr_lock:
             # only answers to states before this tick: the answer to the state just sent
@@ -403,21 +407,16 @@ class AgentNode:
         if nb is not None:
             a = self.cfg.agent
             self._news_ages.append(stamp - nb.stamp)
-            self.guard.set_neighbours(
-                neighbours_in_body(
-                    nb.stamps,
-                    nb.xy,
-                    nb.velocity,
-                    stamp,
-                    odom_to_map(T_map_odom, self.frontend.pose),
-                    a.neighbour_max_age_s,
-                    a.neighbour_extrapolation_s,
-                )
-            )
+            here = odom_to_map(T_map_odom, self.frontend.pose)
+            self.guard.set_neighbours(neighbours_in_body(
+                nb.stamps, nb.xy, nb.velocity, stamp, here, a.neighbour_max_age_s,
+                a.neighbour_extrapolation_s,
+            ))  # fmt: skip
         pose = self.frontend.pose  # (no altimeter: no vertical speed, else it climbed)
         vx, vy, vz, yaw_rate = self.follower.command(pose, self.frontend.altitude is not None)
-        if self.fresh.in_flight and not self.fresh.placed and self._hold_for_placement(stamp):
-            vx = vy = vz = yaw_rate = 0.0  # where it is in map is not known yet: it hovers
+        held = self.fresh.in_flight and not self.fresh.placed and self._hold_for_placement(stamp)
+        if held or hover:  # where it is in map is not known yet, or no new pose: it hovers
+            vx = vy = vz = yaw_rate = 0.0
         moving = self._twist  # the guard brakes along it (a turn lags the command)
         fresh = moving is not None and abs(stamp - moving[0]) <= TWIST_MAX_AGE_S
         vx, vy = self.guard.limit(stamp, vx, vy, velocity=moving[1] if fresh else None)
@@ -482,6 +481,7 @@ class AgentNode:
             "lockstep_downlink_timeouts": self.downlink.timeouts,
             "scans": self.scans,
             **self.clock.stats(),
+            "scans_stale_stamp": self.repeats.stale,
             **self.source_stats(),
             **frontend_stats(self.frontend),
             **self.guard.stats(),

@@ -12,7 +12,7 @@ from agent.vehicle import NullVehicle
 from common.bus import Bus
 from common.config import ZenohConfig, load_config
 from common.geometry import pose4_to_pose7
-from protocol import Imu, PoseCorrection
+from protocol import Altimeter, Imu, LaserScan, Odometry, PoseCorrection
 
 
 def test_the_imu_attitude_reaches_the_scan_projection(endpoint: str) -> None:
@@ -33,3 +33,35 @@ def test_an_older_correction_is_not_taken(endpoint: str) -> None:
         node._on_correction(PoseCorrection("r0", 6, 0.0, old), "")  # late, superseded
         node._on_correction(PoseCorrection("r0", 7, 0.0, old), "")  # same epoch again
         assert node.epoch == 7 and node.T_map_odom[0] == 2.0
+
+
+class _Recorder:
+    def __init__(self) -> None:
+        self.commands: list[tuple[float, ...]] = []
+
+    def command(self, stamp: float, *args: float) -> None:
+        self.commands.append((stamp, *args))
+
+
+def test_a_scan_stamped_like_the_last_is_not_flown_on(endpoint: str) -> None:
+    """A driver stamping whole seconds: its scans after the first of each second had been
+    taken as a lock-step tick sent again, and answered from a pose up to 1 s old (the
+    drone flew 0.12 m from a wall). Now such a scan is not used and the drone hovers; a
+    tick sent again (the same ranges) is still answered as before."""
+    cfg = load_config()
+    cfg.exploration.enabled = False
+    vehicle = _Recorder()
+    ranges = np.full(360, 8.0, np.float32)
+    with Bus(ZenohConfig(listen=[endpoint]), cfg.fleet) as bus:
+        node = AgentNode(cfg, "r0", bus, np.array([[20.0, 0.0]]), np.zeros(4), vehicle)
+        for k, t in enumerate((0.0, 0.025, 0.05, 0.075, 0.1)):
+            pose = pose4_to_pose7([0.01 * k, 0.0, 1.0, 0.0])
+            node.handle(Odometry("r0", t, pose, np.array([0.4, 0.0, 0.0, 0.0])))
+            node.handle(Altimeter("r0", t, 1.0))
+            node.handle(LaserScan("r0", t, -np.pi, np.pi / 180, 0.1, 30.0, ranges))
+        flying = vehicle.commands[-1]
+        node.handle(LaserScan("r0", 0.1, -np.pi, np.pi / 180, 0.1, 30.0, ranges.copy()))
+        assert vehicle.commands[-1] == flying  # the tick sent again: the same answer
+        node.handle(LaserScan("r0", 0.1, -np.pi, np.pi / 180, 0.1, 30.0, ranges * 0.99))
+    assert flying[1] > 0.0 and vehicle.commands[-1][1:5] == (0.0, 0.0, 0.0, 0.0)
+    assert node.stats()["scans_stale_stamp"] == 1

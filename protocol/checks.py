@@ -33,6 +33,22 @@ def check_pose7(name: str, pose: np.ndarray) -> None:
         raise ProtocolError(f"{name}: quaternion norm is {norm:.6f}, expected 1")
 
 
+MAX_TILT_DEG = 60.0  # a drone's attitude from level; past it, not a flying drone's
+
+
+def check_upright(name: str, q_xyzw: np.ndarray) -> None:
+    """A drone's attitude within `MAX_TILT_DEG` of level. A quaternion in w, x, y, z order
+    (PX4's) read as x, y, z, w makes a level drone yawed 0.3 rad look rolled 163 degrees:
+    its scans were levelled onto the other side, its odometry read as never turning."""
+    x, y = float(q_xyzw[0]), float(q_xyzw[1])
+    up = 1.0 - 2.0 * (x * x + y * y)  # the body z axis's vertical part
+    if up < math.cos(math.radians(MAX_TILT_DEG)):
+        tilt = math.degrees(math.acos(max(-1.0, min(1.0, up))))
+        raise ProtocolError(f"{name}: the body tilted {tilt:.0f} degrees from level (beyond "
+                            f"{MAX_TILT_DEG:.0f}): a quaternion in w, x, y, z order? expected "
+                            "x, y, z, w")  # fmt: skip
+
+
 def check_covariance(name: str, cov: np.ndarray) -> None:
     """Symmetric to 1e-9 of its largest entry (as the pose graph takes it: a looser
     test, relative 1e-5, let through one that stopped the base station) with a positive

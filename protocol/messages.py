@@ -20,6 +20,7 @@ from protocol.checks import (
     check_position,
     check_robot_id,
     check_scan_angles,
+    check_upright,
 )
 from protocol.codec import array_field, later_field, message
 
@@ -95,6 +96,7 @@ class Odometry(Message):
     def validate(self) -> None:
         super().validate()
         check_pose7("Odometry.pose", self.pose)
+        check_upright("Odometry.pose", self.pose[3:7])
         if float(np.abs(self.twist).max()) > MAX_TWIST:  # (1e155 had raised in the guard)
             raise ProtocolError(f"Odometry.twist beyond {MAX_TWIST:g} m/s or rad/s")
 
@@ -114,11 +116,17 @@ class Imu(Message):
         norm = float(np.linalg.norm(self.orientation))
         if abs(norm - 1.0) > 1e-3:
             raise ProtocolError(f"Imu.orientation norm is {norm:.6f}, expected 1")
+        check_upright("Imu.orientation", self.orientation)
+
+
+# m: an altimeter reading below this is not a height above the ground (NED's z, down)
+MIN_ALTITUDE_M = -0.5
 
 
 @message
 class Altimeter(Message):
-    """Height above ground (m)."""
+    """Height (m) of the drone above the ground below it, up positive (not NED's z, not
+    above sea level)."""
 
     robot_id: str
     stamp: float
@@ -128,6 +136,9 @@ class Altimeter(Message):
         super().validate()
         check_position("Altimeter.altitude", np.array([self.altitude]))  # (1e9 m: every
         # state and keyframe of the drone refused downstream)
+        if self.altitude < MIN_ALTITUDE_M:  # (a NED z: the drone had climbed for good)
+            raise ProtocolError(f"Altimeter.altitude {self.altitude:.2f} m: below the ground "
+                                "(expected the height above the ground, up positive)")  # fmt: skip
 
 
 @message

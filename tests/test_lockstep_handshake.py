@@ -229,6 +229,29 @@ def test_a_mark_or_a_simulated_command_far_ahead_is_held_back(endpoint: str) -> 
         assert sim.robots["r0"].command[0] == 0.0 and sim.robots["r0"].answered == 0.05
 
 
+def test_a_simulated_drone_whose_agent_went_silent_hovers(endpoint: str) -> None:
+    """The simulator, the docs' example driver, had held the last command for good: an
+    agent killed in flight had its drone fly on at 1 m/s into a wall 5.8 s later. No
+    answer for `COMMAND_TIMEOUT_S` of sim time: it hovers."""
+    from common.config import load_config
+    from common.scenario import RobotScenario, Scenario
+    from simulation.simulator import COMMAND_TIMEOUT_S, Simulator
+    from simulation.world import World
+
+    cfg = load_config(overrides={"exploration.enabled": False})
+    sc = Scenario("rooms15", [RobotScenario("r0", np.array([1.5, 2.5, 0.0]))])
+    with Bus(ZenohConfig(listen=[endpoint]), cfg.fleet) as bus:
+        sim = Simulator(cfg, bus, sc, World.load("rooms15"), 10.0)
+        sim._on_command(VehicleCommand("r0", 0.0, 0.5, 0.0, 0.0, 0.0), "")
+        speeds = []
+        for k in range(1, 40):  # the agent answered t = 0 and no tick after
+            sim.t = k * sim.dt
+            sim._step_physics()
+            speeds.append(float(np.hypot(*sim.robots["r0"].vehicle.velocity_world[:2])))
+    late = int(COMMAND_TIMEOUT_S / sim.dt) + 1
+    assert speeds[late - 2] > 0.1 and speeds[-1] < 0.01  # flew on the answer, then stopped
+
+
 def test_a_tick_sent_again_leaves_out_its_gnss_fix(endpoint: str) -> None:
     """A tick re-published to an agent slower than `sim.lockstep_timeout_s` (a cold numba
     cache) had carried its GNSS fix again: the base station took the fix at t = 0 four

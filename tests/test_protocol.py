@@ -7,6 +7,7 @@ import dataclasses
 import msgpack
 import numpy as np
 import pytest
+from scipy.spatial.transform import Rotation
 
 from common.errors import ProtocolError
 from common.geometry import pose4_to_pose7
@@ -270,6 +271,26 @@ def test_states_odometry_and_heights_out_of_bounds_are_refused() -> None:
     decode(encode(Odometry("r0", 1.0, P7, np.array([30.0, 0.0, 0.0, 3.0]))))
     with pytest.raises(ProtocolError, match="Altimeter.altitude"):  # (the agent's state
         decode(encode(Altimeter("r0", 1.0, 1e9)))  # had carried it, and been refused)
+    with pytest.raises(ProtocolError, match="below the ground"):  # NED's z: it had climbed
+        decode(encode(Altimeter("r0", 1.0, -1.0)))  # for good
+    decode(encode(Altimeter("r0", 1.0, -0.05)))  # (noise on the ground)
+
+
+def test_an_attitude_in_w_first_order_is_refused_where_it_shows() -> None:
+    """PX4 orders its quaternions w, x, y, z: a level drone yawed 0.3 rad, read as x, y, z,
+    w, is rolled 163 degrees (its scans levelled onto the other side, its odometry never
+    turning, no line in any log). An attitude beyond 60 degrees of level is refused; a
+    real drone's few degrees pass."""
+    yaw = 0.3
+    xyzw = np.array([0.0, 0.0, np.sin(yaw / 2), np.cos(yaw / 2)])
+    wxyz = np.roll(xyzw, 1)
+    with pytest.raises(ProtocolError, match="w, x, y, z order"):
+        decode(encode(Imu("r0", 1.0, np.zeros(3), np.zeros(3), wxyz)))
+    with pytest.raises(ProtocolError, match="Odometry.pose: the body tilted 163 degrees"):
+        decode(encode(Odometry("r0", 1.0, np.r_[0.0, 0.0, 1.0, wxyz], np.zeros(4))))
+    tilted = Rotation.from_euler("xyz", [0.5, -0.6, 2.0]).as_quat()  # 29 and 34 degrees
+    decode(encode(Imu("r0", 1.0, np.zeros(3), np.zeros(3), tilted)))
+    decode(encode(Imu("r0", 1.0, np.zeros(3), np.zeros(3), xyzw)))
 
 
 def test_positions_beyond_ten_thousand_km_are_refused() -> None:

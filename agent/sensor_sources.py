@@ -43,6 +43,9 @@ log = logging.getLogger(__name__)
 SENSOR_MESSAGES = (Odometry, Imu, Altimeter, LaserScan, ClockSync, GnssFix)
 
 
+SILENCE_WARN_S = 10.0  # s wall without a sensor message before the agent says so
+
+
 class SensorSource(Protocol):
     def messages(self, stop: threading.Event) -> Iterator[Any | None]:
         """Sensor messages in time order; None on idle; returns when the source ends."""
@@ -151,7 +154,10 @@ class ZenohSensors:
         self._scans_waiting = max_scans_before_altitude  # left to drop; 0: pass them on
         # one subscriber for all of them: Zenoh keeps a sender's samples in order per
         # subscriber, not between two (a scan overtook the altimeter's reading of its tick)
-        bus.subscribe(bus.keys.robot(robot_id, "sensor/*"), SENSOR_MESSAGES, self._put)
+        self._key = bus.keys.robot(robot_id, "sensor/*")
+        bus.subscribe(self._key, SENSOR_MESSAGES, self._put)
+        self._heard = time.monotonic()  # wall time of the last message (or the start)
+        self._silence_told = 0.0  # s of silence last logged
 
     def _put(self, msg: Any, key: str) -> None:
         if not isinstance(msg, GnssFix) or self._bus is not None:  # (else the base's only)
@@ -160,11 +166,24 @@ class ZenohSensors:
     def stats(self) -> dict[str, int]:
         return self._queue.stats()
 
+    def _tell_silence(self) -> None:
+        """No sensor message for `SILENCE_WARN_S` (then every 6x as long): a driver on
+        another robot id or fleet, or not running, had left the agent idle without a
+        line in any log."""
+        silent = time.monotonic() - self._heard
+        if silent >= max(SILENCE_WARN_S, 6.0 * self._silence_told):
+            self._silence_told = silent
+            log.warning("robot %s: no sensor message on %s for %.0f s: is the driver running, "
+                        "with this robot id and fleet?", self._robot_id, self._key,
+                        silent)  # fmt: skip
+
     def messages(self, stop: threading.Event) -> Iterator[Any | None]:
         while not stop.is_set():
             if (msg := self._queue.get(timeout=0.05)) is None:
+                self._tell_silence()
                 yield None
                 continue
+            self._heard, self._silence_told = time.monotonic(), 0.0
             if isinstance(msg, GnssFix):
                 fix = (msg.stamp, msg.lla.tobytes())
                 if fix in self._relayed:  # its own echo

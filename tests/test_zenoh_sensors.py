@@ -9,6 +9,7 @@ import time
 import numpy as np
 import pytest
 
+from agent import sensor_sources
 from agent.sensor_sources import SensorQueue, ZenohSensors
 from collabslam.supervisor import free_port
 from common.bus import Bus
@@ -113,3 +114,17 @@ def test_a_full_sensor_queue_drops_the_newest_and_counts_them() -> None:
     got = [queue.get(timeout=0.01) for _ in range(4)]
     assert [round(m.stamp, 1) for m in got[:3]] == [0.0, 0.1, 0.2] and got[3] is None
     assert queue.stats()["sensor_messages_overflow"] == 2
+
+
+def test_an_agent_hearing_no_sensor_says_so(endpoint: str, monkeypatch, caplog) -> None:  # noqa: ANN001
+    """A driver publishing as another robot id or fleet: the agent had logged "running"
+    and then nothing for good."""
+    monkeypatch.setattr(sensor_sources, "SILENCE_WARN_S", 0.3)
+    with Bus(ZenohConfig(listen=[endpoint]), "default") as bus:
+        source = ZenohSensors(bus, "r0")
+        stop = threading.Event()
+        t0 = time.monotonic()
+        for _ in source.messages(stop):
+            if time.monotonic() - t0 > 0.6:
+                break
+    assert "no sensor message on collabslam/default/robot/r0/sensor/* for 0 s" in caplog.text

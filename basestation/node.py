@@ -366,7 +366,8 @@ class BaseStationNode:
         for rid, path in paths.items():
             self._path_id += 1
             over = path is None and self.explorer.done  # path_id 0: the mission is over
-            what = "hold" if path is None else f"{len(path)} points to {path[-1].round(1)}"
+            what = "exploration over (path 0)" if over else "hold" if path is None else (
+                f"{len(path)} points to {path[-1].round(1)}")  # fmt: skip
             t = states[rid].stamp if rid in states else -1.0  # (its state's: real time too)
             log.info("t=%.1f s: path %d for %s from (%.1f, %.1f): %s", t, self._path_id,
                      rid, *poses[rid][:2], what)  # fmt: skip

@@ -181,7 +181,6 @@ def plot_coverage(result: dict[str, list[dict[str, Any]]], path: Path, title: st
     import matplotlib.pyplot as plt
 
     fig, ax = plt.subplots(figsize=(8, 5))
-    colours = {1: "tab:blue", 2: "tab:orange", 3: "tab:green"}
     for name, rows in result.items():
         for r in rows:
             curve = np.array(r["coverage_curve"]).reshape(-1, 2)
@@ -189,7 +188,7 @@ def plot_coverage(result: dict[str, list[dict[str, Any]]], path: Path, title: st
                 ax.plot(
                     curve[:, 0],
                     100.0 * curve[:, 1],
-                    color=colours.get(r["robots"], "tab:gray"),
+                    color=f"C{(r['robots'] - 1) % 10}",  # team sizes 1, 2, 3: blue, orange, green
                     linestyle="-" if name == "ours" else "--",
                     alpha=0.8,
                     label=f"{name}, {r['robots']} robot(s)",

@@ -24,6 +24,17 @@ from common.map_io import FREE_MAX, OCCUPIED_MIN, GridMap
 
 logger = logging.getLogger(__name__)
 
+
+def robot_colour(i: int, n: int) -> str:
+    """Robot i's of n: `ROBOT_COLOURS`, or for more robots (segments count) as many
+    apart on the turbo colour map (8 drones and 3 restarts had shared colours)."""
+    if n <= len(ROBOT_COLOURS):
+        return ROBOT_COLOURS[i]
+    from matplotlib import colormaps, colors
+
+    return str(colors.to_hex(colormaps["turbo"](0.05 + 0.9 * i / (n - 1))))
+
+
 DPI = 150
 FIG_WIDTH_IN = 9.0
 # Robot colours: tab10 without orange (frontiers) and grey (unknown space).
@@ -151,7 +162,7 @@ def render_map_picture(
     paths = paths or {}
     ground_truth = ground_truth or {}
     ids = sorted(set(trajectories) | set(robots) | set(paths) | set(ground_truth))
-    colour = {rid: ROBOT_COLOURS[i % len(ROBOT_COLOURS)] for i, rid in enumerate(ids)}
+    colour = {rid: robot_colour(i, len(ids)) for i, rid in enumerate(ids)}
     overlays = [_xy(p, f"trajectories[{r}]") for r, p in trajectories.items()]
     overlays += [_xy(p, f"paths[{r}]") for r, p in paths.items()]
     overlays += [_xy(p, f"ground_truth[{r}]") for r, p in ground_truth.items()]

@@ -10,7 +10,7 @@ from PIL import Image
 
 from common.errors import CollabSlamError
 from common.map_io import GridMap
-from common.picture import VIEW_MARGIN_M, cropped, map_rgb, render_map_picture
+from common.picture import VIEW_MARGIN_M, cropped, map_rgb, render_map_picture, robot_colour
 
 
 def _grid() -> GridMap:
@@ -106,3 +106,9 @@ def test_the_picture_shows_the_known_area_and_the_overlays_not_the_whole_grid() 
         0.0,
         1.0,
     )  # nothing known, nothing given: all of it
+
+
+def test_every_robot_of_a_big_fleet_has_its_own_colour() -> None:
+    """8 drones and 3 restarted segments: the 11th had taken the 1st's colour."""
+    assert len({robot_colour(i, 11) for i in range(11)}) == 11
+    assert len({robot_colour(i, 3) for i in range(3)}) == 3

@@ -32,6 +32,7 @@ from common.geometry import (
     se2_rotate_covariance,
     wrap_angle,
 )
+from common.logging_setup import worth_logging
 from common.stamps import JumpGate
 from protocol import LaserScan
 
@@ -206,11 +207,9 @@ class LocalTrajectoryBuilder:
             self.rejected_scans += 1
             return None
         if self.last_stamp is not None and scan.stamp <= self.last_stamp:
-            log.error(
-                "scan stamp %.3f is not after the previous %.3f: dropped",
-                scan.stamp,
-                self.last_stamp,
-            )
+            if worth_logging(self.rejected_scans):
+                log.error("scan stamp %.3f is not after the previous %.3f: dropped (%d so "
+                          "far)", scan.stamp, self.last_stamp, self.rejected_scans + 1)  # fmt: skip
             self.rejected_scans += 1
             return None
         prep = self.preprocessor.prepare(

@@ -15,6 +15,7 @@ import numpy as np
 
 from agent.local_trajectory_builder import LocalSlamResult
 from common.geometry import se2_compose, se2_inverse
+from common.logging_setup import worth_logging
 from common.stamps import JumpGate
 from protocol import LaserScan
 
@@ -59,11 +60,10 @@ class OdometryTracker:
             self.rejected_odometry += 1
             return
         if stamp < self._last_odom_stamp:
-            log.error(
-                "odometry stamp %.3f is before the previous %.3f: dropped",
-                stamp,
-                self._last_odom_stamp,
-            )
+            if worth_logging(self.rejected_odometry):
+                log.error("odometry stamp %.3f is before the previous %.3f: dropped (%d so "
+                          "far)", stamp, self._last_odom_stamp,
+                          self.rejected_odometry + 1)  # fmt: skip
             self.rejected_odometry += 1
             return
         self._last_odom_stamp = stamp
@@ -88,11 +88,9 @@ class OdometryTracker:
             self.rejected_scans += 1
             return None
         if self.last_stamp is not None and scan.stamp <= self.last_stamp:
-            log.error(
-                "scan stamp %.3f is not after the previous %.3f: dropped",
-                scan.stamp,
-                self.last_stamp,
-            )
+            if worth_logging(self.rejected_scans):
+                log.error("scan stamp %.3f is not after the previous %.3f: dropped (%d so "
+                          "far)", scan.stamp, self.last_stamp, self.rejected_scans + 1)  # fmt: skip
             self.rejected_scans += 1
             return None
         self.last_stamp = scan.stamp

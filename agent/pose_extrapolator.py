@@ -17,6 +17,7 @@ import logging
 import numpy as np
 
 from common.geometry import se2_compose, se2_inverse, wrap_angle
+from common.logging_setup import worth_logging
 from common.stamps import JumpGate
 
 log = logging.getLogger(__name__)
@@ -52,11 +53,10 @@ class PoseExtrapolator:
             return
         if self._odom_t and stamp <= self._odom_t[-1]:
             if stamp < self._odom_t[-1]:
-                log.error(
-                    "odometry stamp %.3f is before the previous %.3f: dropped",
-                    stamp,
-                    self._odom_t[-1],
-                )
+                if worth_logging(self.rejected_odometry):
+                    log.error("odometry stamp %.3f is before the previous %.3f: dropped "
+                              "(%d so far)", stamp, self._odom_t[-1],
+                              self.rejected_odometry + 1)  # fmt: skip
                 self.rejected_odometry += 1
             else:  # the same stamp again: the newer message wins
                 self._odom[-1] = np.asarray(pose_xyyaw, dtype=np.float64)

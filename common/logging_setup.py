@@ -43,3 +43,10 @@ def setup_logging(level: str = "INFO", name: str = "") -> None:
         handler.addFilter(SimTimeFilter())
     for noisy in ("numba", "matplotlib", "PIL"):
         logging.getLogger(noisy).setLevel(logging.WARNING)
+
+
+def worth_logging(before: int) -> bool:
+    """Whether to log the next of a repeated message, `before` of it so far: the 1st, the
+    10th, the 100th and every 1000th (a driver's jittery stamps had written an error line
+    for every message)."""
+    return before in (0, 9, 99) or (before + 1) % 1000 == 0

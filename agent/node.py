@@ -166,8 +166,11 @@ class AgentNode:
         """A fresh agent found in flight (agent/fresh_start.py) hovers until the base
         station's first correction places it, `PLACEMENT_WAIT_S` at most (then its start pose
         composed with the odometry's), then flies on from its tour's nearest waypoint."""
-        with self._corr_lock:
-            if self.epoch < 0 and not self.fresh.waited(stamp):
+        with self._corr_lock:  # (a placement come since this tick's control pose: the
+            # next tick's takes it at once, then it flies on)
+            if self._smoother_pending is not None or (
+                self.epoch < 0 and not self.fresh.waited(stamp)
+            ):
                 return True
             if self.epoch < 0:  # no base station: its own guess
                 self.T_map_odom = T = self.fresh.start_in_map(self.T_map_odom)

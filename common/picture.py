@@ -27,12 +27,13 @@ logger = logging.getLogger(__name__)
 
 def robot_colour(i: int, n: int) -> str:
     """Robot i's of n: `ROBOT_COLOURS`, or for more robots (segments count) as many
-    apart on the turbo colour map (8 drones and 3 restarts had shared colours)."""
+    apart on the viridis colour map, which holds neither the frontiers' orange nor the
+    unknown's grey (8 drones and 3 restarts had shared colours)."""
     if n <= len(ROBOT_COLOURS):
         return ROBOT_COLOURS[i]
     from matplotlib import colormaps, colors
 
-    return str(colors.to_hex(colormaps["turbo"](0.05 + 0.9 * i / (n - 1))))
+    return str(colors.to_hex(colormaps["viridis"](0.9 * i / (n - 1))))
 
 
 DPI = 150

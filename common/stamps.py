@@ -63,12 +63,15 @@ class ClockAgreement:
     far ahead predicted no motion, without a word. A message that comes within
     `window_s` (wall) of the latest scan and whose stamp is more than `max_apart` (plus
     the wall time between them) from the scan's is a disagreement: counted, and an error
-    line names the sensor and the offset (the first, then every 1000th)."""
+    line names the sensor and the offset (the first, then every 1000th); `in_a_row` such
+    of one sensor in a row before any counts (a replay's log gap, a clock step back)."""
 
     max_apart: float = MAX_STAMP_BACK_S
     window_s: float = 0.5
+    in_a_row: int = 5  # disagreements of a sensor in a row before they count (a log gap)
     disagreements: int = 0
     _scan: tuple[float, float] | None = None  # the latest scan's (stamp, wall time)
+    _row: dict[str, int] = field(default_factory=dict)  # each sensor's, in a row
 
     def check(self, msg: Any) -> None:
         now = time.monotonic()
@@ -80,6 +83,10 @@ class ClockAgreement:
             return
         ahead = msg.stamp - self._scan[0]
         if abs(ahead) <= self.max_apart + (now - self._scan[1]):
+            self._row[kind] = 0
+            return
+        self._row[kind] = row = self._row.get(kind, 0) + 1
+        if row < self.in_a_row:  # (an unpaced replay's scan after a gap in its log)
             return
         if self.disagreements % 1000 == 0:
             log.error("%s stamps are %.3f s %s the laser's: another clock? (all of a drone's "

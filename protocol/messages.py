@@ -194,8 +194,10 @@ class VehicleCommand(Message):
 
 
 # Scan2D.ranges_mm: a reading the laser refused (below its range_min: the drone's own
-# frame, a driver's error code), neither a return nor free space. (Valid readings stay
-# below 65 m, 65000 mm; a base station from before takes it as a no return.)
+# frame, a driver's error code; -inf, ROS's "too close"), neither a return nor free
+# space. Valid readings stay below 65 m, 65000 mm. A base station from before this takes
+# it as 65.535 m: a no return clearing free space (range_max <= 65 m) or a far hit;
+# upgrade base stations first (docs/operations.md).
 NO_READING_MM = 65535
 
 
@@ -228,14 +230,16 @@ class Scan2D:
         ranges: np.ndarray,
         range_min: float = 0.0,
     ) -> Scan2D:
-        """Quantize metres to mm; NaN/inf/>= range_max/<= 0 become 0 (no return), and
-        finite readings below a positive ``range_min`` `NO_READING_MM`."""
+        """Quantize metres to mm; NaN/+inf/>= range_max/<= 0 become 0 (no return), and
+        -inf and finite readings below a positive ``range_min`` `NO_READING_MM`."""
         r = np.asarray(ranges, dtype=np.float64)
         valid = np.isfinite(r) & (r > 0.0) & (r < min(range_max, 65.0)) & (r >= range_min)
         mm = np.zeros(r.shape, dtype=np.uint16)
         mm[valid] = np.clip(np.rint(r[valid] * 1000.0), 1, 65000).astype(np.uint16)
+        refused = np.isneginf(r)
         if range_min > 0.0:
-            mm[np.isfinite(r) & (r < range_min)] = NO_READING_MM
+            refused |= np.isfinite(r) & (r < range_min)
+        mm[refused] = NO_READING_MM
         return Scan2D(float(angle_min), float(angle_increment), float(range_max), mm)
 
 

@@ -53,9 +53,9 @@ log = logging.getLogger(__name__)
 BASE = "the base station"  # in the set of processes alive (no valid robot id)
 
 
-# s of sim time: a drone whose agent has answered no tick for this long hovers, as a
-# driver must (an agent killed in flight had its drone fly on its last command into a
-# wall 5.8 s later, before its restart answered)
+# s of sim time: a drone whose agent has answered no tick for this long (or for a tick,
+# with a laser slower than 4 Hz) hovers, as a driver must (an agent killed in flight
+# had its drone fly on its last command into a wall 5.8 s later, before its restart)
 COMMAND_TIMEOUT_S = 0.25
 
 
@@ -322,7 +322,7 @@ class Simulator:
     def _step_physics(self) -> None:
         for r in self.robots.values():
             with self._cond:  # no answer for COMMAND_TIMEOUT_S (its agent dead): hover
-                late = self.t - r.answered > COMMAND_TIMEOUT_S + 1e-9
+                late = self.t - r.answered > max(COMMAND_TIMEOUT_S, self.dt) + 1e-9
                 cmd = (0.0, 0.0, 0.0, 0.0) if late else r.command
             r.vehicle.step(np.asarray(cmd), self.dt, self.world)
             r.odometry.step(r.vehicle.velocity_body, r.vehicle.yaw_rate, self.dt, r.rng)

@@ -65,3 +65,18 @@ def test_a_scan_stamped_like_the_last_is_not_flown_on(endpoint: str) -> None:
         node.handle(LaserScan("r0", 0.1, -np.pi, np.pi / 180, 0.1, 30.0, ranges * 0.99))
     assert flying[1] > 0.0 and vehicle.commands[-1][1:5] == (0.0, 0.0, 0.0, 0.0)
     assert node.stats()["scans_stale_stamp"] == 1
+
+
+def test_a_placement_come_during_a_tick_is_taken_at_once_on_the_next(endpoint: str) -> None:
+    """An in-flight start's placement arriving between a tick's control pose and its
+    command had set it placed: the next tick blended the placement in over seconds from
+    the start pose it knew was wrong (8.8 m off). It holds one more tick instead."""
+    cfg = load_config()
+    with Bus(ZenohConfig(listen=[endpoint]), cfg.fleet) as bus:
+        node = AgentNode(cfg, "r0", bus, np.zeros((0, 2)), np.zeros(4), NullVehicle())
+        node.fresh.in_flight = True
+        node._on_correction(PoseCorrection("r0", 0, 0.0, pose4_to_pose7([9, 0, 0, 0])), "")
+        assert node._hold_for_placement(1.0) and not node.fresh.placed
+        node._publish_control_pose(1.025, np.zeros(4))  # the next tick's control pose
+        assert not node._hold_for_placement(1.025) and node.fresh.placed
+        assert node.smoother.applied(1.025)[0] == 9.0  # taken at once

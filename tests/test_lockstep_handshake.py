@@ -250,6 +250,14 @@ def test_a_simulated_drone_whose_agent_went_silent_hovers(endpoint: str) -> None
             speeds.append(float(np.hypot(*sim.robots["r0"].vehicle.velocity_world[:2])))
     late = int(COMMAND_TIMEOUT_S / sim.dt) + 1
     assert speeds[late - 2] > 0.1 and speeds[-1] < 0.01  # flew on the answer, then stopped
+    cfg.sim.laser.rate_hz = 3.0  # a tick longer than the timeout, each one answered
+    with Bus(ZenohConfig(listen=[endpoint]), cfg.fleet) as bus:
+        sim = Simulator(cfg, bus, sc, World.load("rooms15"), 10.0)
+        for k in range(1, 6):
+            sim._on_command(VehicleCommand("r0", (k - 1) * sim.dt, 0.5, 0.0, 0.0, 0.0), "")
+            sim.t = k * sim.dt
+            sim._step_physics()
+        assert np.hypot(*sim.robots["r0"].vehicle.velocity_world[:2]) > 0.4  # (it had hovered)
 
 
 def test_a_tick_sent_again_leaves_out_its_gnss_fix(endpoint: str) -> None:

@@ -6,11 +6,19 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from matplotlib.colors import to_rgb
 from PIL import Image
 
 from common.errors import CollabSlamError
 from common.map_io import GridMap
-from common.picture import VIEW_MARGIN_M, cropped, map_rgb, render_map_picture, robot_colour
+from common.picture import (
+    FRONTIER_COLOUR,
+    VIEW_MARGIN_M,
+    cropped,
+    map_rgb,
+    render_map_picture,
+    robot_colour,
+)
 
 
 def _grid() -> GridMap:
@@ -112,3 +120,6 @@ def test_every_robot_of_a_big_fleet_has_its_own_colour() -> None:
     """8 drones and 3 restarted segments: the 11th had taken the 1st's colour."""
     assert len({robot_colour(i, 11) for i in range(11)}) == 11
     assert len({robot_colour(i, 3) for i in range(3)}) == 3
+    rgb = np.array([to_rgb(robot_colour(i, 30)) for i in range(30)])  # none like the
+    for other in (FRONTIER_COLOUR, "#7f7f7f"):  # frontiers' orange or the unknown's grey
+        assert np.linalg.norm(rgb - to_rgb(other), axis=1).min() > 0.25

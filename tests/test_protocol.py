@@ -34,7 +34,7 @@ from protocol import (
     encode,
 )
 from protocol.keys import Keys
-from protocol.messages import message_types
+from protocol.messages import NO_READING_MM, message_types
 
 P7 = pose4_to_pose7([1.0, -2.0, 0.5, 0.3])
 
@@ -110,6 +110,9 @@ def test_scan_quantization() -> None:
     r = s.ranges()
     assert r[0] == pytest.approx(1.2345, abs=5e-4)
     assert np.all(np.isnan(r[1:]))
+    # ROS's -inf ("too close") is no reading, not a no return that clears 10 m of space
+    s = Scan2D.from_ranges(0.0, 0.1, 30.0, np.array([np.nan, np.inf, -np.inf]))
+    assert s.ranges_mm.tolist() == [0, 0, NO_READING_MM]
 
 
 def _env(t: str, d: dict, v: int = SCHEMA_VERSION) -> bytes:

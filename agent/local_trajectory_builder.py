@@ -151,6 +151,12 @@ class LocalTrajectoryBuilder:
         )
         return True
 
+    def keyframe_ranges(self, scan: LaserScan) -> np.ndarray:
+        """The scan's readings for a keyframe: the floor's left out (no reading)."""
+        return self.preprocessor.level_ranges(scan.angle_min, scan.angle_increment,
+                                              scan.range_max, scan.ranges, self.roll,
+                                              self.pitch, self.altitude)  # fmt: skip
+
     def _refuse_odometry_reset(
         self,
         m: MatchResult,

@@ -327,9 +327,9 @@ class AgentNode:
     def _send_keyframe(self, scan: LaserScan, result: LocalSlamResult) -> None:
         pose, last = result.pose, self.selector.last_pose
         delta, cov = self.selector.cut(pose, result.covariance)
-        scan2d = Scan2D.from_ranges(
-            scan.angle_min, scan.angle_increment, scan.range_max, scan.ranges, scan.range_min
-        )
+        scan2d = Scan2D.from_ranges(scan.angle_min, scan.angle_increment, scan.range_max,
+                                    self.frontend.keyframe_ranges(scan),  # without the floor
+                                    scan.range_min)  # fmt: skip
         sent = self.uplink.send(
             stamp=scan.stamp,
             pose_odom=pose4_to_pose7(pose),

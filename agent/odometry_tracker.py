@@ -75,6 +75,10 @@ class OdometryTracker:
             self.distance_m += float(np.hypot(step[0], step[1]))
         self._last_odom = pose
 
+    def keyframe_ranges(self, scan: LaserScan) -> np.ndarray:
+        """The scan's readings for a keyframe, as they are (no attitude here)."""
+        return scan.ranges
+
     def add_imu(self, stamp: float, orientation_xyzw: np.ndarray) -> None:
         """Attitude is not needed without scan matching."""
 

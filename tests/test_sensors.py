@@ -99,6 +99,11 @@ def test_a_tilted_laser_sees_walls_farther_and_the_floor_and_the_agent_levels_it
     # every levelled point lies on a wall of the level scan (within its beam spacing)
     dist = np.linalg.norm(got[:, None, :] - want[None, :, :], axis=2).min(axis=1)
     assert np.quantile(dist, 0.99) < 0.03
+    # ... and so do the keyframes (they had carried floor hits to the map as walls)
+    kf = prep.level_ranges(laser.angles[0], inc, laser.range_max, tilted, 0.05, 0.1, 1.0)
+    assert kf[ahead] == tilted[ahead]  # a wall: as read
+    kf = prep.level_ranges(laser.angles[0], inc, laser.range_max, low, 0.0, 0.1, 0.3)
+    assert kf[ahead] == -np.inf and np.isfinite(kf[np.abs(laser.angles) > 2.0]).all()
     floor = prep.prepare(laser.angles[0], inc, laser.range_max, low, 0.0, 0.1, 0.3).points
     assert not np.any(np.hypot(*floor.T)[np.abs(np.arctan2(floor[:, 1], floor[:, 0])) < 0.5]
                       > 2.9)  # fmt: skip

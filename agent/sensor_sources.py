@@ -178,6 +178,7 @@ class ZenohSensors:
                         silent)  # fmt: skip
 
     def messages(self, stop: threading.Event) -> Iterator[Any | None]:
+        self._heard = time.monotonic()  # (silence counts from here: not the start's wait)
         while not stop.is_set():
             if (msg := self._queue.get(timeout=0.05)) is None:
                 self._tell_silence()

@@ -105,7 +105,7 @@ def cmd_agent(args: argparse.Namespace) -> int:
                 queue_max=a.sensor_queue_max,
             )  # fmt: skip
             node = AgentNode(cfg, args.robot_id, bus, tour, T_map_odom)
-        node.start()
+        node.start(lockstep=args.lockstep)
         log.info("agent %s running", args.robot_id)
         node.run(source, stop, cfg.agent.replay_max_unacked if args.replay else None)
         if node.drain(cfg.agent.drain_timeout_s):
@@ -247,6 +247,12 @@ def build_parser() -> argparse.ArgumentParser:
         "--replay", metavar="LOG", help="replay a CARMEN .clf/.clf.bz2 log instead of live sensors"
     )
     sp.add_argument("--segment", metavar="START:END", help="with --replay: log time window (s)")
+    sp.add_argument(
+        "--lockstep",
+        action="store_true",
+        help="a lock-step simulator drives it: wait (sim.sync_wait_s at most) for the base "
+        "station before starting (`collabslam run` sets it)",
+    )
     sp.set_defaults(func=cmd_agent)
 
     sp = sub.add_parser("basestation", help="run the base-station daemon")

@@ -25,7 +25,7 @@ import numpy as np
 from collabslam.supervisor import Child, ProcessGroup, clear_run_outputs, free_port
 from common.bus import endpoint
 from common.config import Config, dump_config
-from common.errors import ProcessError
+from common.errors import ConfigError, ProcessError
 from common.scenario import RobotScenario, Scenario, write_scenario
 from simulation.gnss import world_origin
 from simulation.tours import plan_tours, spread_start_poses, start_poses
@@ -34,15 +34,18 @@ from simulation.world import World, resolve_world
 log = logging.getLogger(__name__)
 
 
-def agent_command(common: list[str], robot_id: str, *connect: str) -> list[str]:
+def agent_command(
+    common: list[str], robot_id: str, *connect: str, lockstep: bool = False
+) -> list[str]:
     """`collabslam agent` arguments for one robot (`common`: --config/--out/... options)
-    connecting to each of the `connect` endpoints."""
+    connecting to each of the `connect` endpoints; `lockstep`: a lock-step simulator's."""
     return [
         "agent",
         *common,
         "--robot-id",
         robot_id,
         *(a for ep in connect for a in ("--connect", ep)),
+        *(["--lockstep"] if lockstep else []),
     ]
 
 
@@ -86,6 +89,11 @@ class Launcher:
         `n_robots` (its robots are the team)."""
         if n_robots < 1:
             raise ProcessError("--robots must be at least 1")
+        z = cfg.zenoh  # (each process would listen there: the second had died, "in use")
+        if z.listen or z.connect or z.config_file:
+            raise ConfigError("zenoh.listen / connect / config_file: `collabslam run` gives "
+                              "each process its own loopback endpoints; leave them "
+                              "unset")  # fmt: skip
         self.cfg = cfg
         self.world_yaml = resolve_world(world)
         self.n_robots = n_robots
@@ -137,7 +145,10 @@ class Launcher:
                 ],
             )
             agents = [
-                g.spawn(r.robot_id, agent_command(common, r.robot_id, sim_ep, base_ep))
+                g.spawn(
+                    r.robot_id,
+                    agent_command(common, r.robot_id, sim_ep, base_ep, lockstep=bool(paced)),
+                )  # fmt: skip
                 for r in scenario.robots
             ]
             self._supervise_until(sim, [base, *agents])

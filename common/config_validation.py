@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+import math
 import typing
 from collections.abc import Iterable, Iterator
 from typing import TYPE_CHECKING, Any
@@ -194,10 +195,22 @@ def _validate_sim(cfg: Config) -> None:
         raise ConfigError(f"sim.laser.fov_deg: expected <= 360, got {las.fov_deg}")
     if not 0 <= las.range_min_m < las.range_max_m:
         raise ConfigError("sim.laser.range_min_m: expected 0 <= range_min_m < range_max_m")
+    if sim.start_spacing_m < 2.0 * quad.radius_m:  # (0.3 m: drones started in contact)
+        raise ConfigError("sim.start_spacing_m: expected at least twice "
+                          "sim.quadrotor.radius_m (drones would start in contact)")  # fmt: skip
+
+
+# m: exploration's frontier rule works in cells, and on a coarser map no frontier forms
+# (0.15 m: drones told to hold for good; 0.2 m: "exploration over" at t = 0)
+MAX_EXPLORATION_RESOLUTION_M = 0.1
 
 
 def _validate_map(cfg: Config) -> None:
     _positive("map.resolution_m", cfg.map.resolution_m)
+    if cfg.exploration.enabled and cfg.map.resolution_m > MAX_EXPLORATION_RESOLUTION_M:
+        raise ConfigError(f"map.resolution_m: at most {MAX_EXPLORATION_RESOLUTION_M} m with "
+                          "exploration on (its frontiers need finer cells), got "
+                          f"{cfg.map.resolution_m}")  # fmt: skip
     for key in ("p_hit", "p_miss", "p_min", "p_max", "occupied_thresh", "free_thresh"):
         _prob(f"map.{key}", getattr(cfg.map, key))
     m = cfg.map  # (checked at the first map update, these had stopped the base station)
@@ -268,6 +281,19 @@ def _validate_agent(cfg: Config) -> None:
         )
     _positive_fields("agent.smoothing", a.smoothing, ("s", "duration_s"))
     _non_negative_fields("agent.smoothing", a.smoothing, ("t_x_s",))
+    sm = a.smoothing  # eq. 2's old weight ~1 at first and ~0 at the end: else the control
+    # pose jumps by most of a correction (t_x_s = 10: 0.93 m of 1 m at 7 s)
+    first, last = sm.s * math.exp(-sm.t_x_s), sm.s * math.exp(sm.duration_s - sm.t_x_s)
+    if sm.enabled and not (first <= 1.0 / 9.0 and last >= 19.0):
+        raise ConfigError("agent.smoothing.s / t_x_s / duration_s: expected the old "
+                          "correction's weight >= 0.9 at first and <= 0.05 at duration_s "
+                          "(s exp(-t_x_s) <= 1/9, s exp(duration_s - t_x_s) >= 19)")  # fmt: skip
+    if a.cruise_altitude_m <= ls.floor_margin_m:  # (every tilted scan's points: the floor)
+        raise ConfigError("agent.cruise_altitude_m: expected above "
+                          "agent.local_slam.floor_margin_m")  # fmt: skip
+    if a.neighbour_keep_m > 0.0 and a.neighbour_max_age_s <= 2.0 * a.state_period_s:
+        raise ConfigError("agent.neighbour_max_age_s: expected more than twice "
+                          "agent.state_period_s (the others' news comes that old)")  # fmt: skip
     _positive_fields(
         "agent.local_slam",
         ls,
@@ -334,6 +360,7 @@ def _validate_backend(b: BaseStationConfig) -> None:
         cc,
         (
             "max_candidates_per_s",
+            "global_candidates",  # (0: every whole-map search raised)
             "global_map_rebuild_nodes",
             "global_query_keyframes",
             "candidate_stride",

@@ -5,12 +5,15 @@ has is not taken."""
 from __future__ import annotations
 
 import numpy as np
+import pytest
 from scipy.spatial.transform import Rotation
 
 from agent.node import AgentNode
 from agent.vehicle import NullVehicle
+from collabslam.launcher import Launcher
 from common.bus import Bus
 from common.config import ZenohConfig, load_config
+from common.errors import ConfigError
 from common.geometry import pose4_to_pose7
 from protocol import Altimeter, Imu, LaserScan, Odometry, PoseCorrection
 
@@ -80,3 +83,28 @@ def test_a_placement_come_during_a_tick_is_taken_at_once_on_the_next(endpoint: s
         node._publish_control_pose(1.025, np.zeros(4))  # the next tick's control pose
         assert not node._hold_for_placement(1.025) and node.fresh.placed
         assert node.smoother.applied(1.025)[0] == 9.0  # taken at once
+
+
+def test_a_live_agent_does_not_wait_for_a_base_station_out_of_reach(
+    endpoint: str,
+    caplog,  # noqa: ANN001
+) -> None:
+    """A run's config.toml (lock-step sim clock, exploration on) copied to a drone, as
+    operations.md says: a live agent restarted out of radio range had waited 10 s for the
+    base station before flying on. Only a lock-step simulator's agent (`--lockstep`,
+    which `collabslam run` sets) waits for it."""
+    cfg = load_config(overrides={"sim.sync_wait_s": 0.3})
+    for lockstep in (False, True):
+        with Bus(ZenohConfig(listen=[endpoint]), cfg.fleet) as bus:
+            AgentNode(cfg, "r0", bus, np.zeros((0, 2)), np.zeros(4), NullVehicle()).start(
+                lockstep=lockstep
+            )
+        assert ("no base station after" in caplog.text) == lockstep
+
+
+def test_a_run_refuses_zenoh_endpoints_of_its_own(tmp_path) -> None:  # noqa: ANN001
+    """`collabslam run` gives each process its own endpoints: one from the config had
+    every process listen on it, the second died ("address in use"), the run was lost."""
+    cfg = load_config(overrides={"zenoh.listen": ["tcp/127.0.0.1:7511"]})
+    with pytest.raises(ConfigError, match="zenoh.listen"):
+        Launcher(cfg, "rooms15", 2, tmp_path, 10.0)

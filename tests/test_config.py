@@ -60,6 +60,17 @@ def test_round_trip(tmp_path: Path) -> None:
         ({"basestation.constraints.min_score": 1.5}, "basestation.constraints.min_score"),
         ({"basestation.constraints.min_overlap": 1.2}, "basestation.constraints.min_overlap"),
         ({"basestation.constraints.global_min_score": 2}, "basestation.constraints.global_min"),
+        # taken, these had quietly wrecked a mission (the 71st session's config review):
+        # no frontier on a 0.15 m map, every whole-map search raising, a control pose
+        # jumping by most of a correction, every tilted scan's points taken for the
+        # floor, the neighbour guard blind, drones started in contact
+        ({"map.resolution_m": 0.15}, "map.resolution_m"),
+        ({"basestation.constraints.global_candidates": 0}, "constraints.global_candidates"),
+        ({"agent.smoothing.t_x_s": 10.0}, "agent.smoothing.s / t_x_s / duration_s"),
+        ({"agent.smoothing.duration_s": 2.0}, "agent.smoothing.s / t_x_s / duration_s"),
+        ({"agent.cruise_altitude_m": 0.15}, "agent.cruise_altitude_m"),
+        ({"agent.state_period_s": 1.0}, "agent.neighbour_max_age_s"),
+        ({"sim.start_spacing_m": 0.3}, "sim.start_spacing_m"),
     ],  # (global_min_score 1.0 turns the whole-map search off, and 0 takes anything: taken)
 )
 def test_bad_values_name_the_key(overrides: dict, key: str) -> None:

@@ -244,8 +244,19 @@ def cmd_bench(args: argparse.Namespace) -> int:
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps(result, indent=1))
     print(json.dumps(result, indent=1))
+    return bench_exit_code(result)
+
+
+def bench_exit_code(result: dict[str, Any]) -> int:
+    """1 when a run failed or a target was missed (a breached `bench security` had exited
+    0, and scripts could not tell), else 0."""
     if result.get("failed_runs"):  # the rest is measured, but not all that was asked for
         log.error("%d run(s) failed (their rows say why); the report holds the rest",
                   result["failed_runs"])  # fmt: skip
+        return 1
+    missed = [k for k, v in result.get("targets_met", {}).items() if v is False]
+    missed += [k for k in ("all_rejected", "legitimate_ok") if result.get(k) is False]
+    if missed:
+        log.error("target(s) not met: %s", ", ".join(missed))
         return 1
     return 0

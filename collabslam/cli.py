@@ -192,7 +192,7 @@ def cmd_run(args: argparse.Namespace) -> int:
         f"\nresults in {out.resolve()}: map.png, map.pgm/.yaml, trajectories/, "
         f"ground_truth/, summary.json, config.toml, logs/"
     )
-    return 0
+    return 130 if launcher.stop.is_set() else 0  # (interrupted: outputs written, not done)
 
 
 def cmd_eval_relations(args: argparse.Namespace) -> int:
@@ -324,8 +324,8 @@ def main(argv: list[str] | None = None) -> int:
     except CollabSlamError as exc:
         log.error("%s", exc)
         return 1
-    except KeyboardInterrupt:  # before the signal handlers are in place (start-up)
-        log.error("interrupted while starting")
+    except KeyboardInterrupt:  # where no signal handler is in place (start-up, bench, eval)
+        log.error("interrupted")
         return 130
     except Exception:
         log.exception("unexpected error")

@@ -15,6 +15,7 @@ import dataclasses
 import json
 import logging
 import signal
+import subprocess
 import threading
 import time
 from pathlib import Path
@@ -151,7 +152,11 @@ class Launcher:
                 )  # fmt: skip
                 for r in scenario.robots
             ]
-            self._supervise_until(sim, [base, *agents])
+            try:
+                self._supervise_until(sim, [base, *agents])
+            except ProcessError:  # one child died: the others still write their outputs
+                self._wind_down([sim, *agents], base)
+                raise
             for a in agents:
                 a.proc.send_signal(signal.SIGINT)
             g.wait(agents, self.cfg.agent.drain_timeout_s + 30.0)
@@ -169,6 +174,23 @@ class Launcher:
                         "timeout: sim.basestation_timeout_s, sim.sync_wait_s): this run "
                         "may not repeat", summary["lockstep_timeouts"])  # fmt: skip
         return summary
+
+    def _wind_down(self, others: list[Child], base: Child) -> None:
+        """Stop the children still running as a mission's end does (SIGINT: the agents
+        drain, the simulator writes its ground truth, then the base station its map): one
+        agent's crash had had the others killed and every output of the mission lost."""
+        for c in others:
+            if c.proc.poll() is None:
+                c.proc.send_signal(signal.SIGINT)
+        deadline = time.monotonic() + self.cfg.agent.drain_timeout_s + 30.0
+        for c in [*others, base]:
+            if c is base and base.proc.poll() is None:
+                base.proc.send_signal(signal.SIGINT)
+                deadline = time.monotonic() + 300.0
+            try:
+                c.proc.wait(max(0.1, deadline - time.monotonic()))
+            except subprocess.TimeoutExpired:
+                pass  # (terminate_all kills it)
 
     def _supervise_until(self, sim: Child, others: list[Child]) -> None:
         """Wait for the simulator to finish; any other child exiting first is an error."""

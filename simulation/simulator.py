@@ -306,7 +306,9 @@ class Simulator:
             while not stop.is_set() and self._base_clock < self.t - 1e-9:
                 if time.monotonic() > deadline:
                     self.base_sync_timeouts += 1
-                    log.warning("t=%.3f: no answer from the base station; going on", self.t)
+                    log.warning("t=%.3f: no answer from the base station; going on (a base "
+                                "station started by hand needs --lockstep, or run the sim "
+                                "with --set sim.clock=realtime)", self.t)  # fmt: skip
                     return False
                 self.bus.publish(self.keys.clock("sim"), request)  # again if it was missed
                 self._cond.wait(self.cfg.sim.lockstep_timeout_s)

@@ -181,7 +181,7 @@ class AgentNode:
         return False
 
     # --- wiring -------------------------------------------------------------------------
-    def start(self, lockstep: bool = False) -> None:
+    def start(self, await_base: bool = False) -> None:
         """Declare subscriptions, then the liveliness token (so the token implies routes).
         The sensor source must be created before this (its subscriptions count too)."""
         rid, mine = self.robot_id, self.uplink.mine  # what is sent to this agent's session
@@ -192,8 +192,8 @@ class AgentNode:
         ):  # fmt: skip
             self.bus.subscribe(self.keys.robot(rid, topic), kind, mine(on))
         self.bus.watch_alive("basestation", self._on_base_alive)
-        if lockstep and self.cfg.base_sync_period_s() > 0.0:  # its first messages count too
-            self._await_base(self.cfg.sim.sync_wait_s)  # (a live one: no 10 s wait)
+        if await_base:  # a simulator's: its first messages count too (a live one: no
+            self._await_base(self.cfg.sim.sync_wait_s)  # 10 s wait out of radio range)
         self.bus.declare_alive("agent", rid)
 
     def _await_base(self, timeout_s: float) -> None:

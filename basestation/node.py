@@ -28,7 +28,13 @@ from typing import Any
 import numpy as np
 
 from basestation.correction_epochs import CorrectionEpochs
-from basestation.exploration_setup import explorer_stats, make_explorer, path_message, planar_pose
+from basestation.exploration_setup import (
+    explorer_stats,
+    keep_unheard_clear,
+    make_explorer,
+    path_message,
+    planar_pose,
+)
 from basestation.global_slam import GlobalSlam
 from basestation.gnss_intake import GnssIntake, map_georeference
 from basestation.gps_fixes import local_pose
@@ -40,7 +46,7 @@ from basestation.map_outputs import write_map_outputs
 from basestation.neighbour_relay import NeighbourRelay
 from basestation.persistence import Batch, open_database
 from basestation.robot_segments import RobotSegments, robot_of
-from basestation.roster import Roster
+from basestation.roster import Roster, scenario_starts
 from common.bus import Bus
 from common.config import Config
 from common.geometry import pose4_to_pose7
@@ -74,19 +80,10 @@ class BaseStationNode:
         self.cfg = cfg
         self.bus = bus
         self.keys = bus.keys
-        # With a scenario the roster is closed (other ids dropped). Its start poses are used
-        # if basestation.known_start_poses; else the first robot's (the map frame), others
-        # by matching; with GPS, at its first fix with the scenario's heading (seed 000).
-        starts: dict[str, np.ndarray] = {}
-        headings: dict[str, float] = {}
+        # With a scenario the roster is closed (other ids dropped), and it says where
+        # robots start (roster.scenario_starts)
         self.roster = Roster(None if scenario is None else scenario.robot_ids)
-        if scenario is not None:
-            starts = {r.robot_id: r.start_pose for r in scenario.robots}
-            if not cfg.basestation.known_start_poses and cfg.basestation.gps.enabled:
-                headings = {rid: float(p[2]) for rid, p in starts.items()}
-                starts = {}
-            elif not cfg.basestation.known_start_poses:
-                starts = dict(list(starts.items())[:1])
+        starts, headings = scenario_starts(cfg, scenario)
         self.db = open_database(cfg.basestation.db_path)
         # a lock-step simulator's clock paces everything (basestation/lockstep.py)
         lockstep = lockstep and cfg.base_sync_period_s() > 0.0
@@ -341,8 +338,7 @@ class BaseStationNode:
         grid = self.map.gridmap(free_thresh=EXPLORATION_FREE_THRESH)
         if grid is None or self.explorer is None:
             return
-        with self._lock:  # one lost by now is released first: the step had taken it for
-            # gone for good, given its goal away, and kept none of its way clear
+        with self._lock:  # one lost by now is released first (the step had given its goal away)
             states, alive = dict(self.states), set(map(self.segments.current, self._alive))
             lost, self._lost = self._lost, []
         self._release_lost(lost)
@@ -356,6 +352,7 @@ class BaseStationNode:
             elif rid in alive and rid not in self.explorer.silent:  # no state yet (it may be
                 # lost at the start): its newest keyframe; back from a lost link: its state
                 poses[rid] = graph.pose(rid, graph.latest_index(rid))
+        keep_unheard_clear(self.explorer, self.slam.known_starts, {*graph.robots(), *states})
         blocked = {rid for rid, st in states.items() if st.status == "blocked"}
         z = self.cfg.agent.cruise_altitude_m
         out: list[tuple[str, bytes]] = []

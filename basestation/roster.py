@@ -1,11 +1,16 @@
 """The robots a base station serves: with a scenario, its robots only (others' messages
-are dropped, with an error line); without one, any robot."""
+are dropped, with an error line); without one, any robot. And where they start."""
 
 from __future__ import annotations
 
 import logging
 import threading
 from collections.abc import Iterable
+
+import numpy as np
+
+from common.config import Config
+from common.scenario import Scenario
 
 log = logging.getLogger(__name__)
 
@@ -26,3 +31,20 @@ class Roster:
             log.error("%s from unknown robot %r dropped (%d so far); known: %s",
                       what, rid, n, sorted(self.ids))  # fmt: skip
         return True
+
+
+def scenario_starts(
+    cfg: Config, scenario: Scenario | None
+) -> tuple[dict[str, np.ndarray], dict[str, float]]:
+    """(known start poses, start headings) the graph takes from the scenario: every
+    robot's start pose if `basestation.known_start_poses`; else the first robot's (the
+    map frame) and the others by matching; with GPS, none, each robot at its first fix
+    with the scenario's heading (seed 000)."""
+    if scenario is None:
+        return {}, {}
+    starts = {r.robot_id: r.start_pose for r in scenario.robots}
+    if not cfg.basestation.known_start_poses and cfg.basestation.gps.enabled:
+        return {}, {rid: float(p[2]) for rid, p in starts.items()}
+    if not cfg.basestation.known_start_poses:
+        return dict(list(starts.items())[:1]), {}
+    return starts, {}

@@ -105,7 +105,7 @@ def cmd_agent(args: argparse.Namespace) -> int:
                 queue_max=a.sensor_queue_max,
             )  # fmt: skip
             node = AgentNode(cfg, args.robot_id, bus, tour, T_map_odom)
-        node.start(lockstep=args.lockstep)
+        node.start(await_base=args.await_base)
         log.info("agent %s running", args.robot_id)
         node.run(source, stop, cfg.agent.replay_max_unacked if args.replay else None)
         if node.drain(cfg.agent.drain_timeout_s):
@@ -248,10 +248,10 @@ def build_parser() -> argparse.ArgumentParser:
     )
     sp.add_argument("--segment", metavar="START:END", help="with --replay: log time window (s)")
     sp.add_argument(
-        "--lockstep",
+        "--await-base",
         action="store_true",
-        help="a lock-step simulator drives it: wait (sim.sync_wait_s at most) for the base "
-        "station before starting (`collabslam run` sets it)",
+        help="an exploring simulator's agent: wait (sim.sync_wait_s at most) for the base "
+        "station before starting (`collabslam run` sets it; a live agent flies on at once)",
     )
     sp.set_defaults(func=cmd_agent)
 

@@ -36,17 +36,18 @@ log = logging.getLogger(__name__)
 
 
 def agent_command(
-    common: list[str], robot_id: str, *connect: str, lockstep: bool = False
+    common: list[str], robot_id: str, *connect: str, await_base: bool = False
 ) -> list[str]:
     """`collabslam agent` arguments for one robot (`common`: --config/--out/... options)
-    connecting to each of the `connect` endpoints; `lockstep`: a lock-step simulator's."""
+    connecting to each of the `connect` endpoints; `await_base`: an exploring simulator's
+    (it waits for the base station before starting)."""
     return [
         "agent",
         *common,
         "--robot-id",
         robot_id,
         *(a for ep in connect for a in ("--connect", ep)),
-        *(["--lockstep"] if lockstep else []),
+        *(["--await-base"] if await_base else []),
     ]
 
 
@@ -148,7 +149,9 @@ class Launcher:
             agents = [
                 g.spawn(
                     r.robot_id,
-                    agent_command(common, r.robot_id, sim_ep, base_ep, lockstep=bool(paced)),
+                    agent_command(
+                        common, r.robot_id, sim_ep, base_ep, await_base=self.cfg.exploration.enabled
+                    ),
                 )  # fmt: skip
                 for r in scenario.robots
             ]

@@ -158,6 +158,7 @@ class Simulator:
             self.bus.subscribe(self.keys.robot(rid, "state"), RobotState, self._on_state)
         if self.sync_period:
             self.bus.subscribe(self.keys.clock("basestation"), ClockSync, self._on_base_clock)
+        if self.cfg.exploration.enabled:  # real time too: no clock before the base station
             self.bus.watch_alive("basestation", self._on_base_alive)
         self.bus.watch_alive("agent", self._on_alive)
         self.bus.declare_alive("sim", "sim")
@@ -204,7 +205,9 @@ class Simulator:
         deadline = time.monotonic() + self.cfg.sim.start_timeout_s
         # with exploration, the base station too: then it has our link and subscriptions,
         # and no sensor message (a GNSS fix it would wait for) goes nowhere
-        expected = set(self.robots) | ({BASE} if self.sync_period else set())
+        # (real time too: its clock had started 2.5-14.5 s before the base station heard
+        # of the drones, which hovered, and one planned through another's hover point)
+        expected = set(self.robots) | ({BASE} if self.cfg.exploration.enabled else set())
         with self._cond:
             while not expected <= self._alive:
                 if stop.is_set():

@@ -91,15 +91,15 @@ def test_a_live_agent_does_not_wait_for_a_base_station_out_of_reach(
 ) -> None:
     """A run's config.toml (lock-step sim clock, exploration on) copied to a drone, as
     operations.md says: a live agent restarted out of radio range had waited 10 s for the
-    base station before flying on. Only a lock-step simulator's agent (`--lockstep`,
+    base station before flying on. Only an exploring simulator's agent (`--await-base`,
     which `collabslam run` sets) waits for it."""
     cfg = load_config(overrides={"sim.sync_wait_s": 0.3})
-    for lockstep in (False, True):
+    for await_base in (False, True):
         with Bus(ZenohConfig(listen=[endpoint]), cfg.fleet) as bus:
             AgentNode(cfg, "r0", bus, np.zeros((0, 2)), np.zeros(4), NullVehicle()).start(
-                lockstep=lockstep
+                await_base=await_base
             )
-        assert ("no base station after" in caplog.text) == lockstep
+        assert ("no base station after" in caplog.text) == await_base
 
 
 def test_a_run_refuses_zenoh_endpoints_of_its_own(tmp_path) -> None:  # noqa: ANN001

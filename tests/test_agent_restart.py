@@ -97,14 +97,14 @@ def test_a_restarted_agent_explores_on(tmp_path: Path, with_state: bool) -> None
     try:
         base = g.spawn("basestation", [*m.base(db), "--lockstep"])
         sim = g.spawn("sim", [*m.sim(), "--max-sim-time", "200"])
-        agents = {r: g.spawn(r, m.agent(r, "--lockstep", state=with_state)) for r in m.robots}
+        agents = {r: g.spawn(r, m.agent(r, "--await-base", state=with_state)) for r in m.robots}
         wait_for(lambda: stored_keyframes(db, "r1") >= 25, 60, "keyframes of r1", g,
                  [sim, *agents.values()])  # fmt: skip
         os.kill(agents["r1"].proc.pid, signal.SIGKILL)
         agents["r1"].proc.wait()
         before = stored_keyframes(db, "r1")
         time.sleep(1.0)
-        agents["r1"] = g.spawn("r1-restarted", m.agent("r1", "--lockstep", state=with_state))
+        agents["r1"] = g.spawn("r1-restarted", m.agent("r1", "--await-base", state=with_state))
         g.wait([sim], 240)  # to the end of the exploration
         end_mission(g, sim, list(agents.values()), base)
     finally:

@@ -12,6 +12,7 @@ from basestation.node import BaseStationNode
 from common.bus import Bus
 from common.config import Config, ZenohConfig
 from common.map_io import GridMap
+from common.scenario import RobotScenario, Scenario
 from protocol import RobotState
 
 
@@ -83,3 +84,36 @@ def test_a_drone_lost_before_a_step_keeps_its_goal_and_way_and_comes_back_where_
             agent.close()
         node.slam.graph = graph
         node.drain(1.0)
+
+
+def test_a_scenario_drone_not_yet_heard_of_is_kept_clear(cfg: Config, endpoint: str) -> None:
+    """A drone of the scenario whose link has not come up yet hovers at its known start:
+    it was in no exploration step, and another's path was planned 0.04 m from it (a
+    real-time rooms15 mission: r0's link 4 s late, r1 flew within 0.41 m of it)."""
+    cfg.exploration.enabled = True
+    cfg.zenoh.listen = [endpoint]
+    data = np.full((120, 400), -1, np.int8)  # a corridor 5 m wide, open to the right
+    data[10:110, :220] = 0
+    data[:10, :220] = data[110:, :220] = data[:, :4] = 100
+    grid = GridMap(data, 0.05, (0.0, 0.0, 0.0))
+    r0_start = np.array([5.0, 3.0, 0.0])  # hovering there, its link not up yet
+    sc = Scenario("corridor", [RobotScenario("r0", r0_start),
+                               RobotScenario("r1", np.array([1.5, 3.0, 0.0]))])  # fmt: skip
+    with Bus(cfg.zenoh, cfg.fleet) as bus:
+        node = BaseStationNode(cfg, bus, sc)
+        node.start()
+        ex, graph = node.explorer, node.slam.graph
+        assert ex is not None
+        node.map.gridmap = lambda free_thresh=None: grid  # type: ignore[method-assign]
+        node.slam.graph = _Poses({"r1": np.array([1.5, 3.0, 0.0])})
+        agent = Bus(ZenohConfig(connect=[endpoint]), cfg.fleet)
+        agent.declare_alive("agent", "r1")
+        assert poll_until(lambda: node.links.get("r1", {}).get("joins"))
+        node._on_state(_state("r1", 1.5, 3.0), "")
+        node.explore()
+        path = ex.tasks["r1"].path
+        agent.close()
+        node.slam.graph = graph
+        node.drain(1.0)
+    pts = np.vstack([np.linspace(a, b, 50) for a, b in zip(path[:-1], path[1:], strict=True)])
+    assert np.hypot(*(pts[:, :2] - r0_start[:2]).T).min() >= 1.0

@@ -4,6 +4,7 @@ mark says it sent, and a drone's sensor messages arrive in the order they were s
 
 from __future__ import annotations
 
+import contextlib
 import threading
 import time
 
@@ -260,6 +261,38 @@ def test_a_simulated_drone_whose_agent_went_silent_hovers(endpoint: str) -> None
             sim.t = k * sim.dt
             sim._step_physics()
         assert np.hypot(*sim.robots["r0"].vehicle.velocity_world[:2]) > 0.4  # (it had hovered)
+
+
+def test_a_real_time_exploring_clock_waits_for_the_base_station(endpoint: str) -> None:
+    """In real time the simulator had started its clock as soon as the agents were up:
+    the base station heard of the drones 2.5-14.5 s later (they hovered), and one was
+    planned through another's hover point. Like lock-step, it waits for the base."""
+    from common.config import load_config
+    from common.scenario import RobotScenario, Scenario
+    from simulation.simulator import Simulator
+    from simulation.world import World
+
+    cfg = load_config(overrides={"sim.clock": "realtime", "sim.start_timeout_s": 3.0})
+    sc = Scenario("rooms15", [RobotScenario("r0", np.array([1.5, 2.5, 0.0]))])
+    with Bus(ZenohConfig(listen=[endpoint]), cfg.fleet) as bus:
+        sim = Simulator(cfg, bus, sc, World.load("rooms15"), 10.0)
+        sim.start()
+        sim._on_alive("r0", True)  # the agent is up; no base station anywhere
+        stop, started = threading.Event(), threading.Event()
+
+        def run() -> None:
+            with contextlib.suppress(Exception):
+                sim.wait_for_agents(stop)
+                started.set()
+
+        th = threading.Thread(target=run, daemon=True)
+        th.start()
+        th.join(1.0)
+        assert not started.is_set()
+        sim._on_base_alive("basestation", True)
+        th.join(2.0)
+        stop.set()
+    assert started.is_set()
 
 
 def test_a_tick_sent_again_leaves_out_its_gnss_fix(endpoint: str) -> None:

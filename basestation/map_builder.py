@@ -35,7 +35,7 @@ from common.geometry import wrap_angle
 from common.growable import empty, grown
 from common.map_io import GridMap
 from common.occupancy_grid import OccupancyGrid
-from protocol.messages import NO_READING_MM, Scan2D
+from protocol.keyframe_payloads import NO_READING_MM, Scan2D
 
 log = logging.getLogger(__name__)
 

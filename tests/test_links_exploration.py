@@ -8,6 +8,7 @@ from __future__ import annotations
 import numpy as np
 from process_helpers import poll_until
 
+from basestation.exploration import ExplorationManager
 from basestation.node import BaseStationNode
 from common.bus import Bus
 from common.config import Config, ZenohConfig
@@ -35,6 +36,28 @@ class _Poses:
         return self.poses[rid]
 
 
+def _corridor() -> GridMap:
+    """A corridor 5 m wide along x, walled at x = 0, open (unknown) past x = 11 m."""
+    data = np.full((120, 400), -1, np.int8)
+    data[10:110, :220] = 0
+    data[:10, :220] = data[110:, :220] = data[:, :4] = 100
+    return GridMap(data, 0.05, (0.0, 0.0, 0.0))
+
+
+def _node_in_the_corridor(
+    cfg: Config, bus: Bus, scenario: Scenario | None, keyframes: dict[str, np.ndarray]
+) -> tuple[BaseStationNode, ExplorationManager, object]:
+    """A started base station whose map is `_corridor()` and whose graph's newest
+    keyframes are `keyframes`; (node, its explorer, its own graph to put back)."""
+    node = BaseStationNode(cfg, bus, scenario)
+    node.start()
+    assert node.explorer is not None
+    grid, graph = _corridor(), node.slam.graph
+    node.map.gridmap = lambda free_thresh=None: grid  # type: ignore[method-assign]
+    node.slam.graph = _Poses(keyframes)  # type: ignore[assignment]
+    return node, node.explorer, graph
+
+
 def _state(rid: str, x: float, y: float) -> RobotState:
     pose = np.array([x, y, 0.0, 0.0, 0.0, 0.0, 1.0])
     return RobotState(rid, 1.0, "flying", -1, 0, 0, 0, pose, pose)
@@ -49,17 +72,9 @@ def test_a_drone_lost_before_a_step_keeps_its_goal_and_way_and_comes_back_where_
     first state, it had been planned from its last keyframe, from before the loss."""
     cfg.exploration.enabled = True
     cfg.zenoh.listen = [endpoint]
-    data = np.full((120, 400), -1, np.int8)  # a corridor 5 m wide, open to the right
-    data[10:110, :220] = 0
-    data[:10, :220] = data[110:, :220] = data[:, :4] = 100
-    grid = GridMap(data, 0.05, (0.0, 0.0, 0.0))
     with Bus(cfg.zenoh, cfg.fleet) as bus:
-        node = BaseStationNode(cfg, bus, None)
-        node.start()
-        ex, graph = node.explorer, node.slam.graph
-        assert ex is not None
-        node.map.gridmap = lambda free_thresh=None: grid  # type: ignore[method-assign]
-        node.slam.graph = _Poses({"r0": np.array([7.0, 3.0, 0.0]), "r1": np.array([1.5, 3.0, 0.0])})
+        keyframes = {"r0": np.array([7.0, 3.0, 0.0]), "r1": np.array([1.5, 3.0, 0.0])}
+        node, ex, graph = _node_in_the_corridor(cfg, bus, None, keyframes)
         agents = [Bus(ZenohConfig(connect=[endpoint]), cfg.fleet) for _ in range(2)]
         for agent, rid in zip(agents, ("r0", "r1"), strict=True):
             agent.declare_alive("agent", rid)
@@ -92,20 +107,11 @@ def test_a_scenario_drone_not_yet_heard_of_is_kept_clear(cfg: Config, endpoint: 
     real-time rooms15 mission: r0's link 4 s late, r1 flew within 0.41 m of it)."""
     cfg.exploration.enabled = True
     cfg.zenoh.listen = [endpoint]
-    data = np.full((120, 400), -1, np.int8)  # a corridor 5 m wide, open to the right
-    data[10:110, :220] = 0
-    data[:10, :220] = data[110:, :220] = data[:, :4] = 100
-    grid = GridMap(data, 0.05, (0.0, 0.0, 0.0))
     r0_start = np.array([5.0, 3.0, 0.0])  # hovering there, its link not up yet
     sc = Scenario("corridor", [RobotScenario("r0", r0_start),
                                RobotScenario("r1", np.array([1.5, 3.0, 0.0]))])  # fmt: skip
     with Bus(cfg.zenoh, cfg.fleet) as bus:
-        node = BaseStationNode(cfg, bus, sc)
-        node.start()
-        ex, graph = node.explorer, node.slam.graph
-        assert ex is not None
-        node.map.gridmap = lambda free_thresh=None: grid  # type: ignore[method-assign]
-        node.slam.graph = _Poses({"r1": np.array([1.5, 3.0, 0.0])})
+        node, ex, graph = _node_in_the_corridor(cfg, bus, sc, {"r1": np.array([1.5, 3.0, 0.0])})
         agent = Bus(ZenohConfig(connect=[endpoint]), cfg.fleet)
         agent.declare_alive("agent", "r1")
         assert poll_until(lambda: node.links.get("r1", {}).get("joins"))

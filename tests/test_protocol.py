@@ -33,8 +33,9 @@ from protocol import (
     decode,
     encode,
 )
+from protocol.keyframe_payloads import NO_READING_MM
 from protocol.keys import Keys
-from protocol.messages import NO_READING_MM, message_types
+from protocol.messages import message_types
 
 P7 = pose4_to_pose7([1.0, -2.0, 0.5, 0.3])
 

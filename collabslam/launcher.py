@@ -11,6 +11,7 @@ gracefully (a second Ctrl-C kills).
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import json
 import logging
@@ -159,6 +160,8 @@ class Launcher:
                 self._supervise_until(sim, [base, *agents])
             except ProcessError:  # one child died: the others still write their outputs
                 self._wind_down([sim, *agents], base)
+                with contextlib.suppress(Exception):  # (what the survivors wrote)
+                    self._summary(scenario.robot_ids, t0)
                 raise
             for a in agents:
                 a.proc.send_signal(signal.SIGINT)
@@ -167,15 +170,20 @@ class Launcher:
             g.wait([base], 300.0)
         finally:
             g.terminate_all()
-        from collabslam.summary import build_summary
-
-        wall, contact = time.monotonic() - t0, 2.0 * self.cfg.sim.quadrotor.radius_m
-        summary = build_summary(self.out, self.world_yaml, scenario.robot_ids, wall, contact)
-        (self.out / "summary.json").write_text(json.dumps(summary, indent=1))
+        summary = self._summary(scenario.robot_ids, t0)
         if summary["lockstep_timeouts"] and self.cfg.sim.clock == "lockstep":
             log.warning("%d lock-step waits were given up (a process slower than its "
                         "timeout: sim.basestation_timeout_s, sim.sync_wait_s): this run "
                         "may not repeat", summary["lockstep_timeouts"])  # fmt: skip
+        return summary
+
+    def _summary(self, robot_ids: list[str], t0: float) -> dict[str, Any]:
+        """summary.json, from the outputs the processes wrote."""
+        from collabslam.summary import build_summary
+
+        wall, contact = time.monotonic() - t0, 2.0 * self.cfg.sim.quadrotor.radius_m
+        summary = build_summary(self.out, self.world_yaml, robot_ids, wall, contact)
+        (self.out / "summary.json").write_text(json.dumps(summary, indent=1))
         return summary
 
     def _wind_down(self, others: list[Child], base: Child) -> None:

@@ -148,7 +148,9 @@ def test_autonomous_exploration_finishes(tmp_path: Path) -> None:
 
 
 def test_dead_child_is_named(tmp_path: Path) -> None:
-    """A child that dies stops the run with an error naming it."""
+    """A child that dies stops the run with an error naming it, and the others are
+    stopped as at a mission's end: their outputs are written (they had been killed, and
+    every output of the mission lost)."""
     out = tmp_path / "run"
     proc = subprocess.Popen(
         [
@@ -182,12 +184,14 @@ def test_dead_child_is_named(tmp_path: Path) -> None:
             time.sleep(0.2)
         assert pid is not None, "agent r0 never started"
         os.kill(pid, signal.SIGKILL)
-        _, err = proc.communicate(timeout=60)
+        _, err = proc.communicate(timeout=180)
     finally:
         if proc.poll() is None:
             proc.kill()
     assert proc.returncode == 1
     assert "r0" in err and "exited with code" in err
+    for name in ("ground_truth/r0.tum", "basestation.json", "simulator.json", "summary.json"):
+        assert (out / name).is_file(), name
 
 
 def test_bad_world_is_one_clear_error(tmp_path: Path) -> None:

@@ -151,7 +151,7 @@ def test_an_agent_restarted_afresh_maps_on_as_a_new_segment(tmp_path: Path) -> N
     assert r0["keyframes_in_graph"] == first["keyframes_in_graph"] + agent["keyframes_sent"]
     assert all(r["ate_rmse_m"] < 0.5 for r in summary["robots"])
     # its control pose takes the placement at once: it had slid there over ~7 s from the
-    # scenario's start pose, a placeholder 10 m off (9.5 m, then 6 m 2 s later)
+    # scenario's start pose, known wrong and 10 m off (9.5 m, then 6 m 2 s later)
     c = read_control_log(out / "control_poses" / "r0.csv")
     placed = np.any(c.T_map_odom_raw != c.T_map_odom_raw[0], axis=1)
     applied = control_positions(c.T_map_odom_applied, c.T_odom_base)[placed, :2]

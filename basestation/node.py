@@ -8,7 +8,8 @@ each robot's T_map_odom after every optimization, and keeps the global occupancy
 grid up to date. At shutdown it writes the map, the trajectories and its statistics.
 
 Threads: Zenoh callbacks only enqueue (a robot's state is answered there, with where the
-others are); the constraint builder verifies matches on its worker; the rest is `run()`'s.
+others are); the constraint builder verifies matches on its worker, and live, exploration
+steps plan on theirs (exploration_worker.py); the rest is `run()`'s.
 In a lock-step simulation with exploration everything happens when its clock asks, on
 `run()`'s thread, verification included (basestation/lockstep.py): runs repeat exactly.
 """
@@ -32,9 +33,9 @@ from basestation.exploration_setup import (
     explorer_stats,
     keep_unheard_clear,
     make_explorer,
-    path_message,
     planar_pose,
 )
+from basestation.exploration_worker import ExplorationWorker, StepInputs, StepResult, path_messages
 from basestation.global_slam import GlobalSlam
 from basestation.gnss_intake import GnssIntake, map_georeference
 from basestation.gps_fixes import local_pose
@@ -62,10 +63,8 @@ from protocol import (
     PoseCorrection,
     RobotState,
     VehicleCommand,
-    decode,
     encode,
 )
-from protocol import Path as PathMsg
 
 log = logging.getLogger(__name__)
 
@@ -96,6 +95,8 @@ class BaseStationNode:
         self.gnss = GnssIntake(origin, 2.0 * cfg.map.max_radius_m, not_enu)  # fixes -> map
         self.map = MapBuilder(cfg.map, self.slam.store.scans)
         self.explorer = make_explorer(cfg, lockstep) if cfg.exploration.enabled else None
+        # live, a step runs on a worker thread, intake going on (exploration_worker.py)
+        self.steps = ExplorationWorker(self.explorer, not lockstep) if self.explorer else None
         self._last_explore = 0.0
         self._path_id = 0
         self._explore_ms: deque[float] = deque(maxlen=TIMINGS_KEPT)  # wall time of the steps
@@ -136,11 +137,8 @@ class BaseStationNode:
             return
         self.slam.restore(rec)
         self.segments.restore({rid: r.session for rid, r in self.slam.store.robots.items()})
-        if self.explorer is not None:
-            for rid, payload in rec.paths.items():
-                wp = decode(payload, PathMsg, max_bytes=len(payload) + 1).waypoints
-                if len(wp):
-                    self.explorer.restore_task(rid, np.asarray(wp[:, :2], dtype=np.float64))
+        if self.steps:
+            self.steps.restore(rec.paths)
         self._map_dirty = True  # rebuilt by run(), after the acks have gone out
         self.recovered = {
             "keyframes": len(rec.keyframes),
@@ -272,13 +270,13 @@ class BaseStationNode:
         if redraw and now - self._last_map >= self.cfg.basestation.map_update_period_s:
             self.refresh_map()
             self._last_map = now
-        if (
-            self.explorer is not None
-            and self.clock.wall_paced(now)
-            and now - self._last_explore >= self.cfg.exploration.period_s
-        ):
-            self.explore()  # (then a whole period of intake: a step of 1.5 s at 8 drones)
-            self._last_explore = time.monotonic()
+        if self.steps and self.clock.wall_paced(now):
+            if result := self.steps.done():  # a period after a step's end, the next
+                self._send_paths(result)
+                self._last_explore = time.monotonic()
+            elif not self.steps.busy and now - self._last_explore >= self.cfg.exploration.period_s:
+                if inputs := self._step_inputs():
+                    self.steps.start(inputs)
         self.heap.maybe_trim()
         return admitted
 
@@ -327,52 +325,56 @@ class BaseStationNode:
         """Goals of agents whose liveliness token went away go back to the queue, their
         ways kept clear (`lost`: taken from `_lost` under the lock already)."""
         if lost is None:
+            if self.steps and self.steps.busy:
+                return  # the explorer is the worker's: released before the next step
             with self._lock:
                 lost, self._lost = self._lost, []
         for name, pose in lost:
-            if self.explorer is not None:
-                self.explorer.release(name, pose)
+            if self.steps:
+                self.steps.explorer.release(name, pose)
 
     def explore(self) -> None:
-        """One exploration step: new paths (map frame) for the robots that need one."""
+        """One exploration step, at once: new paths (map frame) for the robots that need
+        one (a step in flight on the worker is finished first)."""
+        if self.steps:
+            if result := self.steps.done(wait=True):
+                self._send_paths(result)
+            if inputs := self._step_inputs():
+                self._send_paths(self.steps.now(inputs))
+
+    def _step_inputs(self) -> StepInputs | None:
+        """(run()'s thread, no step in flight) losses released, unheard starts kept
+        clear, and what a step plans from (None: no map yet)."""
         grid = self.map.gridmap(free_thresh=EXPLORATION_FREE_THRESH)
-        if grid is None or self.explorer is None:
-            return
+        if grid is None or self.steps is None:
+            return None
         with self._lock:  # one lost by now is released first (the step had given its goal away)
             states, alive = dict(self.states), set(map(self.segments.current, self._alive))
             lost, self._lost = self._lost, []
         self._release_lost(lost)
-        graph = self.slam.graph
+        graph, silent = self.slam.graph, self.steps.explorer.silent
         poses: dict[str, np.ndarray] = {}
         for rid in graph.robots():
             if not graph.is_anchored(rid):
                 continue
             if rid in states:
                 poses[rid] = planar_pose(states[rid])
-            elif rid in alive and rid not in self.explorer.silent:  # no state yet (it may be
-                # lost at the start): its newest keyframe; back from a lost link: its state
+            elif rid in alive and rid not in silent:  # no state yet (it may be lost at the
+                # start): its newest keyframe; back from a lost link: its state
                 poses[rid] = graph.pose(rid, graph.latest_index(rid))
-        keep_unheard_clear(self.explorer, self.slam.known_starts, {*graph.robots(), *states})
+        keep_unheard_clear(self.steps.explorer, self.slam.known_starts, {*graph.robots(), *states})
         blocked = {rid for rid, st in states.items() if st.status == "blocked"}
-        z = self.cfg.agent.cruise_altitude_m
-        out: list[tuple[str, bytes]] = []
-        batch = Batch()
-        t0 = time.perf_counter()
-        paths = self.explorer.step(grid, poses, blocked=blocked, strict=self.map.gridmap())
-        self._explore_ms.append((time.perf_counter() - t0) * 1e3)
-        for rid, path in paths.items():
-            self._path_id += 1
-            over = path is None and self.explorer.done  # path_id 0: the mission is over
-            what = "exploration over (path 0)" if over else "hold" if path is None else (
-                f"{len(path)} points to {path[-1].round(1)}")  # fmt: skip
-            t = states[rid].stamp if rid in states else -1.0  # (its state's: real time too)
-            log.info("t=%.1f s: path %d for %s from (%.1f, %.1f): %s", t, self._path_id,
-                     rid, *poses[rid][:2], what)  # fmt: skip
-            msg = path_message(rid, 0 if over else self._path_id, path, z, self.epochs.current)
-            out.append((rid, encode(self.segments.address(msg))))
-            batch.paths.append((rid, self._path_id, out[-1][1]))
-        self._persist(batch)
-        for rid, payload in out:
+        stamps = {rid: st.stamp for rid, st in states.items()}  # (its state's: real time too)
+        return StepInputs(grid, self.map.gridmap(), poses, blocked, stamps, self.epochs.current)
+
+    def _send_paths(self, result: StepResult) -> None:
+        """A step's paths: logged, stored, then sent."""
+        self._explore_ms.append(result.wall_ms)
+        msgs = path_messages(result, self._path_id, self.cfg.agent.cruise_altitude_m)
+        out = [(rid, pid, encode(self.segments.address(msg))) for rid, pid, msg in msgs]
+        self._path_id += len(out)
+        self._persist(Batch(paths=out))
+        for rid, _, payload in out:
             self.bus.put_raw(self.keys.robot(robot_of(rid), "path"), payload)
             self.clock.sent_path(rid)
 
@@ -451,6 +453,8 @@ class BaseStationNode:
             time.sleep(0.01)
         if self.slam.graph.flush_gps():  # the last GPS batch, due or not
             self._optimized()
+        if self.steps and (result := self.steps.close()):
+            self._send_paths(result)
         self.slam.converge()  # the final map and trajectories: the optimum, not a step to it
         self.publish_corrections()
         self.slam.close()

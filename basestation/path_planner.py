@@ -432,13 +432,15 @@ class PathPlanner:
     def _termination(self, share: float) -> ob.PlannerTerminationCondition:
         """When one solve() stops: after `share` x `check_budget` more validity checks
         (the same work, and so the same path, however loaded the machine is), or at
-        `share` x `time_budget_s` of wall time, whichever comes first."""
-        deadline = time.perf_counter() + share * self.time_budget_s
+        `share` x `time_budget_s` of this thread's CPU time, whichever comes first (CPU,
+        not wall: a live base station plans on a worker thread while others take in
+        keyframes; by wall time its plans had got a fraction of the budget, and failed)."""
+        deadline = time.thread_time() + share * self.time_budget_s
         if self.check_budget is None:
             return ob.timedPlannerTerminationCondition(share * self.time_budget_s)
         last = self.validity_checks + max(1, int(share * self.check_budget))
         return ob.PlannerTerminationCondition(
-            lambda: self.validity_checks >= last or time.perf_counter() >= deadline
+            lambda: self.validity_checks >= last or time.thread_time() >= deadline
         )
 
     @staticmethod

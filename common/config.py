@@ -321,7 +321,7 @@ class ExplorationConfig:
     lag_s: float = 0.6  # s the others are judged behind/ahead of their schedules (docs)
     # RRT* work per path in validity checks (~0.2 s here): plans do not depend on load
     planning_checks: int = 40000
-    planning_time_s: float = 1.0  # s, caps the wall time of one path (not in simulation)
+    planning_time_s: float = 1.0  # s, caps the CPU time of one path (not in simulation)
 
 
 @dataclass

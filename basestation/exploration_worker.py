@@ -1,0 +1,127 @@
+"""Exploration steps off the thread that takes in keyframes (a live base station).
+
+A step can take seconds: 1.5 s of CPU when 8 drones replan, 3-7 s with 4 drones in a
+real-time simulation on a loaded laptop. Run on the intake thread, it had held back
+every acknowledgement that long: agents resent 56-89 % of their keyframes (arriving as
+duplicates) while the drones waited. Live, each step now runs on one worker thread while
+`run()`'s thread goes on taking in, optimizing and acknowledging.
+
+Who touches the `ExplorationManager`: the worker while a step is in flight, `run()`'s
+thread otherwise (its inputs are made there: losses released, poses read, then handed
+over whole). In a lock-step simulation the step runs at once on `run()`'s thread, so
+runs repeat exactly.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from concurrent.futures import Future, ThreadPoolExecutor
+from dataclasses import dataclass
+
+import numpy as np
+
+from basestation.exploration import ExplorationManager
+from basestation.exploration_setup import path_message
+from common.map_io import GridMap
+from protocol import Path as PathMsg
+from protocol import decode
+
+log = logging.getLogger("basestation.node")
+
+
+@dataclass
+class StepInputs:
+    """One exploration step's view of the world, taken on `run()`'s thread."""
+
+    grid: GridMap  # exploration's view (common.map_io.EXPLORATION_FREE_THRESH)
+    strict: GridMap | None  # the published map's
+    poses: dict[str, np.ndarray]  # [x, y, yaw] in map
+    blocked: set[str]  # robots whose follower reports it cannot go on
+    stamps: dict[str, float]  # of the states the poses came from (-1: a keyframe's)
+    epoch: int  # the correction epoch the poses are in
+
+
+@dataclass
+class StepResult:
+    inputs: StepInputs
+    paths: dict[str, np.ndarray | None]  # map [x, y] points; None: hold
+    over: bool  # no frontier left: a hold is sent as path id 0, the mission's end
+    wall_ms: float
+
+
+def path_messages(result: StepResult, last_id: int, z: float) -> list[tuple[str, int, PathMsg]]:
+    """(robot, path id, Path at altitude `z`) of each robot a step planned for, numbered
+    on from `last_id`, and logged."""
+    out = []
+    for path_id, (rid, path) in enumerate(result.paths.items(), last_id + 1):
+        over_now = path is None and result.over
+        what = "exploration over (path 0)" if over_now else "hold" if path is None else (
+            f"{len(path)} points to {path[-1].round(1)}")  # fmt: skip
+        log.info("t=%.1f s: path %d for %s from (%.1f, %.1f): %s",
+                 result.inputs.stamps.get(rid, -1.0), path_id, rid,
+                 *result.inputs.poses[rid][:2], what)  # fmt: skip
+        msg = path_message(rid, 0 if over_now else path_id, path, z, result.inputs.epoch)
+        out.append((rid, path_id, msg))
+    return out
+
+
+def run_step(explorer: ExplorationManager, inputs: StepInputs) -> StepResult:
+    t0 = time.perf_counter()
+    paths = explorer.step(inputs.grid, inputs.poses, blocked=inputs.blocked, strict=inputs.strict)
+    return StepResult(inputs, paths, explorer.done, (time.perf_counter() - t0) * 1e3)
+
+
+class ExplorationWorker:
+    """Runs `run_step` on one worker thread (`threaded`), or at once."""
+
+    def __init__(self, explorer: ExplorationManager, threaded: bool) -> None:
+        self.explorer = explorer
+        self._pool = ThreadPoolExecutor(1, "exploration") if threaded else None
+        self._pending: Future[StepResult] | None = None
+
+    @property
+    def busy(self) -> bool:
+        """A step is in flight: the explorer is the worker's."""
+        return self._pending is not None
+
+    def restore(self, paths: dict[str, bytes]) -> None:
+        """Each robot's task from its last Path sent (`Recovered.paths`), after a restart."""
+        for rid, payload in paths.items():
+            wp = decode(payload, PathMsg, max_bytes=len(payload) + 1).waypoints
+            if len(wp):
+                self.explorer.restore_task(rid, np.asarray(wp[:, :2], dtype=np.float64))
+
+    def now(self, inputs: StepInputs) -> StepResult:
+        """A step on `inputs` on the caller's thread (none may be in flight)."""
+        if self._pending is not None:
+            raise RuntimeError("an exploration step is still in flight")
+        return run_step(self.explorer, inputs)
+
+    def start(self, inputs: StepInputs) -> None:
+        """A step on `inputs`, on the worker (not threaded: at once); `done()` gives its
+        result once it is over."""
+        if self._pool is not None:
+            if self._pending is not None:
+                raise RuntimeError("an exploration step is still in flight")
+            self._pending = self._pool.submit(run_step, self.explorer, inputs)
+            return
+        finished: Future[StepResult] = Future()
+        finished.set_result(self.now(inputs))
+        self._pending = finished
+
+    def done(self, wait: bool = False) -> StepResult | None:
+        """The step in flight once it is over (`wait`: until then), else None; a step
+        that raised raises here, on the caller's thread."""
+        pending = self._pending
+        if pending is None or not (wait or pending.done()):
+            return None
+        self._pending = None
+        return pending.result()
+
+    def close(self) -> StepResult | None:
+        """Wait for the step in flight (returned) and stop the thread."""
+        result = self.done(wait=True)
+        if self._pool is not None:
+            self._pool.shutdown(wait=True)
+        return result

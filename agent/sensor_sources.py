@@ -10,6 +10,7 @@ whether the data comes from the simulator or a live driver over Zenoh
 from __future__ import annotations
 
 import bisect
+import dataclasses
 import heapq
 import logging
 import math
@@ -34,6 +35,7 @@ from agent.carmen_log import (
 from common.bus import Bus
 from common.errors import ConfigError
 from common.geometry import pose4_to_pose7, se2_between, wrap_angle
+from common.stamps import BackStepRepair
 from protocol import Altimeter, ClockSync, GnssFix, Imu, LaserScan, Odometry
 
 log = logging.getLogger(__name__)
@@ -151,6 +153,8 @@ class ZenohSensors:
         # the fixes relayed whose echo (its own subscriber hears them) has not come yet:
         # matched exactly (a stamp limit had stopped the relay for good at a glitch)
         self._relayed: deque[tuple[float, bytes]] = deque(maxlen=64)
+        self.clock: BackStepRepair | None = None  # the agent's (`AgentNode.clock`), if any
+        self.fixes_not_relayed = 0  # stamped by another clock than the laser's
         self._scans_waiting = max_scans_before_altitude  # left to drop; 0: pass them on
         # one subscriber for all of them: Zenoh keeps a sender's samples in order per
         # subscriber, not between two (a scan overtook the altimeter's reading of its tick)
@@ -164,7 +168,29 @@ class ZenohSensors:
             self._queue.put(msg)
 
     def stats(self) -> dict[str, int]:
-        return self._queue.stats()
+        return {**self._queue.stats(), "gnss_fixes_not_relayed": self.fixes_not_relayed}
+
+    def _relay(self, msg: GnssFix) -> None:
+        """A driver's fix on to the base station, on the agent's timeline: stamped by the
+        laser's clock, moved on by the agent's clock steps (`BackStepRepair.offset`).
+        Relayed as it came, fixes had gone on the old timeline after a step back (a 30 s
+        step: the graph's fixes tied to nodes 30 s off, 46 m RMS), and fixes on another
+        clock (GPS time, boot time) had bent the map or been dropped without a word: such
+        are named (`ClockAgreement`) and not relayed."""
+        fix = (msg.stamp, msg.lla.tobytes())
+        if fix in self._relayed:  # its own echo
+            self._relayed.remove(fix)
+            return
+        if self._bus is None:
+            return
+        if self.clock is not None:
+            if not self.clock.agreement.check(msg):
+                self.fixes_not_relayed += 1
+                return
+            if self.clock.offset:
+                msg = dataclasses.replace(msg, stamp=msg.stamp + self.clock.offset)
+        self._relayed.append((msg.stamp, msg.lla.tobytes()))
+        self._bus.publish(self._bus.keys.robot(self._robot_id, "sensor/gnss"), msg)
 
     def _tell_silence(self) -> None:
         """No sensor message for `SILENCE_WARN_S` (then every 6x as long): a driver on
@@ -186,12 +212,7 @@ class ZenohSensors:
                 continue
             self._heard, self._silence_told = time.monotonic(), 0.0
             if isinstance(msg, GnssFix):
-                fix = (msg.stamp, msg.lla.tobytes())
-                if fix in self._relayed:  # its own echo
-                    self._relayed.remove(fix)
-                elif self._bus is not None:
-                    self._relayed.append(fix)
-                    self._bus.publish(self._bus.keys.robot(self._robot_id, "sensor/gnss"), msg)
+                self._relay(msg)
                 yield None
                 continue
             if isinstance(msg, Altimeter):

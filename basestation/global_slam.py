@@ -129,7 +129,9 @@ class GlobalSlam:
             early.append((stamp, enu_xy, sigmas_enu))
             del early[: -self.cfg.basestation.gps.max_pending_fixes]
             return
-        if robot_id not in self._georeferenced and not self._late_start(robot_id, xy):
+        if robot_id not in self._georeferenced and not (
+            self._late_start(robot_id, xy) or self._joined_georeferenced(robot_id)
+        ):
             self.gps_fixes_ignored += 1
             return
         self.graph.add_gps_fix(robot_id, stamp, enu_xy, sigmas_enu)
@@ -216,6 +218,16 @@ class GlobalSlam:
             self.graph.georeference(rid, start, sigmas)
             self._unsaved_starts[rid] = (start, sigmas)  # (a restart starts it there)
             log.info("robot %s georeferenced at its first GNSS fix", rid)
+        return True
+
+    def _joined_georeferenced(self, rid: str) -> bool:
+        """A robot without a start of its own (a later run of a drone: a second flight, a
+        battery swap) that matches have put on the map of georeferenced robots (ENU):
+        its fixes count from now on (all 80 of a second flight's had been ignored)."""
+        if not (self._georeferenced and self.graph.is_anchored(rid)):
+            return False
+        self._georeferenced.add(rid)
+        log.info("robot %s is on the georeferenced map: its GNSS fixes count", rid)
         return True
 
     def _defines_map(self, rid: str) -> bool:

@@ -23,6 +23,10 @@ from protocol import GnssFix
 log = logging.getLogger(__name__)
 
 ORIGIN_FIXES = 5  # fixes whose median sets an origin the world does not give
+# m: a fix whose horizontal 1-sigma is larger has no say in the origin (a receiver's
+# output before lock reports ~4e6 m: three of the first five had set it in the sea)
+ORIGIN_MAX_SIGMA_M = 50.0
+MAX_HELD_FIXES = 1000  # held for the origin at most (the newest)
 
 
 def map_georeference(scenario: Scenario | None, headings: bool) -> tuple[GeoOrigin | None, str]:
@@ -86,12 +90,14 @@ class GnssIntake:
         fixes = [fix]
         if self.origin is None:
             self._first.append(fix)
-            if len(self._first) < ORIGIN_FIXES:
+            sure = [f.lla for f in self._first if max(f.sigmas_enu[:2]) <= ORIGIN_MAX_SIGMA_M]
+            if len(sure) < ORIGIN_FIXES:
+                del self._first[:-MAX_HELD_FIXES]
                 return []
             fixes, self._first = self._first, []
-            self.origin = GeoOrigin.from_sequence(np.median([f.lla for f in fixes], axis=0))
-            log.info("map frame: ENU at the median of the first %d GNSS fixes %s",
-                     len(fixes), self.origin)  # fmt: skip
+            self.origin = GeoOrigin.from_sequence(np.median(sure, axis=0))
+            log.info("map frame: ENU at the median of the first %d GNSS fixes within %.0f m "
+                     "(1-sigma) %s", len(sure), ORIGIN_MAX_SIGMA_M, self.origin)  # fmt: skip
         ready = []
         for f in fixes:
             xy = np.asarray(geodetic_to_enu(f.lla, self.origin)[:2], dtype=np.float64)

@@ -29,6 +29,7 @@ from numpy.typing import NDArray
 
 from basestation.gps_factor import interpolation_factor
 from common.geometry import pose7_to_pose4, se2_compose, se2_inverse
+from common.logging_setup import worth_logging
 from protocol import Keyframe, RobotState
 
 logger = logging.getLogger(__name__)
@@ -75,8 +76,10 @@ class GpsFixQueue:
             queue.append(fix)
         while len(queue) > self._max_pending:
             queue.popleft()
+            if worth_logging(self.dropped_overflow):  # (a hovering drone adds no nodes)
+                logger.warning("robot %r: too many GPS fixes wait for nodes, oldest dropped "
+                               "(%d so far)", robot_id, self.dropped_overflow + 1)  # fmt: skip
             self.dropped_overflow += 1
-            logger.warning("robot %r: too many GPS fixes wait for nodes, oldest dropped", robot_id)
 
     def pending(self, robot_id: str) -> int:
         return len(self._pending.get(robot_id, ()))
@@ -99,6 +102,11 @@ class GpsFixQueue:
             fix = queue[0]
             if fix.stamp < node_stamps[0]:
                 queue.popleft()
+                if worth_logging(self.dropped_before_start):
+                    logger.warning("robot %r: GPS fix at t=%.3f before its first keyframe "
+                                   "(t=%.3f): dropped (%d so far; if all are, its fixes "
+                                   "stamp by another clock)", robot_id, fix.stamp,
+                                   node_stamps[0], self.dropped_before_start + 1)  # fmt: skip
                 self.dropped_before_start += 1
                 continue
             if fix.stamp > node_stamps[-1] or len(node_stamps) < 2:

@@ -105,6 +105,7 @@ def cmd_agent(args: argparse.Namespace) -> int:
                 queue_max=a.sensor_queue_max,
             )  # fmt: skip
             node = AgentNode(cfg, args.robot_id, bus, tour, T_map_odom)
+            source.clock = node.clock  # relayed GNSS fixes on the agent's timeline
         node.start(await_base=args.await_base)
         log.info("agent %s running", args.robot_id)
         node.run(source, stop, cfg.agent.replay_max_unacked if args.replay else None)

@@ -73,26 +73,29 @@ class ClockAgreement:
     _scan: tuple[float, float] | None = None  # the latest scan's (stamp, wall time)
     _row: dict[str, int] = field(default_factory=dict)  # each sensor's, in a row
 
-    def check(self, msg: Any) -> None:
+    def check(self, msg: Any) -> bool:
+        """Whether `msg` is not known to disagree with the latest scan (counted and logged
+        only `in_a_row` in a row)."""
         now = time.monotonic()
         kind = type(msg).__name__
         if kind == "LaserScan":
             self._scan = (msg.stamp, now)
-            return
+            return True
         if self._scan is None or now - self._scan[1] > self.window_s:
-            return
+            return True
         ahead = msg.stamp - self._scan[0]
         if abs(ahead) <= self.max_apart + (now - self._scan[1]):
             self._row[kind] = 0
-            return
+            return True
         self._row[kind] = row = self._row.get(kind, 0) + 1
         if row < self.in_a_row:  # (an unpaced replay's scan after a gap in its log)
-            return
+            return False
         if self.disagreements % 1000 == 0:
             log.error("%s stamps are %.3f s %s the laser's: another clock? (all of a drone's "
                       "sensors must stamp by one clock; %d such so far)", kind, abs(ahead),
                       "ahead of" if ahead > 0 else "behind", self.disagreements + 1)  # fmt: skip
         self.disagreements += 1
+        return False
 
 
 @dataclass

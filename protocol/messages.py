@@ -156,6 +156,9 @@ class GnssFix(Message):
         super().validate()
         if abs(self.lla[0]) > 90.0 or abs(self.lla[1]) > 180.0:
             raise ProtocolError(f"GnssFix.lla: latitude/longitude out of range: {self.lla}")
+        if self.lla[0] == 0.0 and self.lla[1] == 0.0:  # (had set the map's origin there)
+            raise ProtocolError("GnssFix.lla at (0, 0): a receiver's output without a fix "
+                                "(send fixes only once it has one)")  # fmt: skip
         if not GNSS_ALTITUDE_RANGE_M[0] <= self.lla[2] <= GNSS_ALTITUDE_RANGE_M[1]:
             # one of 1e9 m scaled east/north by ~158x
             raise ProtocolError(f"GnssFix.lla: altitude {self.lla[2]:g} m out of range")

@@ -142,3 +142,17 @@ def test_fix_queue_waits_for_bracketing_nodes() -> None:
     for t in (3.0, 4.0, 5.0, 6.0):
         q.add("r", _fix(t))
     assert q.pending("r") == 3 and q.dropped_overflow == 1
+
+
+def test_fix_queue_names_drops_without_a_line_per_fix(caplog) -> None:  # noqa: ANN001
+    """A hovering drone adds no nodes: its 10 Hz fixes overflowed the queue with one
+    warning per fix (2,000 in 300 s). Fixes all before the chain's first node (another
+    clock) had been dropped without a word."""
+    q = GpsFixQueue(max_pending=10)
+    for k in range(2010):
+        q.add("r", _fix(1000.0 + 0.1 * k))
+    assert q.dropped_overflow == 2000
+    assert 3 <= caplog.text.count("too many GPS fixes wait") <= 6
+    q.add("s", _fix(0.5))
+    assert q.ready("s", [100.0, 101.0]) == [] and q.dropped_before_start == 1
+    assert "before its first keyframe" in caplog.text and "another clock" in caplog.text

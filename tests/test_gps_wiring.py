@@ -218,6 +218,52 @@ def test_origin_from_the_first_fixes_median_and_far_fixes_dropped() -> None:
     assert np.allclose(xy, [3.0, 4.0], atol=1e-6)
 
 
+def test_no_fix_outputs_have_no_say_in_the_origin() -> None:
+    """A receiver's output before lock: (0, 0) with ~4e6 m sigmas. Three of the first
+    five had set the map's origin in the sea, stored for good, every real fix then
+    dropped as 4,700 km away."""
+    from basestation.gnss_intake import ORIGIN_FIXES, GnssIntake
+    from common.errors import ProtocolError
+
+    with pytest.raises(ProtocolError, match="without a fix"):
+        GnssFix("r0", 0.0, np.array([0.0, 0.0, 0.0]), np.full(3, 4.3e6)).validate()
+    intake = GnssIntake(None, 1000.0)
+    unsure = GnssFix("r0", 0.0, enu_to_geodetic([3e5, 0.0, 1.0], ORIGIN), np.full(3, 4.3e4))
+    for _ in range(3):
+        assert intake.take(unsure) == []
+    for k in range(ORIGIN_FIXES):
+        got = intake.take(_fix(0.1 * k, 1.0, 2.0))
+    assert intake.origin is not None and abs(intake.origin.lat_deg - ORIGIN.lat_deg) < 1e-3
+    assert len(got) == ORIGIN_FIXES and intake.dropped == 3  # the unsure ones, 300 km off
+
+
+def test_a_later_run_matched_onto_the_georeferenced_map_uses_its_fixes() -> None:
+    """A drone's second flight (its agent restarted afresh) starts a new run of it,
+    which floats until matches join it to the map; its fixes had all been ignored
+    even then (outdoors, where matches are scarce, the fixes matter most)."""
+    import dataclasses
+
+    slam = GlobalSlam(_cfg(), {"r0": np.zeros(3)})
+    for seq in range(10):
+        slam.admit(_keyframe(seq))
+        slam.optimize()
+    later = "r0~2"
+    for seq in range(10):
+        slam.admit(dataclasses.replace(_keyframe(seq), robot_id=later, session=1))
+    slam.optimize()
+    assert not slam.graph.is_anchored(later)
+    slam.add_gps_fix(later, 2.25, np.array([0.9, 0.0]), SIG)  # floating: not usable
+    assert slam.gps_fixes_ignored == 1
+    for k in (3, 6, 9):  # matches put it on the map (as the loop-closure manager would)
+        slam.graph.add_constraint(("r0", k), (later, k), [0.0, 0.0, 0.0], np.eye(3) * 1e-4)
+    slam.graph.update()
+    for seq in range(10, 30):
+        slam.admit(dataclasses.replace(_keyframe(seq), robot_id=later, session=1))
+        slam.add_gps_fix(later, 0.5 * seq - 0.25, np.array([0.2 * seq - 0.1, 0.0]), SIG)
+        slam.optimize()
+    assert slam.gps_fixes_ignored == 1 and slam.stats()["gps"]["gps_factors"] >= 18
+
+
 def test_gps_options_reach_the_pose_graph() -> None:
     """Every [basestation.gps] choice (weighting, a, b, huber, sigma_min_m, the antenna's
     lever arm) reaches the graph's GPS factors: replacing the wiring with the defaults

@@ -14,6 +14,7 @@ from agent.sensor_sources import SensorQueue, ZenohSensors
 from collabslam.supervisor import free_port
 from common.bus import Bus
 from common.config import ZenohConfig
+from common.stamps import BackStepRepair
 from protocol import Altimeter, GnssFix, LaserScan
 
 LLA = np.array([45.81, 16.01, 160.0])
@@ -91,6 +92,41 @@ def test_a_drivers_gnss_fixes_reach_the_base_station_through_the_agent(relay: bo
     assert got == ([0.0, 1e9, 1.0, 2.0] if relay else [])
 
 
+def test_relayed_fixes_are_on_the_agents_timeline_and_by_the_lasers_clock() -> None:
+    """After the sensor clock stepped back, the agent moves its stamps on; relayed fixes
+    had kept the old timeline (the graph tied them to nodes 30 s off: 46 m RMS). A
+    receiver stamping GPS time (UTC + 18 s) had bent the map 26 m without a word: its
+    fixes are named and not relayed."""
+    base_ep, agent_ep = (f"tcp/127.0.0.1:{free_port()}" for _ in range(2))
+    got: list[float] = []
+    quiet = {"gossip_scouting": False}
+    with (
+        Bus(ZenohConfig(listen=[base_ep], **quiet), "default") as base,
+        Bus(ZenohConfig(listen=[agent_ep], connect=[base_ep], **quiet), "default") as agent,
+        Bus(ZenohConfig(connect=[agent_ep], **quiet), "default") as driver,
+    ):
+        base.subscribe(
+            base.keys.all_robots("sensor/gnss"), GnssFix, lambda m, k: got.append(m.stamp)
+        )
+        source = ZenohSensors(agent, "r0", max_scans_before_altitude=0, relay_gnss=True)
+        source.clock = clock = BackStepRepair(offset=30.0)  # a step back of 30 s taken up
+        time.sleep(1.0)  # links up
+        for k in range(8):
+            _put(driver, "scan", _scan(100.0 + 0.1 * k))
+            t = 100.05 + 0.1 * k if k < 2 else 118.05 + 0.1 * k  # then on GPS time
+            _put(driver, "gnss", GnssFix("r0", t, LLA, SIG))
+        stop = threading.Event()
+        deadline = time.monotonic() + 3.0
+        for msg in source.messages(stop):
+            if isinstance(msg, LaserScan):
+                clock.take(msg)  # as the agent takes each scan
+            if time.monotonic() > deadline:
+                break
+    assert [round(t, 2) for t in got] == [130.05, 130.15]
+    assert source.stats()["gnss_fixes_not_relayed"] == 6
+    assert clock.agreement.disagreements == 2  # named from the 5th in a row
+
+
 def test_scans_lagging_behind_the_newest_are_dropped(endpoint: str) -> None:
     """Local SLAM behind its laser (a stall): the scans waiting more than
     `agent.max_scan_lag_s` of sensor time behind the newest are dropped and counted, the
@@ -104,7 +140,8 @@ def test_scans_lagging_behind_the_newest_are_dropped(endpoint: str) -> None:
         got = _take(source, 12)
     assert type(got[0]).__name__ == "Altimeter"
     assert [round(m.stamp, 1) for m in got[1:]] == [round(2.0 + 0.1 * k, 1) for k in range(11)]
-    assert source.stats() == {"sensor_scans_dropped_lagging": 20, "sensor_messages_overflow": 0}
+    assert source.stats() == {"sensor_scans_dropped_lagging": 20, "sensor_messages_overflow": 0,
+                              "gnss_fixes_not_relayed": 0}  # fmt: skip
 
 
 def test_a_full_sensor_queue_drops_the_newest_and_counts_them() -> None:

@@ -88,11 +88,7 @@ def bench_carmen(
         "scans": scans,
         "scans_per_s": scans / wall,
         "wall_s": wall,
-        "trans_err_mean_m": err.trans_err_mean_m,
-        "trans_err_std_m": err.trans_err_std_m,
-        "rot_err_mean_deg": err.rot_err_mean_deg,
-        "rot_err_std_deg": err.rot_err_std_deg,
-        "n_relations": err.n_relations,
+        **err.as_dict(),
     }
 
 

@@ -21,7 +21,7 @@ from typing import Any
 import numpy as np
 
 from agent.carmen_log import carmen_time_span
-from collabslam.supervisor import ProcessGroup, clear_run_outputs, free_port
+from collabslam.supervisor import ProcessGroup, clear_run_outputs, delete_database, free_port
 from common.bus import endpoint
 from common.config import Config, dump_config
 from common.errors import CollabSlamError
@@ -109,6 +109,8 @@ def eval_carmen(
     # (this run's wall time: the one in an earlier run's config.toml, used again, had every
     # segment behind its start, unpaced, without a word: ACES 2 of 3 robots on the map)
     cfg.agent.replay_start_unix = time.time() + EVAL_HEAD_START_S
+    if b.db_path:  # an eval scores this run alone (supervisor.delete_database)
+        delete_database(b.db_path)
     dump_config(cfg, out / "config.toml")
     ep = endpoint(free_port())
     group = ProcessGroup(out, log_level)
@@ -188,11 +190,7 @@ def eval_carmen(
         "relations": str(rel_path),
         "robots": robots,
         "robots_on_map": len(on_map),
-        "trans_err_mean_m": err.trans_err_mean_m,
-        "trans_err_std_m": err.trans_err_std_m,
-        "rot_err_mean_deg": err.rot_err_mean_deg,
-        "rot_err_std_deg": err.rot_err_std_deg,
-        "n_relations": err.n_relations,
+        **err.as_dict(),  # (with Cartographer's formula's, to compare with its numbers)
         "n_relations_skipped": len(rel) - err.n_relations,  # not on the map, or no pose
         "loop_closures": base_stats.get("loop_closures", 0),
         "inter_robot_constraints": base_stats.get("inter_robot_constraints", 0),

@@ -24,7 +24,13 @@ from typing import Any
 
 import numpy as np
 
-from collabslam.supervisor import Child, ProcessGroup, clear_run_outputs, free_port
+from collabslam.supervisor import (
+    Child,
+    ProcessGroup,
+    clear_run_outputs,
+    delete_database,
+    free_port,
+)
 from common.bus import endpoint
 from common.config import Config, dump_config
 from common.errors import ConfigError, ProcessError
@@ -116,8 +122,7 @@ class Launcher:
         # The base station's crash record (2 ms per batch); a new mission never resumes
         # an old one, so any database left there is deleted first.
         db = self.cfg.basestation.db_path or str(self.out / "basestation.db")
-        for suffix in ("", "-wal", "-shm"):
-            Path(db + suffix).unlink(missing_ok=True)
+        delete_database(db)
         dump_config(self.cfg, self.out / "config.toml")
         common = [
             "--config",

@@ -111,6 +111,15 @@ def clear_run_outputs(out: Path) -> None:
             path.unlink()
 
 
+def delete_database(path: str | Path) -> None:
+    """A mission never resumes an older one's: its database (and SQLite's WAL files)
+    goes first. An `eval carmen` run again on one `basestation.db_path` had restored the
+    last run's robots, mapped this run's as seg0~2, ... onto the old map, and scored the
+    old trajectories."""
+    for suffix in ("", "-wal", "-shm"):
+        Path(f"{path}{suffix}").unlink(missing_ok=True)
+
+
 class ProcessGroup:
     def __init__(self, out: Path, log_level: str = "INFO") -> None:
         self.out = out

@@ -72,12 +72,16 @@ def test_eval_carmen_on_a_log_it_never_saw(tmp_path: Path) -> None:
     stamps, truth = _write_log(log)
     n_rel = _write_relations(rel, stamps, truth)
     out = tmp_path / "eval" / "flight.json"
+    db = tmp_path / "eval.db"  # an earlier eval's, left there: not resumed, replaced
+    db.write_bytes(b"an earlier eval's database")
     res = subprocess.run(
         [sys.executable, "-m", "collabslam.cli", "eval", "carmen", str(log),
-         "--relations", str(rel), "--robots", "2", "--json", str(out)],
+         "--relations", str(rel), "--robots", "2", "--json", str(out),
+         "--set", f"basestation.db_path={db}"],
         capture_output=True, text=True, timeout=600,
     )  # fmt: skip
     assert res.returncode == 0, res.stderr[-3000:]
+    assert db.read_bytes().startswith(b"SQLite format 3")  # this eval's own
     result = json.loads(out.read_text())
     assert result["robots_on_map"] == 2, result
     assert result["n_relations"] == n_rel

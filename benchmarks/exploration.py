@@ -239,32 +239,13 @@ def run(
     for world in worlds:
         path = resolve_bench_world(world, out_dir)
         result: dict[str, list[dict[str, Any]]] = {name: [] for name in names}
-        for seed in range(first_seed, first_seed + seeds):
-            for n in robots:
-                for name in names:
-                    tag = f"{world.replace(':', '_')}-{name}-n{n}-s{seed}"
-                    out = out_dir / "runs" / tag
-                    try:
-                        if kinematic:
-                            row = run_kinematic(cfg, path, n, seed, STRATEGIES[name], max_sim_time)
-                        else:
-                            row = run_mission(
-                                cfg, path, n, seed, STRATEGIES[name], out, max_sim_time
-                            )
-                    except ProcessError as exc:  # one mission lost, not the whole batch
-                        log.error("%s: the mission failed, going on with the next: %s", tag, exc)
-                        result[name].append(failed_row(n, seed, exc, out))
-                        continue
-                    log.warning(
-                        "%s: time_to_95 %s s, collisions %d, min separation %s m",
-                        tag,
-                        row["time_to_95_s"],
-                        row["collisions"],
-                        row["min_robot_separation_m"],
-                    )
-                    if bound:
-                        row["time_to_95_bound_s"] = _bound(cfg, path, Path(row["out"]), bounds)
-                    result[name].append(row)
+        try:
+            _fly(cfg, path, world, names, robots, range(first_seed, first_seed + seeds),
+                 max_sim_time, out_dir, kinematic, bound, bounds, result)  # fmt: skip
+        except KeyboardInterrupt:  # (Ctrl-C: the mission in flight is lost, not the rest)
+            log.error("interrupted: the report holds the %d runs finished",
+                      sum(map(len, result.values())))  # fmt: skip
+            report["interrupted"] = True
         png = out_dir / f"coverage_{world.replace(':', '_')}.png"
         plot_coverage(result, png, f"exploration of {world}")
         report["worlds"][world] = {
@@ -272,8 +253,51 @@ def run(
             "summary": speedups(result, robots, max_sim_time),
             "plot": str(png),
         }
+        if report.get("interrupted"):
+            break
     report["failed_runs"] = sum(w["summary"]["failed_runs"] for w in report["worlds"].values())
     if len(worlds) == 1:  # the issue's shape: {"ours": [...], "baseline": [...]} at the top
         only = report["worlds"][worlds[0]]
         report.update({k: v for k, v in only.items()})
     return report
+
+
+def _fly(
+    cfg: Config,
+    path: str,
+    world: str,
+    names: list[str],
+    robots: list[int],
+    seeds: range,
+    max_sim_time: float,
+    out_dir: Path,
+    kinematic: bool,
+    bound: bool,
+    bounds: dict[tuple[str, str], float | None],
+    result: dict[str, list[dict[str, Any]]],
+) -> None:
+    """The runs of one world, each row added to `result` as it ends."""
+    for seed in seeds:
+        for n in robots:
+            for name in names:
+                tag = f"{world.replace(':', '_')}-{name}-n{n}-s{seed}"
+                out = out_dir / "runs" / tag
+                try:
+                    if kinematic:
+                        row = run_kinematic(cfg, path, n, seed, STRATEGIES[name], max_sim_time)
+                    else:
+                        row = run_mission(cfg, path, n, seed, STRATEGIES[name], out, max_sim_time)
+                except ProcessError as exc:  # one mission lost, not the whole batch
+                    log.error("%s: the mission failed, going on with the next: %s", tag, exc)
+                    result[name].append(failed_row(n, seed, exc, out))
+                    continue
+                log.warning(
+                    "%s: time_to_95 %s s, collisions %d, min separation %s m",
+                    tag,
+                    row["time_to_95_s"],
+                    row["collisions"],
+                    row["min_robot_separation_m"],
+                )
+                if bound:
+                    row["time_to_95_bound_s"] = _bound(cfg, path, Path(row["out"]), bounds)
+                result[name].append(row)

@@ -249,7 +249,10 @@ def cmd_bench(args: argparse.Namespace) -> int:
 
 def bench_exit_code(result: dict[str, Any]) -> int:
     """1 when a run failed or a target was missed (a breached `bench security` had exited
-    0, and scripts could not tell), else 0."""
+    0, and scripts could not tell), 130 when interrupted (the report holds the runs
+    finished), else 0."""
+    if result.get("interrupted"):
+        return 130
     if result.get("failed_runs"):  # the rest is measured, but not all that was asked for
         log.error("%d run(s) failed (their rows say why); the report holds the rest",
                   result["failed_runs"])  # fmt: skip

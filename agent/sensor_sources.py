@@ -42,6 +42,10 @@ log = logging.getLogger(__name__)
 
 
 # on robot/<id>/sensor/*: ClockSync is a lock-step simulator's (agent/downlink_gate.py)
+# s: a relayed fix's stamp this far from the laser's is on another clock (GPS time is
+# 18 s ahead of UTC; a boot-time clock hours off); a slow link (serial NMEA, a loaded
+# companion computer) delivers a fix up to ~1.5 s late, as the IMU's 1 s would refuse
+FIX_MAX_APART_S = 5.0
 SENSOR_MESSAGES = (Odometry, Imu, Altimeter, LaserScan, ClockSync, GnssFix)
 
 
@@ -184,7 +188,7 @@ class ZenohSensors:
         if self._bus is None:
             return
         if self.clock is not None:
-            if not self.clock.agreement.check(msg):
+            if not self.clock.agreement.check(msg, FIX_MAX_APART_S):
                 self.fixes_not_relayed += 1
                 return
             if self.clock.offset:

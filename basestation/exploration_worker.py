@@ -73,11 +73,13 @@ def run_step(explorer: ExplorationManager, inputs: StepInputs) -> StepResult:
 
 
 class ExplorationWorker:
-    """Runs `run_step` on one worker thread (`threaded`), or at once."""
+    """Runs `run_step` on one worker thread (`start`), or at once (`now`: lock-step).
+    A `--lockstep` base station whose simulator never asked paces itself by the wall
+    clock on the worker too (its thread is made at the first `start`)."""
 
-    def __init__(self, explorer: ExplorationManager, threaded: bool) -> None:
+    def __init__(self, explorer: ExplorationManager) -> None:
         self.explorer = explorer
-        self._pool = ThreadPoolExecutor(1, "exploration") if threaded else None
+        self._pool = ThreadPoolExecutor(1, "exploration")
         self._pending: Future[StepResult] | None = None
 
     @property
@@ -99,16 +101,10 @@ class ExplorationWorker:
         return run_step(self.explorer, inputs)
 
     def start(self, inputs: StepInputs) -> None:
-        """A step on `inputs`, on the worker (not threaded: at once); `done()` gives its
-        result once it is over."""
-        if self._pool is not None:
-            if self._pending is not None:
-                raise RuntimeError("an exploration step is still in flight")
-            self._pending = self._pool.submit(run_step, self.explorer, inputs)
-            return
-        finished: Future[StepResult] = Future()
-        finished.set_result(self.now(inputs))
-        self._pending = finished
+        """A step on `inputs`, on the worker; `done()` gives its result once it is over."""
+        if self._pending is not None:
+            raise RuntimeError("an exploration step is still in flight")
+        self._pending = self._pool.submit(run_step, self.explorer, inputs)
 
     def done(self, wait: bool = False) -> StepResult | None:
         """The step in flight once it is over (`wait`: until then), else None; a step
@@ -122,6 +118,5 @@ class ExplorationWorker:
     def close(self) -> StepResult | None:
         """Wait for the step in flight (returned) and stop the thread."""
         result = self.done(wait=True)
-        if self._pool is not None:
-            self._pool.shutdown(wait=True)
+        self._pool.shutdown(wait=True)
         return result

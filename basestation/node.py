@@ -96,7 +96,7 @@ class BaseStationNode:
         self.map = MapBuilder(cfg.map, self.slam.store.scans)
         self.explorer = make_explorer(cfg, lockstep) if cfg.exploration.enabled else None
         # live, a step runs on a worker thread, intake going on (exploration_worker.py)
-        self.steps = ExplorationWorker(self.explorer, not lockstep) if self.explorer else None
+        self.steps = ExplorationWorker(self.explorer) if self.explorer else None
         self._last_explore = 0.0
         self._path_id = 0
         self._explore_ms: deque[float] = deque(maxlen=TIMINGS_KEPT)  # wall time of the steps

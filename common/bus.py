@@ -27,7 +27,7 @@ import zenoh
 
 from common.config import ZenohConfig
 from common.errors import ConfigError, ProtocolError
-from common.zenoh_security import check_tls_files
+from common.zenoh_security import check_acl_fleet, check_tls_files
 from protocol.codec import DEFAULT_MAX_BYTES, decode, encode
 from protocol.keys import Keys
 
@@ -38,14 +38,17 @@ REJECT_KINDS_KEPT = 64  # kinds counted apart in `rejected`; then "other"
 _NAMES_AND_NUMBERS = re.compile(r"'[^']*'|\"[^\"]*\"|(?<![\w.])[-+]?\d[\d.eE+-]*")
 
 
-def zenoh_config(zc: ZenohConfig) -> zenoh.Config:
-    """Build a Zenoh session config: mode, endpoints, scouting (zenoh examples/common)."""
+def zenoh_config(zc: ZenohConfig, fleet: str | None = None) -> zenoh.Config:
+    """Build a Zenoh session config: mode, endpoints, scouting (zenoh examples/common);
+    `fleet`: its access-control rules must be that fleet's."""
     try:
         conf = zenoh.Config.from_file(zc.config_file) if zc.config_file else zenoh.Config()
     except Exception as exc:
         raise ConfigError(f"zenoh.config_file {zc.config_file!r}: {exc}") from None
     if zc.config_file:
         check_tls_files(conf, f"zenoh.config_file {zc.config_file!r}")
+        if fleet is not None:
+            check_acl_fleet(conf, fleet, f"zenoh.config_file {zc.config_file!r}")
     settings: dict[str, Any] = {"mode": zc.mode}
     if not zc.config_file:  # a file decides its own scouting (deploy/'s: none at all)
         settings["scouting/multicast/enabled"] = zc.multicast_scouting
@@ -87,7 +90,7 @@ class Bus:
         self._publishers: dict[str, zenoh.Publisher] = {}
         self._handles: list[Any] = []
         try:
-            self.session = zenoh.open(zenoh_config(zc))
+            self.session = zenoh.open(zenoh_config(zc, fleet))
         except ConfigError:
             raise
         except Exception as exc:

@@ -8,6 +8,7 @@ which wall-clock stamps cannot tell in a run paced by the simulator.
 from __future__ import annotations
 
 import logging
+import os
 import sys
 from collections.abc import Callable
 
@@ -43,6 +44,14 @@ def setup_logging(level: str = "INFO", name: str = "") -> None:
         handler.addFilter(SimTimeFilter())
     for noisy in ("numba", "matplotlib", "PIL"):
         logging.getLogger(noisy).setLevel(logging.WARNING)
+    # Zenoh's own lines on a refused TLS link (an expired certificate, another CA's, a
+    # host name not in it: "invalid peer certificate: Expired") on stderr too, plain
+    # text: nothing else says why a drone never reaches the base station (RUST_LOG, if
+    # set, decides instead)
+    os.environ.setdefault("NO_COLOR", "1")
+    import zenoh
+
+    zenoh.init_log_from_env_or("zenoh_link_tls=warn")
 
 
 def worth_logging(before: int) -> bool:

@@ -173,7 +173,9 @@ def cartographer_trans_errors(delta_est: ArrayLike, delta_ref: ArrayLike) -> Flo
 def _at_own_pose(traj: Trajectory, stamps: FloatArray, tol_s: float = 1e-4) -> NDArray[np.bool_]:
     """Whether each stamp is one of the trajectory's own (to `tol_s`)."""
     s = traj.stamps
-    k = np.clip(np.searchsorted(s, stamps), 1, max(len(s) - 1, 1))
+    if len(s) < 2:
+        return np.abs(stamps - s[0]) <= tol_s if len(s) else np.zeros(len(stamps), dtype=bool)
+    k = np.clip(np.searchsorted(s, stamps), 1, len(s) - 1)
     near = np.minimum(np.abs(s[k] - stamps), np.abs(s[k - 1] - stamps))
     return near <= tol_s
 

@@ -73,9 +73,9 @@ class ClockAgreement:
     _scan: tuple[float, float] | None = None  # the latest scan's (stamp, wall time)
     _row: dict[str, int] = field(default_factory=dict)  # each sensor's, in a row
 
-    def check(self, msg: Any) -> bool:
+    def check(self, msg: Any, max_apart: float | None = None) -> bool:
         """Whether `msg` is not known to disagree with the latest scan (counted and logged
-        only `in_a_row` in a row)."""
+        only `in_a_row` in a row); `max_apart`: this kind's own tolerance (s)."""
         now = time.monotonic()
         kind = type(msg).__name__
         if kind == "LaserScan":
@@ -84,7 +84,8 @@ class ClockAgreement:
         if self._scan is None or now - self._scan[1] > self.window_s:
             return True
         ahead = msg.stamp - self._scan[0]
-        if abs(ahead) <= self.max_apart + (now - self._scan[1]):
+        apart = self.max_apart if max_apart is None else max_apart
+        if abs(ahead) <= apart + (now - self._scan[1]):
             self._row[kind] = 0
             return True
         self._row[kind] = row = self._row.get(kind, 0) + 1

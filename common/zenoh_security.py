@@ -22,7 +22,9 @@ any `--listen/--connect` endpoints still come from our `ZenohConfig`.
 from __future__ import annotations
 
 import json
+import logging
 import ssl
+import time
 from pathlib import Path
 from typing import Any
 
@@ -30,6 +32,8 @@ import zenoh
 
 from common.errors import ConfigError
 from protocol.keys import DOWNLINK_TOPICS, Keys
+
+log = logging.getLogger(__name__)
 
 BASESTATION_CN = "basestation"
 _ALL_MESSAGES = [
@@ -54,10 +58,14 @@ TLS_FILE_KEYS = (
 )
 
 
-def check_tls_files(conf: zenoh.Config, source: str) -> None:
-    """Raise ConfigError naming the key if a TLS file of `conf` cannot be read.
+def check_tls_files(conf: zenoh.Config, source: str, now: float | None = None) -> None:
+    """Raise ConfigError naming the key if a TLS file of `conf` cannot be read, or if a
+    certificate (its own, the CA's) has expired; warn if one is not valid yet (a drone
+    without a real-time clock, before its clock is set: Zenoh retries until it is).
 
-    Zenoh itself would only fail the link (a peer then retries forever in silence).
+    Zenoh itself would only fail the link (a peer then retries forever in silence): a
+    fleet whose certificates had expired together (`make_certs.sh` gives the CA and the
+    robots one lifetime) had gone dark with only "no base station seen" in its logs.
     """
     for key in TLS_FILE_KEYS:
         path = json.loads(conf.get_json(f"transport/link/tls/{key}"))
@@ -70,6 +78,57 @@ def check_tls_files(conf: zenoh.Config, source: str) -> None:
             raise ConfigError(
                 f"{source}: transport.link.tls.{key} {path!r}: {exc.strerror}"
             ) from None
+        if not key.endswith("_key") and (cert := _decode_certificate(path)) is not None:
+            _check_dates(cert, f"{source}: transport.link.tls.{key} {path!r}", now)
+
+
+def _decode_certificate(path: str) -> dict[str, Any] | None:
+    """A PEM certificate's fields (CPython's own reader; the ssl module has no public
+    one), None if it cannot be read (a CA bundle, another format)."""
+    try:
+        return ssl._ssl._test_decode_cert(path)  # type: ignore[attr-defined,no-any-return]
+    except (OSError, ssl.SSLError, AttributeError, ValueError):
+        return None
+
+
+def check_acl_fleet(conf: zenoh.Config, fleet: str, source: str) -> None:
+    """ConfigError if the access-control rules of `conf` are for another fleet than this
+    process's (configs made with another `--fleet`): every message would be dropped at
+    the base station, counted nowhere."""
+    try:
+        rules = json.loads(conf.get_json("access_control/rules")) or []
+    except Exception:  # (no access control in this file)
+        return
+    prefix = f"collabslam/{fleet}/"
+    others = sorted({k for r in rules for k in r.get("key_exprs", ()) if not k.startswith(prefix)})
+    if others:
+        raise ConfigError(f"{source}: its access-control rules are for other keys than fleet "
+                          f"{fleet!r}'s ({prefix}...): {', '.join(others[:3])}; made with "
+                          "another --fleet? (deploy/make_zenoh_configs.py --fleet)")  # fmt: skip
+
+
+def certificate_names(path: str | Path) -> list[str] | None:
+    """The host names and addresses (subjectAltName) of a PEM certificate; None if it
+    cannot be read."""
+    cert = _decode_certificate(str(path))
+    return None if cert is None else [v for _, v in cert.get("subjectAltName", ())]
+
+
+def _check_dates(cert: dict[str, Any], what: str, now: float | None = None) -> None:
+    now = time.time() if now is None else now
+    try:
+        start = ssl.cert_time_to_seconds(cert["notBefore"])
+        end = ssl.cert_time_to_seconds(cert["notAfter"])
+    except (KeyError, ValueError):
+        return
+    if now > end:
+        raise ConfigError(f"{what}: the certificate expired on {cert['notAfter']}: every TLS "
+                          "link with it is refused (remake it: deploy/make_certs.sh)")  # fmt: skip
+    if now < start:
+        log.warning("%s: the certificate is valid only from %s, and this host's clock says "
+                    "%s: TLS links are refused until the clock is set", what,
+                    cert["notBefore"], time.strftime("%b %d %H:%M:%S %Y GMT",
+                                                     time.gmtime(now)))  # fmt: skip
 
 
 def check_certificate_name(config_file: str, name: str) -> None:
@@ -85,11 +144,9 @@ def check_certificate_name(config_file: str, name: str) -> None:
     path = json.loads(conf.get_json("transport/link/tls/connect_certificate"))
     if not path:
         return
-    try:  # (CPython's own PEM reader; the ssl module has no public one)
-        subject = ssl._ssl._test_decode_cert(path)["subject"]  # type: ignore[attr-defined]
-    except (OSError, ssl.SSLError, AttributeError, KeyError):
+    if (cert := _decode_certificate(path)) is None or "subject" not in cert:
         return  # (check_tls_files names a file it cannot read)
-    cn = dict(pair[0] for pair in subject).get("commonName")
+    cn = dict(pair[0] for pair in cert["subject"]).get("commonName")
     if cn != name:
         raise ConfigError(
             f"zenoh.config_file {config_file!r}: its certificate {path} is {cn!r}'s, not "

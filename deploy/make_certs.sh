@@ -29,6 +29,7 @@ OUT=$1; shift
 OPENSSL=${OPENSSL:-openssl}
 DAYS=${DAYS:-825}
 CA_NAME=${CA_NAME:-collabslam fleet CA}
+BASE_HOSTS_GIVEN=${BASE_HOSTS:-}
 BASE_HOSTS=${BASE_HOSTS:+$BASE_HOSTS,}localhost,127.0.0.1
 
 valid_id='^[A-Za-z0-9_-]{1,32}$'   # same rule as protocol/keys.py
@@ -71,11 +72,24 @@ if [[ ! -f $OUT/ca.key || ! -f $OUT/ca.pem ]]; then
   echo "made CA $OUT/ca.pem"
 fi
 
-# leaf NAME SAN: a certificate signed by the CA, usable as TLS server and client.
+sans_of() {  # the names in a certificate, as san_list writes them
+  "$OPENSSL" x509 -in "$1" -noout -ext subjectAltName 2>/dev/null | tail -n 1 |
+    sed -e 's/IP Address:/IP:/g' -e 's/, /,/g' -e 's/^ *//'
+}
+
+# leaf NAME SAN: a certificate signed by the CA, usable as TLS server and client. One
+# already there is kept (FORCE=1 remakes it), except the base station's when BASE_HOSTS
+# is given and names other hosts than it has (the robots' certificates stay good: the
+# CA is the same). Run without BASE_HOSTS (adding a robot; sudo drops the variable),
+# the base station's is kept whatever its names: the names are printed either way.
 leaf() {
-  local name=$1 san=$2
+  local name=$1 san=$2 has
   if [[ -f $OUT/$name.pem && -f $OUT/$name.key && -z ${FORCE:-} ]]; then
-    echo "kept $OUT/$name.pem (FORCE=1 to remake it)"; return
+    has=$(sans_of "$OUT/$name.pem")
+    if [[ $name != basestation || -z $BASE_HOSTS_GIVEN || $has == "$san" ]]; then
+      echo "kept $OUT/$name.pem (${has:-names unknown}; FORCE=1 to remake it)"; return
+    fi
+    echo "remaking $OUT/$name.pem: its names $has are not BASE_HOSTS' $san"
   fi
   newkey "$OUT/$name.key"
   "$OPENSSL" req -new -key "$OUT/$name.key" -subj "/CN=$name" -out "$tmp/$name.csr"
@@ -88,7 +102,7 @@ EOF
   "$OPENSSL" x509 -req -in "$tmp/$name.csr" -CA "$OUT/ca.pem" -CAkey "$OUT/ca.key" \
     -CAcreateserial -CAserial "$tmp/ca.srl" -days "$DAYS" -sha256 \
     -extfile "$tmp/$name.ext" -out "$OUT/$name.pem" 2>/dev/null
-  echo "made $OUT/$name.pem (CN=$name)"
+  echo "made $OUT/$name.pem (CN=$name, $san)"
 }
 
 leaf basestation "$(san_list "$BASE_HOSTS")"

@@ -24,7 +24,7 @@ import sys
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # this checkout's code first
-from common.zenoh_security import write_deploy_configs  # noqa: E402
+from common.zenoh_security import certificate_names, write_deploy_configs  # noqa: E402
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -37,6 +37,13 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--port", type=int, default=7447, help="base station TLS port")
     p.add_argument("--robot-listen", default="tcp/127.0.0.1:7448", help="'' for none")
     args = p.parse_args(argv)
+    names = certificate_names(Path(args.certs) / "basestation.pem")
+    if names is not None and args.base_host not in names:  # (the handshake would fail)
+        print(f"--base-host {args.base_host}: not among the names of {args.certs}/basestation.pem "
+              f"({', '.join(names)}): every drone would refuse the base station's certificate. "
+              f"Remake it: BASE_HOSTS={args.base_host} deploy/make_certs.sh {args.certs} "
+              f"{' '.join(args.robots)}", file=sys.stderr)  # fmt: skip
+        return 2
     paths = write_deploy_configs(
         args.certs,
         args.out,

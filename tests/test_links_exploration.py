@@ -9,6 +9,7 @@ from __future__ import annotations
 import threading
 
 import numpy as np
+import pytest
 from process_helpers import poll_until
 
 from basestation.exploration import ExplorationManager
@@ -49,11 +50,15 @@ def _corridor() -> GridMap:
 
 
 def _node_in_the_corridor(
-    cfg: Config, bus: Bus, scenario: Scenario | None, keyframes: dict[str, np.ndarray]
+    cfg: Config,
+    bus: Bus,
+    scenario: Scenario | None,
+    keyframes: dict[str, np.ndarray],
+    lockstep: bool = False,
 ) -> tuple[BaseStationNode, ExplorationManager, object]:
     """A started base station whose map is `_corridor()` and whose graph's newest
     keyframes are `keyframes`; (node, its explorer, its own graph to put back)."""
-    node = BaseStationNode(cfg, bus, scenario)
+    node = BaseStationNode(cfg, bus, scenario, lockstep=lockstep)
     node.start()
     assert node.explorer is not None
     grid, graph = _corridor(), node.slam.graph
@@ -129,17 +134,23 @@ def test_a_scenario_drone_not_yet_heard_of_is_kept_clear(cfg: Config, endpoint: 
     assert np.hypot(*(pts[:, :2] - r0_start[:2]).T).min() >= 1.0
 
 
-def test_live_a_step_plans_on_its_worker_while_intake_goes_on(cfg: Config, endpoint: str) -> None:
+@pytest.mark.parametrize("lockstep", [False, True])
+def test_live_a_step_plans_on_its_worker_while_intake_goes_on(
+    cfg: Config, endpoint: str, lockstep: bool
+) -> None:
     """Live, the step had run on the thread that takes in and acknowledges keyframes: at
     3-7 s a step (4 drones, a loaded laptop), agents resent 56-89 % of their keyframes.
     Now run()'s steps come back while a step plans; a loss meanwhile leaves the explorer
-    to the worker and is released before the next step; the paths go out when it ends."""
+    to the worker and is released before the next step; the paths go out when it ends.
+    So too for a `--lockstep` base station whose simulator never asked (wall-paced)."""
     cfg.exploration.enabled = True
     cfg.exploration.period_s = 0.1
+    cfg.sim.basestation_timeout_s = 0.2  # (lockstep: no request by then, wall-paced)
     cfg.zenoh.listen = [endpoint]
     with Bus(cfg.zenoh, cfg.fleet) as bus:
         keyframes = {"r0": np.array([7.0, 3.0, 0.0]), "r1": np.array([1.5, 3.0, 0.0])}
-        node, ex, graph = _node_in_the_corridor(cfg, bus, None, keyframes)
+        node, ex, graph = _node_in_the_corridor(cfg, bus, None, keyframes, lockstep)
+        assert node.clock.active == lockstep
         agents = [Bus(ZenohConfig(connect=[endpoint]), cfg.fleet) for _ in range(2)]
         paths: list[PathMsg] = []
         agents[1].subscribe(agents[1].keys.robot("r1", "path"), PathMsg,
@@ -158,8 +169,7 @@ def test_live_a_step_plans_on_its_worker_while_intake_goes_on(cfg: Config, endpo
             return plan(*args, **kwargs)  # type: ignore[arg-type]
 
         ex.step = held_step  # type: ignore[method-assign]
-        node.step()  # due at once: it starts on the worker
-        assert planning.wait(10.0)
+        assert poll_until(lambda: node.step() >= 0 and planning.wait(0.1))  # on the worker
         intake = threading.Thread(target=lambda: [node.step(timeout=0.01) for _ in range(3)])
         intake.start()
         intake.join(10.0)

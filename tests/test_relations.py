@@ -83,6 +83,10 @@ def test_cartographers_formula_and_looked_up_stamps_are_reported(square: Traject
     looked_up = score_relations(square, Relations(t1=t1, t2=t2, delta=delta))
     assert looked_up.n_relations == 2 and looked_up.n_approximate == 1
     assert looked_up.as_dict()["n_approximate"] == 1
+    one = se2_trajectory(np.array([5.0]), np.zeros((1, 3)))  # one pose: scored, as before
+    alone = score_relations(one, Relations(t1=np.array([5.0]), t2=np.array([5.0]),
+                                           delta=np.array([[0.3, 0.4, 0.0]])))  # fmt: skip
+    assert alone.n_relations == 1 and alone.trans_err_mean_m == pytest.approx(0.5)
 
 
 def test_lookup_nearest_within_max_dt_else_interpolated(square: Trajectory) -> None:

@@ -220,6 +220,35 @@ def test_deploy_configs_match_the_generator_and_load(tmp_path: Path) -> None:
         zenoh.Config.from_file(str(tmp_path / name))
 
 
+def test_configs_for_a_base_host_its_certificate_does_not_name_are_refused(
+    tmp_path: Path, certs: tuple[Path, Path]
+) -> None:
+    """The drones check the base station's certificate against the host they connect to:
+    configs for another host had been written without a word, and every TLS link was
+    then refused in silence."""
+    cmd = [sys.executable, str(REPO / "deploy" / "make_zenoh_configs.py"), "--certs",
+           str(certs[0]), "--out", str(tmp_path), "r0"]  # fmt: skip
+    bad = subprocess.run([*cmd, "--base-host", "192.168.8.1"], capture_output=True, text=True)
+    assert bad.returncode == 2 and "not among the names" in bad.stderr
+    assert "BASE_HOSTS=192.168.8.1 deploy/make_certs.sh" in bad.stderr
+    assert not list(tmp_path.glob("*.json5"))
+    subprocess.run([*cmd, "--base-host", "127.0.0.1"], check=True, capture_output=True)
+    assert (tmp_path / "robot-r0.json5").is_file()
+
+
+def test_a_config_made_for_another_fleet_is_refused_at_start(tmp_path: Path) -> None:
+    """Configs made with another --fleet than the processes run: the base station had
+    dropped every keyframe, counting no rejection."""
+    path = write_json5(basestation_config(Path("/nowhere"), "other", ["r0"], ["tls/0.0.0.0:7447"]),
+                       tmp_path / "base.json5")  # fmt: skip
+    conf = zenoh.Config.from_file(str(path))
+    from common.zenoh_security import check_acl_fleet
+
+    check_acl_fleet(conf, "other", "base.json5")
+    with pytest.raises(ConfigError, match="fleet 'default'.*another --fleet"):
+        check_acl_fleet(conf, "default", "base.json5")
+
+
 def test_zenoh_config_cli_option_and_merge(tmp_path: Path, certs: tuple[Path, Path]) -> None:
     """--zenoh-config sets zenoh.config_file; its endpoints stay unless --listen is given."""
     path = write_json5(robot_config(certs[0], "r0", ["tls/127.0.0.1:7447"]), tmp_path / "r.json5")
@@ -242,6 +271,26 @@ def test_missing_certificate_file_is_a_clear_config_error(tmp_path: Path) -> Non
     path = write_json5(conf, tmp_path / "r0.json5")
     with pytest.raises(ConfigError, match="root_ca_certificate .*nowhere/ca.pem"):
         Bus(ZenohConfig(config_file=str(path)), FLEET)
+
+
+def test_an_expired_certificate_is_refused_at_start_and_one_not_yet_valid_named(
+    tmp_path: Path, certs: tuple[Path, Path], caplog: pytest.LogCaptureFixture
+) -> None:
+    """An expired certificate (the whole fleet's at once: the CA and the robots share a
+    lifetime) had every TLS link refused with only "no base station seen" in any log."""
+    import time as _time
+
+    import zenoh
+
+    from common.zenoh_security import check_tls_files
+
+    path = write_json5(robot_config(certs[0], "r0", ["tls/127.0.0.1:7447"]), tmp_path / "r.json5")
+    conf = zenoh.Config.from_file(str(path))
+    check_tls_files(conf, "now")  # made today: valid
+    with pytest.raises(ConfigError, match="root_ca_certificate .*expired on"):
+        check_tls_files(conf, "in 30 years", now=_time.time() + 30 * 365 * 86400)
+    check_tls_files(conf, "a drone's clock at boot", now=0.0)  # (Zenoh retries: a warning)
+    assert "valid only from" in caplog.text and "Jan 01 00:00:00 1970" in caplog.text
 
 
 def test_secure_base_station_refuses_a_plain_tcp_listener(

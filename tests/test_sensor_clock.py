@@ -7,12 +7,13 @@ from __future__ import annotations
 import numpy as np
 
 from agent.node import AgentNode
+from agent.sensor_sources import FIX_MAX_APART_S
 from agent.vehicle import NullVehicle
 from common.bus import Bus
 from common.config import Config, ZenohConfig
 from common.geometry import pose4_to_pose7
 from common.stamps import STEP_CONFIRM, BackStepRepair
-from protocol import Altimeter, Imu, Keyframe, LaserScan, Odometry, decode
+from protocol import Altimeter, GnssFix, Imu, Keyframe, LaserScan, Odometry, decode
 
 
 def test_a_step_back_is_taken_up_and_a_stray_stamp_is_not() -> None:
@@ -73,3 +74,14 @@ def test_a_sensor_on_another_clock_is_named(caplog) -> None:  # noqa: ANN001
     assert c.stats()["sensor_clock_disagreements"] == 4  # the IMU's from its 5th, no gap's
     assert "Imu stamps are 1700000000.000 s ahead of the laser's" in caplog.text
     assert "Odometry" not in caplog.text
+
+
+def test_a_late_gnss_fix_agrees_and_one_on_gps_time_does_not() -> None:
+    """Relayed fixes are checked with their own tolerance: a fix 1.5 s late (a slow
+    serial link) had been taken for another clock by the IMU's 1 s, and dropped."""
+    c = BackStepRepair()
+    c.take(LaserScan("r0", 100.0, -1.0, 0.01, 0.1, 30.0, np.ones(201, np.float32)))
+    lla, sig = np.array([45.8, 16.0, 160.0]), np.array([1.5, 1.5, 3.0])
+    assert c.agreement.check(GnssFix("r0", 98.5, lla, sig), FIX_MAX_APART_S)
+    assert not c.agreement.check(GnssFix("r0", 98.5, lla, sig))  # (the IMU's tolerance)
+    assert not c.agreement.check(GnssFix("r0", 118.0, lla, sig), FIX_MAX_APART_S)  # GPS time

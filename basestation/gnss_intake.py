@@ -26,6 +26,7 @@ ORIGIN_FIXES = 5  # fixes whose median sets an origin the world does not give
 # m: a fix whose horizontal 1-sigma is larger has no say in the origin (a receiver's
 # output before lock reports ~4e6 m: three of the first five had set it in the sea)
 ORIGIN_MAX_SIGMA_M = 50.0
+ORIGIN_SAME_M = 0.05  # m: a world origin this close to the stored one is the same
 MAX_HELD_FIXES = 1000  # held for the origin at most (the newest)
 
 
@@ -77,6 +78,15 @@ class GnssIntake:
         one: set from the first fixes, it had been set again from the next five."""
         if stored is not None and self.origin is None and not self.not_enu:
             self.origin = GeoOrigin.from_sequence(stored)
+        elif stored is not None and self.origin is not None:
+            was = GeoOrigin.from_sequence(stored)
+            off = float(np.linalg.norm(geodetic_to_enu(was.as_list(), self.origin)))
+            if off > ORIGIN_SAME_M:  # (the stored fixes, and the graph, are in its frame)
+                log.error("the world's WGS84 origin %s is %.1f m from the one this mission's "
+                          "database was made with, %s: the mission goes on with the stored "
+                          "one (start a new database for the new one)", self.origin, off,
+                          was)  # fmt: skip
+                self.origin = was
         self._origin_saved |= stored is not None
 
     def take(self, fix: GnssFix) -> list[tuple[GnssFix, NDArray[np.float64]]]:

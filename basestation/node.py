@@ -95,8 +95,7 @@ class BaseStationNode:
         self.gnss = GnssIntake(origin, 2.0 * cfg.map.max_radius_m, not_enu)  # fixes -> map
         self.map = MapBuilder(cfg.map, self.slam.store.scans)
         self.explorer = make_explorer(cfg, lockstep) if cfg.exploration.enabled else None
-        # live, a step runs on a worker thread, intake going on (exploration_worker.py)
-        self.steps = ExplorationWorker(self.explorer) if self.explorer else None
+        self.steps = ExplorationWorker(self.explorer) if self.explorer else None  # live: a thread
         self._last_explore = 0.0
         self._path_id = 0
         self._explore_ms: deque[float] = deque(maxlen=TIMINGS_KEPT)  # wall time of the steps
@@ -130,8 +129,9 @@ class BaseStationNode:
         self.epochs.resume(rec.epoch)
         self._path_id = max(self._path_id, rec.path_id)
         self.gnss.restore(rec.gnss_origin)  # (before its fixes are replayed)
-        if self.gnss.not_enu and rec.fixes:  # (stored by an earlier version: they bent it)
-            log.warning("%d stored GNSS fixes not replayed: %s", len(rec.fixes), self.gnss.not_enu)
+        off = "" if self.cfg.basestation.gps.enabled else "basestation.gps.enabled is off"
+        if (why := self.gnss.not_enu or off) and rec.fixes:  # (not ENU: an earlier version's)
+            log.warning("%d stored GNSS fixes not replayed: %s", len(rec.fixes), why)
             rec.fixes = []
         if rec.empty:
             return

@@ -29,9 +29,12 @@ on power loss, after the agent had already dropped them from its outbox).
 
 from __future__ import annotations
 
+import fcntl
 import logging
+import os
 import sqlite3
 import time
+import weakref
 from collections.abc import Iterator
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -42,7 +45,7 @@ import numpy as np
 from basestation.pcm import LoopMeasurement
 from basestation.robot_segments import as_sent
 from basestation.scan_archive import ScanReader
-from common.errors import PersistenceError
+from common.errors import PersistenceError, ProtocolError
 from protocol import Keyframe, decode, encode
 
 log = logging.getLogger(__name__)
@@ -133,8 +136,8 @@ class StoredKeyframes:
     scans included (~2.5 kB each), need not all be in memory while a restart replays
     them (`GlobalSlam.restore` lets each batch's scans go once it is admitted)."""
 
-    def __init__(self, db: sqlite3.Connection) -> None:
-        self._db = db
+    def __init__(self, db: sqlite3.Connection, path: Path) -> None:
+        self._db, self._path = db, path
         self._count = int(db.execute("SELECT count(*) FROM keyframes").fetchone()[0])
 
     def __len__(self) -> int:
@@ -150,8 +153,12 @@ class StoredKeyframes:
             ).fetchall()
             if not rows:
                 return
-            for _, segment, b, payload in rows:  # as its robot's segment (robot_segments.py)
-                kf = decode(payload, Keyframe, max_bytes=len(payload) + 1)
+            for rowid, segment, b, payload in rows:  # as its robot's segment (robot_segments.py)
+                try:
+                    kf = decode(payload, Keyframe, max_bytes=len(payload) + 1)
+                except (ProtocolError, TypeError) as exc:  # (a damaged page: None, bytes)
+                    raise PersistenceError(f"{self._path}: keyframe row {rowid} is damaged "
+                                           f"({exc}): restore from a backup") from None  # fmt: skip
                 yield int(b), kf if kf.robot_id == segment else replace(kf, robot_id=segment)
             last = rows[-1][0]
 
@@ -177,12 +184,41 @@ class Recovered:
         return not self.keyframes and not self.fixes
 
 
+def _exclusive(path: Path) -> int:
+    """A descriptor of `path` with an exclusive flock held (Linux: apart from SQLite's
+    own locks), or PersistenceError: a second base station on one file had resumed the
+    running mission without a word, and one of the two died at its next commit; two
+    fleets given one file were mixed."""
+    try:
+        fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
+    except OSError as exc:
+        raise PersistenceError(f"cannot open database {path}: {exc.strerror}") from None
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except OSError:
+        os.close(fd)
+        raise PersistenceError(f"{path}: in use by another base station (a database is "
+                               "one mission's, of one process)") from None  # fmt: skip
+    return fd
+
+
 class KeyframeDatabase:
     """One SQLite file; use from one thread (the base station's processing thread)."""
 
     def __init__(self, path: str | Path, synchronous: str = "FULL") -> None:
         self.path = Path(path)
         self.path.parent.mkdir(parents=True, exist_ok=True)
+        # the lock goes with close(), or with this object (a database opened to read)
+        self._unlock = weakref.finalize(self, os.close, _exclusive(self.path))
+        try:
+            self._open(synchronous)
+        except BaseException:
+            if hasattr(self, "_db"):
+                self._db.close()
+            self._unlock()
+            raise
+
+    def _open(self, synchronous: str) -> None:
         try:
             self._db = sqlite3.connect(self.path, isolation_level=None)
             tables = sorted(r[0] for r in self._db.execute("SELECT name FROM sqlite_master"))
@@ -291,7 +327,7 @@ class KeyframeDatabase:
     def load(self) -> Recovered:
         """Everything stored; keyframes in admission order, decoded as they are read
         (`StoredKeyframes`: iterate them before anything is written again)."""
-        keyframes = StoredKeyframes(self._db)
+        keyframes = StoredKeyframes(self._db, self.path)
         constraints = []
         for row in self._db.execute(
             "SELECT id, batch, robot_a, index_a, robot_b, index_b, x, y, yaw, covariance, "
@@ -351,6 +387,7 @@ class KeyframeDatabase:
         self._db.close()
         if self._reader is not None:
             self._reader.close()
+        self._unlock()  # (last: closing a descriptor of the file drops SQLite's locks)
 
     # --- helpers ------------------------------------------------------------------------
     def _transaction(self) -> _Transaction:

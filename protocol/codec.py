@@ -26,6 +26,10 @@ import numpy as np
 from common.errors import ProtocolError
 
 SCHEMA_VERSION = 2
+# the oldest version read: 2 only added fields with defaults (and a message type), so a
+# version-1 message (an agent, or a database, from before 2026-12-05) decodes as one of
+# 2 without them; refused, a database of that age had failed its restore
+OLDEST_READ_VERSION = 1
 DEFAULT_MAX_BYTES = 8 * 1024 * 1024
 
 T = TypeVar("T")
@@ -165,10 +169,10 @@ def _envelope(
         raise ProtocolError(f"malformed msgpack: {exc}") from None
     if not isinstance(env, dict) or set(env) != {"v", "t", "d"}:
         raise ProtocolError("malformed envelope: expected a map with keys v, t, d")
-    if env["v"] != SCHEMA_VERSION:
-        raise ProtocolError(
-            f"unsupported schema version {env['v']!r} (this build speaks {SCHEMA_VERSION})"
-        )
+    v = env["v"]
+    if not (type(v) is int and OLDEST_READ_VERSION <= v <= SCHEMA_VERSION):
+        raise ProtocolError(f"unsupported schema version {v!r} (this build reads "
+                            f"{OLDEST_READ_VERSION} to {SCHEMA_VERSION})")  # fmt: skip
     name = env["t"]
     cls = _REGISTRY.get(name) if isinstance(name, str) else None
     if cls is None:

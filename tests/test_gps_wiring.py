@@ -395,3 +395,41 @@ def test_fixes_an_earlier_version_stored_are_not_replayed_where_the_map_is_not_e
         assert node.slam.graph.num_gps_factors == 0 and node.slam.graph.is_anchored("r0")
         node.db.close()
     assert "10 stored GNSS fixes not replayed" in caplog.text
+
+
+def test_a_mission_with_gps_resumes_with_gps_off_and_keeps_its_origin(
+    tmp_path: Path, endpoint: str, caplog: pytest.LogCaptureFixture
+) -> None:
+    """Restarted with basestation.gps.enabled off (a misbehaving receiver), the base
+    station had replayed the stored fixes onto nodes without stamps and exited, at
+    every restart. And a world whose WGS84 origin changed between two starts had put
+    the new fixes 111 m from the stored ones, without a word."""
+    from basestation.gnss_intake import GnssIntake
+    from basestation.persistence import KeyframeDatabase
+
+    start = np.array([1.0, 2.0, 0.0])
+    old = GlobalSlam(_cfg(), {"r0": start})
+    db = KeyframeDatabase(tmp_path / "base.db")
+    for seq in range(10):
+        old.admit(_keyframe(seq))
+        old.add_gps_fix("r0", 0.5 * seq + 0.25, np.array([1.0 + 0.2 * seq, 2.0]), SIG)
+        old.optimize()
+        db.commit(old.take_journal())
+    old.close()
+    db.close()
+    cfg = _cfg(**{"basestation.gps.enabled": False})
+    cfg.basestation.db_path = str(tmp_path / "base.db")
+    scenario = Scenario("bshape", [RobotScenario("r0", start)], wgs84_origin=ORIGIN)
+    with Bus(ZenohConfig(listen=[endpoint]), "default") as bus, caplog.at_level("WARNING"):
+        node = BaseStationNode(cfg, bus, scenario)
+        node.recover()
+        assert node.slam.graph.num_nodes("r0") == 10 and node.slam.graph.num_gps_factors == 0
+        node.db.close()
+    assert "10 stored GNSS fixes not replayed: basestation.gps.enabled is off" in caplog.text
+    moved = GeoOrigin(ORIGIN.lat_deg + 0.001, ORIGIN.lon_deg, ORIGIN.alt_m)  # 111 m north
+    intake = GnssIntake(moved, 1000.0)
+    intake.restore(ORIGIN.as_list())
+    assert intake.origin == ORIGIN and "111.2 m from the one this mission's" in caplog.text
+    same = GnssIntake(ORIGIN, 1000.0)
+    same.restore(ORIGIN.as_list())
+    assert same.origin == ORIGIN

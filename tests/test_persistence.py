@@ -144,6 +144,47 @@ def test_wrong_schema_version_is_refused(tmp_path: Path) -> None:
         KeyframeDatabase(tmp_path / "base.db")
 
 
+def test_one_database_is_one_base_stations(tmp_path: Path) -> None:
+    """A second base station on a database in use had resumed the running mission
+    without a word, and one of the two died at its next commit."""
+    first = KeyframeDatabase(tmp_path / "base.db")
+    with pytest.raises(PersistenceError, match="in use by another base station"):
+        KeyframeDatabase(tmp_path / "base.db")
+    first.close()
+    KeyframeDatabase(tmp_path / "base.db").close()  # free again
+
+
+def test_an_older_versions_payloads_and_a_damaged_row_are_read_or_named(tmp_path: Path) -> None:
+    """A database from before protocol version 2 (which only added fields with
+    defaults) had failed its restore with "unsupported schema version 1", naming no
+    file; a damaged row had ended in a TypeError."""
+    import msgpack
+
+    db = KeyframeDatabase(tmp_path / "base.db")
+    kfs = _square_keyframes("r0", np.zeros(3), 3)
+    db.commit(Batch(kfs))
+    db.close()
+    con = sqlite3.connect(tmp_path / "base.db")
+    rows = con.execute("SELECT rowid, payload FROM keyframes").fetchall()
+    for rowid, payload in rows:  # as version 1 wrote them
+        env = msgpack.unpackb(payload, raw=False)
+        env["v"] = 1
+        con.execute("UPDATE keyframes SET payload = ? WHERE rowid = ?",
+                    (msgpack.packb(env, use_bin_type=True), rowid))  # fmt: skip
+    con.commit()
+    db = KeyframeDatabase(tmp_path / "base.db")
+    got = [k for _, k in db.load().keyframes]
+    assert [encode(k) for k in got] == [encode(k) for k in kfs]
+    db.close()
+    con.execute("UPDATE keyframes SET payload = ? WHERE rowid = ?", (b"\xc1 torn", rows[1][0]))
+    con.commit()
+    con.close()
+    db = KeyframeDatabase(tmp_path / "base.db")
+    with pytest.raises(PersistenceError, match=f"base.db: keyframe row {rows[1][0]} is damaged"):
+        list(db.load().keyframes)
+    db.close()
+
+
 def test_another_programs_database_is_refused_untouched(tmp_path: Path) -> None:
     """A SQLite file of another program had been stamped with our schema version, and
     the base station died at its first keyframe on the foreign `keyframes` table."""

@@ -132,6 +132,8 @@ def _good_ack() -> dict:
         (b"", "malformed"),
         (msgpack.packb([1, 2, 3]), "envelope"),
         (_env("KeyframeAck", _good_ack(), v=99), "schema version"),
+        (_env("KeyframeAck", _good_ack(), v=0), "schema version"),
+        (_env("KeyframeAck", _good_ack(), v=True), "schema version"),
         (_env("Nope", _good_ack()), "unknown message type"),
         (_env("KeyframeAck", {"robot_id": "r0"}), "missing"),
         (_env("KeyframeAck", {**_good_ack(), "x": 1}), "unknown fields"),
@@ -308,3 +310,13 @@ def test_positions_beyond_ten_thousand_km_are_refused() -> None:
         decode(encode(Path("r0", 1, 0.0, "map", 1, wp)))
     decode(encode(Path("r0", 1, 0.0, "map", 1, wp[:1])))  # a sane one passes
     decode(encode(PoseCorrection("r0", 1, 0.0, pose4_to_pose7([5e6, 0.0, 0.0, 0.0]))))
+
+
+def test_a_version_1_message_is_read_with_the_fields_added_since_at_their_defaults() -> None:
+    """Version 2 only added fields with defaults: an agent, or a database, of version 1
+    (before 2026-12-05) is read; refused, such a database had failed its restore."""
+    d = msgpack.unpackb(encode(VehicleCommand("r0", 1.25, 0.5, 0.0, 0.1, -0.2)), raw=False)["d"]
+    for later in ("keyframes_sent", "state_stamp"):
+        d.pop(later, None)
+    cmd = decode(_env("VehicleCommand", d, v=1), VehicleCommand)
+    assert (cmd.vx, cmd.keyframes_sent, cmd.state_stamp) == (0.5, 0, -1.0)

@@ -416,6 +416,17 @@ def _start_of(blob: bytes) -> Start:
     return (None if np.isnan(v[0]) else v[:3].copy()), (None if np.isnan(v[3]) else v[3:].copy())
 
 
+def _cannot_write(path: Path, exc: BaseException) -> PersistenceError:
+    """The error of a failed write, naming the database's files that are not writable:
+    a `-shm` left read-only by a start on a read-only file had failed every later start
+    with the same "readonly database" after the file was made writable again."""
+    files = (path, Path(f"{path}-wal"), Path(f"{path}-shm"))
+    writable = [f.exists() and f.stat().st_mode & 0o200 and os.access(f, os.W_OK) for f in files]
+    stuck = [f.name for f, ok in zip(files, writable, strict=True) if f.exists() and not ok]
+    hint = f" (not writable: {', '.join(stuck)}; all three must be)" if stuck else ""
+    return PersistenceError(f"{path}: cannot write: {exc}{hint}")
+
+
 class _Transaction:
     """BEGIN IMMEDIATE ... COMMIT, or ROLLBACK if the block raises."""
 
@@ -436,11 +447,11 @@ class _Transaction:
             except sqlite3.OperationalError as exc:
                 waited = time.monotonic() - t0
                 if "locked" not in str(exc) or waited > LOCK_WAIT_S:
-                    raise PersistenceError(f"{self._path}: cannot write: {exc}") from None
+                    raise _cannot_write(self._path, exc) from None
                 log.warning("%s is locked by another program for %.0f s: waiting to write "
                             "(nothing is acknowledged meanwhile)", self._path, waited)  # fmt: skip
             except sqlite3.Error as exc:
-                raise PersistenceError(f"{self._path}: cannot write: {exc}") from None
+                raise _cannot_write(self._path, exc) from None
 
     def __exit__(self, exc_type: type[BaseException] | None, exc: object, tb: object) -> None:
         """A write that fails (disk full, file made read-only) is a PersistenceError: it
@@ -452,7 +463,7 @@ class _Transaction:
                 raise PersistenceError(f"{self._path}: cannot commit: {err}") from None
         if exc_type is not None and issubclass(exc_type, sqlite3.Error):
             if not issubclass(exc_type, sqlite3.IntegrityError):  # commit() words that one
-                raise PersistenceError(f"{self._path}: cannot write: {exc}") from None
+                raise _cannot_write(self._path, exc) from None
 
 
 class NullDatabase:

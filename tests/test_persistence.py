@@ -379,3 +379,15 @@ def test_a_database_file_removed_while_running_stops_the_commits(tmp_path: Path)
         (tmp_path / name).unlink(missing_ok=True)
     with pytest.raises(PersistenceError, match="removed or replaced"):
         db.commit(Batch(_square_keyframes("r1", np.zeros(3), 2)))
+
+
+def test_a_write_error_names_the_databases_files_that_are_not_writable(tmp_path: Path) -> None:
+    """A `-shm` left read-only (SQLite gives it the database's mode) by a start on a
+    read-only file failed every later start with "attempt to write a readonly database",
+    after the database itself was made writable again."""
+    path = tmp_path / "mission.db"
+    for f in (path, tmp_path / "mission.db-shm"):
+        f.write_bytes(b"")
+    (tmp_path / "mission.db-shm").chmod(0o444)
+    err = persistence._cannot_write(path, sqlite3.OperationalError("readonly database"))
+    assert str(err).endswith("readonly database (not writable: mission.db-shm; all three must be)")

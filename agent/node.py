@@ -67,6 +67,9 @@ log = logging.getLogger(__name__)
 
 # The odometry's twist steers the guard's braking while it is at most this old (s).
 TWIST_MAX_AGE_S = 0.25
+# An altimeter reading older than this (s) gives no vertical speed, as none does: one that
+# stopped during the take-off had the drone climb on at 0.5 m/s for good.
+ALTITUDE_MAX_AGE_S = 0.5
 
 
 class AgentNode:
@@ -101,21 +104,13 @@ class AgentNode:
             T_map_odom = np.array(resume.T_map_odom)  # not the start pose: on the way
         self.outbox = self.uplink.outbox
         self.follower = PathFollower.from_config(a)
-        self.guard = SafetyGuard(
-            a.vehicle_radius_m, a.safety_margin_m, a.max_accel_mps2, a.safety_reaction_s,
-            a.blocked_after_s,
-            # scripted tours are not deconflicted: drones meeting in a corridor would hold
-            # each other for good (docs/architecture.md, neighbour guard)
-            neighbour_keep_m=a.neighbour_keep_m
-            if cfg.exploration.enabled or a.neighbour_guard_tours
-            else 0.0,
-            velocity_lag_s=a.velocity_lag_s,
-        )  # fmt: skip
+        self.guard = SafetyGuard.from_config(a, cfg.exploration.enabled)
         self.source_stats: Callable[[], dict[str, Any]] = dict  # the sensor source's counts
         # the base station's relays, the latest and the one before (see `_command`)
         self._neighbours: list[Neighbours] = []
         self.downlink = DownlinkGate(cfg.sim.sync_wait_s, resumed=resume is not None)
         self._twist: tuple[float, np.ndarray] | None = None  # odometry's (stamp, vx vy)
+        self._altitude_stamp = -np.inf  # the altimeter's latest reading's
         self._on_map = T_map_odom is not None  # its map pose is known (start or correction)
         self._news_ages: deque[float] = deque(maxlen=20000)  # s, the relay's answer at use
         self.tour_map = np.asarray(tour_map, dtype=np.float64).reshape(-1, 2)
@@ -285,6 +280,7 @@ class AgentNode:
             self.frontend.add_imu(msg.stamp, msg.orientation)
         elif isinstance(msg, Altimeter):
             self.frontend.add_altitude(msg.stamp, msg.altitude)
+            self._altitude_stamp = msg.stamp
         elif isinstance(msg, LaserScan):
             self.on_scan(msg)
         elif isinstance(msg, ClockSync):  # a lock-step simulator's, before its next tick
@@ -393,7 +389,9 @@ class AgentNode:
             if self._new_correction or self._new_path:
                 pts = np.column_stack([self.tour_map, np.zeros((len(self.tour_map), 2))])
                 tour_odom = map_to_odom(self.T_map_odom, pts) if len(pts) else pts
-                here = self.frontend.pose[:2] if self._new_path else None  # (catch up)
+                # (a late path, or one a correction moved, caught up: not a scripted tour's
+                # sparse waypoints, whose first may lie far from the start)
+                here = self.frontend.pose[:2] if self._new_path or self.exploring else None
                 self.follower.set_path(tour_odom[:, :2], not self._new_path, here)
                 self._new_correction = self._new_path = False
 
@@ -415,8 +413,8 @@ class AgentNode:
                 nb.stamps, nb.xy, nb.velocity, stamp, here, a.neighbour_max_age_s,
                 a.neighbour_extrapolation_s,
             ))  # fmt: skip
-        pose = self.frontend.pose  # (no altimeter: no vertical speed, else it climbed)
-        vx, vy, vz, yaw_rate = self.follower.command(pose, self.frontend.altitude is not None)
+        z_known = abs(stamp - self._altitude_stamp) <= ALTITUDE_MAX_AGE_S  # (else it climbed)
+        vx, vy, vz, yaw_rate = self.follower.command(self.frontend.pose, z_known)
         held = self.fresh.in_flight and not self.fresh.placed and self._hold_for_placement(stamp)
         if held or hover:  # where it is in map is not known yet, or no new pose: it hovers
             vx = vy = vz = yaw_rate = 0.0

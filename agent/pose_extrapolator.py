@@ -41,6 +41,7 @@ class PoseExtrapolator:
         self._odom: list[np.ndarray] = []  # odometry poses [x, y, yaw], its own frame
         self._poses: list[tuple[float, np.ndarray]] = []  # last two (stamp, T_local_base)
         self.rejected_odometry = 0
+        self.stalled_predictions = 0  # scans predicted without odometry it had stopped
         self._jump = JumpGate()
 
     def add_odometry(self, stamp: float, pose_xyyaw: np.ndarray) -> None:
@@ -132,8 +133,16 @@ class PoseExtrapolator:
             return np.zeros(3)
         t1, p1 = self._poses[-1]
         if self.use_odometry and self._odom_t:
-            odom_then, odom_now = self.odometry_at(t1), self.odometry_at(stamp)
-            return se2_compose(p1, se2_compose(se2_inverse(odom_then), odom_now))
+            if stamp - self._odom_t[-1] <= MAX_EXTRAPOLATION_S:
+                odom_then, odom_now = self.odometry_at(t1), self.odometry_at(stamp)
+                return se2_compose(p1, se2_compose(se2_inverse(odom_then), odom_now))
+            # odometry that stopped: the last velocity, as with none (held, it predicted
+            # no motion: the matcher followed, and the pose froze while the drone flew on)
+            if worth_logging(self.stalled_predictions):
+                log.warning("no odometry for %.1f s: the pose goes on at its last velocity "
+                            "(%d scans so far)", stamp - self._odom_t[-1],
+                            self.stalled_predictions + 1)  # fmt: skip
+            self.stalled_predictions += 1
         if len(self._poses) == 2:
             t0, p0 = self._poses[0]
             if t1 > t0:

@@ -44,11 +44,16 @@ origin), metres and seconds; the vehicle's own limits still apply after this.
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import numpy as np
 from numpy.typing import NDArray
 
 from common.geometry import pose4_compose, pose4_inverse
 from common.stamps import due
+
+if TYPE_CHECKING:
+    from common.config import AgentConfig
 
 GIVE_WAY_MPS = 0.3  # m/s aside when a neighbour is in the way
 REPEL_GAIN = 1.0  # m/s away from a neighbour per m inside the keep distance
@@ -90,6 +95,17 @@ class SafetyGuard:
         self._held_since: float | None = None
         self.blocked = False
         self.limited_ticks = 0
+
+    @classmethod
+    def from_config(cls, a: AgentConfig, exploring: bool) -> SafetyGuard:
+        """The agent's guard (`agent.*`); scripted tours (not `exploring`) are not
+        deconflicted, so drones meeting in a corridor would hold each other for good
+        (docs/architecture.md, neighbour guard): no neighbours kept off there, unless
+        `agent.neighbour_guard_tours`."""
+        keep = a.neighbour_keep_m if exploring or a.neighbour_guard_tours else 0.0
+        return cls(a.vehicle_radius_m, a.safety_margin_m, a.max_accel_mps2,
+                   a.safety_reaction_s, a.blocked_after_s, neighbour_keep_m=keep,
+                   velocity_lag_s=a.velocity_lag_s)  # fmt: skip
 
     def stats(self) -> dict[str, int]:
         return {

@@ -70,6 +70,26 @@ def test_a_scan_stamped_like_the_last_is_not_flown_on(endpoint: str) -> None:
     assert node.stats()["scans_stale_stamp"] == 1
 
 
+def test_an_altimeter_that_stopped_gives_no_vertical_speed(endpoint: str) -> None:
+    """A rangefinder out of range, or a driver hang, during the take-off: its last
+    reading (0.18 m) stood for the height, and the drone climbed on at 0.5 m/s for good
+    (5.2 m in 10 s). A reading older than 0.5 s counts as none: no vertical speed."""
+    cfg = load_config()
+    cfg.exploration.enabled = False
+    vehicle = _Recorder()
+    ranges = np.full(360, 8.0, np.float32)
+    with Bus(ZenohConfig(listen=[endpoint]), cfg.fleet) as bus:
+        node = AgentNode(cfg, "r0", bus, np.array([[20.0, 0.0]]), np.zeros(4), vehicle)
+        for k in range(40):  # 1 s at 40 Hz; the altimeter stops after 0.1 s
+            t = 0.025 * k
+            node.handle(Odometry("r0", t, pose4_to_pose7([0.0, 0.0, 0.18, 0.0]), np.zeros(4)))
+            if t <= 0.1:
+                node.handle(Altimeter("r0", t, 0.18))
+            node.handle(LaserScan("r0", t, -np.pi, np.pi / 180, 0.1, 30.0, ranges * (1 + k * 1e-3)))
+    vz = {round(stamp, 3): c[2] for stamp, *c in vehicle.commands}
+    assert vz[0.1] > 0.4 and vz[0.6] == 0.0 and vz[0.975] == 0.0
+
+
 def test_a_placement_come_during_a_tick_is_taken_at_once_on_the_next(endpoint: str) -> None:
     """An in-flight start's placement arriving between a tick's control pose and its
     command had set it placed: the next tick blended the placement in over seconds from

@@ -118,6 +118,21 @@ def test_without_odometry_the_last_velocity_is_held() -> None:
     assert ex.predict(0.2) == pytest.approx([0.2, 0.0, 0.0])
 
 
+def test_odometry_that_stopped_leaves_the_last_velocity_not_a_frozen_pose(caplog) -> None:  # noqa: ANN001
+    """A source that stops publishing (a driver hang): the prediction had held its last
+    pose, the matcher followed it, and the pose froze while the drone flew on at 1 m/s
+    (3 m off after 4 s, with status `flying` and no line). Odometry that never came
+    gives the last velocity; odometry that stopped now does too, and says so."""
+    ex = PoseExtrapolator()
+    for k in range(5):  # 1 m/s along x
+        ex.add_odometry(0.05 * k, np.array([0.05 * k, 0.0, 0.0]))
+    ex.add_pose(0.1, np.array([0.1, 0.0, 0.0]))
+    ex.add_pose(0.2, np.array([0.2, 0.0, 0.0]))
+    assert ex.predict(0.6)[0] == pytest.approx(0.6, abs=1e-9)  # (extrapolated odometry)
+    assert ex.predict(2.0)[0] == pytest.approx(2.0, abs=1e-9)  # stopped: the last velocity
+    assert ex.stalled_predictions == 1 and "no odometry for 1.8 s" in caplog.text
+
+
 @pytest.mark.parametrize("frontend", ["local_slam", "odometry_only"])
 def test_both_agent_frontends_drop_odometry_going_back(frontend: str) -> None:
     """The agent's two frontends (`agent.local_slam.enabled` true / false) count what they

@@ -13,13 +13,16 @@ import math
 
 import numpy as np
 
-from agent.local_trajectory_builder import LocalSlamResult
+from agent.local_trajectory_builder import MAX_SPEED_MPS, LocalSlamResult
+from agent.pose_extrapolator import MAX_EXTRAPOLATION_S
 from common.geometry import se2_compose, se2_inverse
 from common.logging_setup import worth_logging
 from common.stamps import JumpGate
 from protocol import LaserScan
 
 log = logging.getLogger(__name__)
+
+RESET_SLACK_M = 0.5  # m: a step past MAX_SPEED_MPS times its time and this is a reset
 
 
 class OdometryTracker:
@@ -33,7 +36,8 @@ class OdometryTracker:
         self.few_point_scans = 0  # (local SLAM's: no scan is matched here)
         self.rejected_odometry = 0
         self.gated_matches = 0  # no scan matching here: always 0
-        self.odometry_resets = 0  # (the same)
+        self.odometry_resets = 0  # steps faster than a drone flies: the source's resets
+        self.stale_odometry_scans = 0  # scans not used: no odometry for a while
         self._last_odom: np.ndarray | None = None
         self._last_odom_stamp = -math.inf
         # a stamp far ahead of the last (`common.stamps`; without, one glitch of 1e9 s had
@@ -66,13 +70,22 @@ class OdometryTracker:
                           self.rejected_odometry + 1)  # fmt: skip
             self.rejected_odometry += 1
             return
-        self._last_odom_stamp = stamp
+        dt, self._last_odom_stamp = stamp - self._last_odom_stamp, stamp
         pose = np.asarray(pose_xyyaw, dtype=np.float64)
         if self._last_odom is not None:
             step = se2_compose(se2_inverse(self._last_odom), pose)
-            xy_yaw = se2_compose(self.pose[[0, 1, 3]], step)
-            self.pose[[0, 1, 3]] = xy_yaw
-            self.distance_m += float(np.hypot(step[0], step[1]))
+            moved = float(np.hypot(step[0], step[1]))
+            if moved > RESET_SLACK_M + MAX_SPEED_MPS * dt:  # a reset of the source's frame:
+                # not flown (taken as motion, a 3 m reset had flown the drone 3 m off its
+                # path, and its keyframes carried the step)
+                if worth_logging(self.odometry_resets):
+                    log.error("odometry moved %.3g m in %.3f s: taken as a reset of its "
+                              "frame, not as motion (%d so far)", moved, dt,
+                              self.odometry_resets + 1)  # fmt: skip
+                self.odometry_resets += 1
+            else:
+                self.pose[[0, 1, 3]] = se2_compose(self.pose[[0, 1, 3]], step)
+                self.distance_m += moved
         self._last_odom = pose
 
     def keyframe_ranges(self, scan: LaserScan) -> np.ndarray:
@@ -95,6 +108,16 @@ class OdometryTracker:
             if worth_logging(self.rejected_scans):
                 log.error("scan stamp %.3f is not after the previous %.3f: dropped (%d so "
                           "far)", scan.stamp, self.last_stamp, self.rejected_scans + 1)  # fmt: skip
+            self.rejected_scans += 1
+            return None
+        if self._last_odom is not None and scan.stamp - self._last_odom_stamp > MAX_EXTRAPOLATION_S:
+            # odometry stopped: no pose (the scan is not used, the drone hovers); its last
+            # pose had stood while the drone flew on at its command, 6 m off in 6 s
+            if worth_logging(self.stale_odometry_scans):
+                log.error("no odometry for %.1f s: scan not used, the drone hovers (%d so far)",
+                          scan.stamp - self._last_odom_stamp,
+                          self.stale_odometry_scans + 1)  # fmt: skip
+            self.stale_odometry_scans += 1
             self.rejected_scans += 1
             return None
         self.last_stamp = scan.stamp

@@ -12,6 +12,7 @@ from agent.odometry_tracker import OdometryTracker
 from agent.pose_extrapolator import MAX_ODOMETRY, PoseExtrapolator
 from common.config import load_config
 from common.geometry import se2_compose, wrap_angle
+from protocol import LaserScan
 
 
 def arc(t: float) -> np.ndarray:
@@ -131,6 +132,22 @@ def test_odometry_that_stopped_leaves_the_last_velocity_not_a_frozen_pose(caplog
     assert ex.predict(0.6)[0] == pytest.approx(0.6, abs=1e-9)  # (extrapolated odometry)
     assert ex.predict(2.0)[0] == pytest.approx(2.0, abs=1e-9)  # stopped: the last velocity
     assert ex.stalled_predictions == 1 and "no odometry for 1.8 s" in caplog.text
+
+
+def test_without_local_slam_an_odometry_reset_is_not_flown_and_a_stall_hovers() -> None:
+    """`agent.local_slam.enabled = false`: a 3 m reset of the odometry's frame had been
+    taken as motion (the drone flew 3 m off its path, its keyframes carrying the step),
+    and odometry that stopped had left the pose standing while the drone flew on."""
+    tr = OdometryTracker()
+    scan = np.ones(10, np.float32)
+    for k in range(5):
+        tr.add_odometry(0.025 * k, np.array([0.025 * k, 0.0, 0.0]))
+    tr.add_odometry(0.125, np.array([0.125, 3.0, 0.0]))  # a reset: 3 m sideways at once
+    tr.add_odometry(0.15, np.array([0.15, 3.0, 0.0]))
+    assert tr.pose[:2] == pytest.approx([0.125, 0.0]) and tr.odometry_resets == 1
+    assert tr.add_scan(LaserScan("r0", 0.15, -1.0, 0.01, 0.1, 30.0, scan)) is not None
+    assert tr.add_scan(LaserScan("r0", 0.9, -1.0, 0.01, 0.1, 30.0, scan)) is None  # stopped
+    assert tr.stale_odometry_scans == 1
 
 
 @pytest.mark.parametrize("frontend", ["local_slam", "odometry_only"])

@@ -4,6 +4,9 @@ has is not taken."""
 
 from __future__ import annotations
 
+import contextlib
+from collections.abc import Iterator
+
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
@@ -46,17 +49,23 @@ class _Recorder:
         self.commands.append((stamp, *args))
 
 
+@contextlib.contextmanager
+def _touring_agent(endpoint: str, vehicle: _Recorder) -> Iterator[AgentNode]:
+    """An agent on a scripted tour 20 m ahead, its commands to `vehicle`."""
+    cfg = load_config()
+    cfg.exploration.enabled = False
+    with Bus(ZenohConfig(listen=[endpoint]), cfg.fleet) as bus:
+        yield AgentNode(cfg, "r0", bus, np.array([[20.0, 0.0]]), np.zeros(4), vehicle)
+
+
 def test_a_scan_stamped_like_the_last_is_not_flown_on(endpoint: str) -> None:
     """A driver stamping whole seconds: its scans after the first of each second had been
     taken as a lock-step tick sent again, and answered from a pose up to 1 s old (the
     drone flew 0.12 m from a wall). Now such a scan is not used and the drone hovers; a
     tick sent again (the same ranges) is still answered as before."""
-    cfg = load_config()
-    cfg.exploration.enabled = False
     vehicle = _Recorder()
     ranges = np.full(360, 8.0, np.float32)
-    with Bus(ZenohConfig(listen=[endpoint]), cfg.fleet) as bus:
-        node = AgentNode(cfg, "r0", bus, np.array([[20.0, 0.0]]), np.zeros(4), vehicle)
+    with _touring_agent(endpoint, vehicle) as node:
         for k, t in enumerate((0.0, 0.025, 0.05, 0.075, 0.1)):
             pose = pose4_to_pose7([0.01 * k, 0.0, 1.0, 0.0])
             node.handle(Odometry("r0", t, pose, np.array([0.4, 0.0, 0.0, 0.0])))
@@ -74,12 +83,9 @@ def test_an_altimeter_that_stopped_gives_no_vertical_speed(endpoint: str) -> Non
     """A rangefinder out of range, or a driver hang, during the take-off: its last
     reading (0.18 m) stood for the height, and the drone climbed on at 0.5 m/s for good
     (5.2 m in 10 s). A reading older than 0.5 s counts as none: no vertical speed."""
-    cfg = load_config()
-    cfg.exploration.enabled = False
     vehicle = _Recorder()
     ranges = np.full(360, 8.0, np.float32)
-    with Bus(ZenohConfig(listen=[endpoint]), cfg.fleet) as bus:
-        node = AgentNode(cfg, "r0", bus, np.array([[20.0, 0.0]]), np.zeros(4), vehicle)
+    with _touring_agent(endpoint, vehicle) as node:
         for k in range(40):  # 1 s at 40 Hz; the altimeter stops after 0.1 s
             t = 0.025 * k
             node.handle(Odometry("r0", t, pose4_to_pose7([0.0, 0.0, 0.18, 0.0]), np.zeros(4)))

@@ -3,8 +3,10 @@ come before the altimeter's first reading are dropped (a keyframe would say z = 
 
 from __future__ import annotations
 
+import contextlib
 import threading
 import time
+from collections.abc import Iterator
 
 import numpy as np
 import pytest
@@ -42,6 +44,23 @@ def _put(bus: Bus, kind: str, msg: object) -> None:
     time.sleep(0.05)  # one topic after the other, as a reordering network delivers them
 
 
+@contextlib.contextmanager
+def _base_agent_driver(got: list[float]) -> Iterator[tuple[Bus, Bus]]:
+    """A base station's session (the stamps of the fixes it gets go into `got`), an
+    agent's linked to it, and a driver's on the agent's listener: (agent, driver)."""
+    base_ep, agent_ep = (f"tcp/127.0.0.1:{free_port()}" for _ in range(2))
+    quiet = {"gossip_scouting": False}  # as the deploy configs: only the links configured
+    with (
+        Bus(ZenohConfig(listen=[base_ep], **quiet), "default") as base,
+        Bus(ZenohConfig(listen=[agent_ep], connect=[base_ep], **quiet), "default") as agent,
+        Bus(ZenohConfig(connect=[agent_ep], **quiet), "default") as driver,
+    ):
+        base.subscribe(
+            base.keys.all_robots("sensor/gnss"), GnssFix, lambda m, k: got.append(m.stamp)
+        )
+        yield agent, driver
+
+
 def test_scans_before_the_first_altimeter_reading_are_dropped(endpoint: str) -> None:
     with Bus(ZenohConfig(listen=[endpoint]), "default") as bus:
         source = ZenohSensors(bus, "r0")
@@ -69,17 +88,8 @@ def test_a_drivers_gnss_fixes_reach_the_base_station_through_the_agent(relay: bo
     routes nothing between its links, so the base station heard no fix at all. With
     `agent.relay_gnss` the agent passes each fix on, once (its own echo is not), whatever
     its stamp (a stamp limit had stopped the relay for good at one glitch of 1e9 s)."""
-    base_ep, agent_ep = (f"tcp/127.0.0.1:{free_port()}" for _ in range(2))
     got: list[float] = []
-    quiet = {"gossip_scouting": False}  # as the deploy configs: only the links configured
-    with (
-        Bus(ZenohConfig(listen=[base_ep], **quiet), "default") as base,
-        Bus(ZenohConfig(listen=[agent_ep], connect=[base_ep], **quiet), "default") as agent,
-        Bus(ZenohConfig(connect=[agent_ep], **quiet), "default") as driver,
-    ):
-        base.subscribe(
-            base.keys.all_robots("sensor/gnss"), GnssFix, lambda m, k: got.append(m.stamp)
-        )
+    with _base_agent_driver(got) as (agent, driver):
         source = ZenohSensors(agent, "r0", relay_gnss=relay)
         time.sleep(1.0)  # links up
         for t in (0.0, 1e9, 1.0, 2.0):  # a glitched stamp among them (passed on as is)
@@ -97,17 +107,8 @@ def test_relayed_fixes_are_on_the_agents_timeline_and_by_the_lasers_clock() -> N
     had kept the old timeline (the graph tied them to nodes 30 s off: 46 m RMS). A
     receiver stamping GPS time (UTC + 18 s) had bent the map 26 m without a word: its
     fixes are named and not relayed."""
-    base_ep, agent_ep = (f"tcp/127.0.0.1:{free_port()}" for _ in range(2))
     got: list[float] = []
-    quiet = {"gossip_scouting": False}
-    with (
-        Bus(ZenohConfig(listen=[base_ep], **quiet), "default") as base,
-        Bus(ZenohConfig(listen=[agent_ep], connect=[base_ep], **quiet), "default") as agent,
-        Bus(ZenohConfig(connect=[agent_ep], **quiet), "default") as driver,
-    ):
-        base.subscribe(
-            base.keys.all_robots("sensor/gnss"), GnssFix, lambda m, k: got.append(m.stamp)
-        )
+    with _base_agent_driver(got) as (agent, driver):
         source = ZenohSensors(agent, "r0", max_scans_before_altitude=0, relay_gnss=True)
         source.clock = clock = BackStepRepair(offset=30.0)  # a step back of 30 s taken up
         time.sleep(1.0)  # links up

@@ -127,6 +127,13 @@ def validate(cfg: Config) -> None:
     if cfg.sim.clock not in ("lockstep", "realtime"):
         raise ConfigError(f"sim.clock: expected lockstep or realtime, got {cfg.sim.clock!r}")
     _numbers_in_range(cfg)
+    b = cfg.basestation  # (a review's 2-drone rooms15 mission: r1 hovered for good, r0
+    if cfg.exploration.enabled and not b.known_start_poses and not b.gps.enabled:  # alone)
+        raise ConfigError("basestation.known_start_poses = false needs exploration.enabled "
+                          "= false (scripted tours) or basestation.gps.enabled (starts from "
+                          "GNSS headings): exploration gives paths only to robots on the map, "
+                          "and a robot waiting for its first one hovers where matches cannot "
+                          "place it")  # fmt: skip
     _validate_sim(cfg)
     _validate_map(cfg)
     _validate_agent(cfg)

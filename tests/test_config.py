@@ -71,6 +71,8 @@ def test_round_trip(tmp_path: Path) -> None:
         ({"agent.cruise_altitude_m": 0.15}, "agent.cruise_altitude_m"),
         ({"agent.state_period_s": 1.0}, "agent.neighbour_max_age_s"),
         ({"sim.start_spacing_m": 0.3}, "sim.start_spacing_m"),
+        # exploration with unknown starts: a drone waiting for its first path never moved
+        ({"basestation.known_start_poses": False}, "basestation.known_start_poses"),
     ],  # (global_min_score 1.0 turns the whole-map search off, and 0 takes anything: taken)
 )
 def test_bad_values_name_the_key(overrides: dict, key: str) -> None:

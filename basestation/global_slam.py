@@ -56,7 +56,7 @@ from common.geometry import pose7_to_pose4, quat_to_yaw, se2_between, se2_compos
 from common.metrics import TIMINGS_KEPT
 from common.trajectory_io import Trajectory
 from protocol import Keyframe
-from protocol.messages import Scan2D
+from protocol.messages import IN_FLIGHT_M, Scan2D
 
 log = logging.getLogger(__name__)
 
@@ -162,7 +162,14 @@ class GlobalSlam:
         stamp = node_stamp(self._node_stamps, kf) if self.gps_enabled else None
         if kf.seq == 0:  # a known start is T_map_odom: a chain can start on the way
             odom, start = pose7_to_pose4(kf.pose_odom)[[0, 1, 3]], self.known_starts.get(rid)
-            start, start_sigmas = None if start is None else se2_compose(start, odom), None
+            start_sigmas = None
+            o = kf.odom_origin  # a run that began in flight: its odom frame is not the start's
+            if start is not None and o is not None and np.hypot(o.x, o.y) > IN_FLIGHT_M:
+                log.warning("robot %s: its first keyframe here began in flight, %.1f m along "
+                            "its odometry: started there (loosely), not at its start pose",
+                            rid, np.hypot(o.x, o.y))  # fmt: skip
+                start, start_sigmas = se2_compose(start, [o.x, o.y, o.yaw]), SEGMENT_START_SIGMAS
+            start = None if start is None else se2_compose(start, odom)
             T = segment_start(rid, self.graph.robots(), self.T_map_odom, self.store.robot)
             if start is None and T is not None:  # a later run (GNSS fixes as its first's)
                 start, start_sigmas = se2_compose(T, odom), SEGMENT_START_SIGMAS

@@ -359,8 +359,7 @@ class BaseStationNode:
                 continue
             if rid in states:
                 poses[rid] = planar_pose(states[rid])
-            elif rid in alive and rid not in silent:  # no state yet (it may be lost at the
-                # start): its newest keyframe; back from a lost link: its state
+            elif rid in alive and rid not in silent:  # no state yet: its newest keyframe
                 poses[rid] = graph.pose(rid, graph.latest_index(rid))
         keep_unheard_clear(self.steps.explorer, self.slam.known_starts, {*graph.robots(), *states})
         blocked = {rid for rid, st in states.items() if st.status == "blocked"}
@@ -478,6 +477,7 @@ class BaseStationNode:
             "persistence": self.db.stats() and {**self.db.stats(), "recovered": self.recovered},
             "exploration": explorer_stats(self.explorer, self._path_id, self._explore_ms),
             "robot_segments": self.segments.stats(),  # robots with more than one
+            "robot_runs_refused": self.segments.refused_runs(),  # past the segment limit
             "clock_syncs": self.syncs,
             "clock_input_timeouts": self.clock.input_timeouts,
             **self.map.rerender_stats(),

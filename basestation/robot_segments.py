@@ -177,6 +177,15 @@ class RobotSegments:
         session = self._session.get(segment, 0)
         return dataclasses.replace(msg, robot_id=robot_of(segment), session=session)  # type: ignore[type-var]
 
+    def refused_runs(self) -> dict[str, list[int]]:
+        """Robot id -> the sessions of its runs refused (past the segment limit): not
+        mapped, named only in one error line before."""
+        with self._lock:
+            out: dict[str, list[int]] = {}
+            for robot, session in sorted(self.refused):
+                out.setdefault(robot, []).append(session)
+            return out
+
     def stats(self) -> dict[str, Any]:
         """Robots with more than one segment: robot id -> {segment: session}."""
         with self._lock:

@@ -93,6 +93,7 @@ def build_summary(
         "robot_contact": sep is not None and sep < contact_m,
         **_coverage_over_time(out, world_yaml, sim.get("sim_time_s")),
         "rejected_messages": base.get("rejected_messages", {}),
+        "robot_runs_refused": base.get("robot_runs_refused", {}),  # not mapped: past the limit
         # waits of the lock-step clock given up (a base station's step over
         # `sim.basestation_timeout_s`, a cold numba cache): such a run may not repeat
         "lockstep_timeouts": sim.get("basestation_sync_timeouts", 0)

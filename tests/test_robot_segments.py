@@ -155,6 +155,7 @@ def test_segments_beyond_the_graphs_chains_are_refused(caplog) -> None:
     seg = RobotSegments(capacity=3)
     assert [seg.segment("r0", s)[0] for s in (1, 2, 3, 4, 4)] == ["r0", "r0~2", "r0~3", None, None]
     assert seg.refused == {("r0", 4)} and caplog.text.count("is not mapped") == 1
+    assert seg.refused_runs() == {"r0": [4]}  # (in basestation.json and summary.json)
     assert RobotSegments().capacity == 62
 
 
@@ -182,3 +183,19 @@ def test_a_fresh_agent_waits_for_its_odometry_and_knows_it_is_in_flight() -> Non
     assert blind.origin is None and not blind.in_flight
     resumed = FreshStart.of(ResumePoint(odom_origin=[1.0, 2.0, 3.0]))
     assert resumed.settled and resumed.as_list() == [1.0, 2.0, 3.0]
+
+
+def test_a_new_base_station_places_a_run_begun_in_flight_along_its_odometry(caplog) -> None:
+    """A base station started on an empty database (a new laptop) first hears a drone's
+    run that began in flight (its agent restarted afresh): it had placed that run at the
+    drone's known start pose, 4-10 m off, and the drone flew by it into walls. The run
+    starts where its odometry says, loosely, as the agent itself takes it."""
+    cfg = load_config(overrides={"basestation.constraints.enabled": False})
+    start = np.array([2.0, 1.0, 0.5])
+    slam = GlobalSlam(cfg, {"r0": start})
+    for seq in range(4):
+        slam.admit(dataclasses.replace(_kf(seq, 22), odom_origin=OdomOrigin(6.0, -2.0, 0.3)))
+    slam.optimize()
+    expected = se2_compose(start, [6.0, -2.0, 0.3])
+    np.testing.assert_allclose(slam.T_map_odom("r0"), expected, atol=1e-6)
+    assert "began in flight, 6.3 m along its odometry" in caplog.text

@@ -24,6 +24,7 @@ acknowledged are kept aside (`_keep_unsent`), not sent.
 
 from __future__ import annotations
 
+import fcntl
 import json
 import logging
 import math
@@ -33,6 +34,7 @@ import time
 from dataclasses import dataclass, fields
 from pathlib import Path
 
+from common.errors import ConfigError
 from protocol.messages import MAX_SESSION
 
 log = logging.getLogger(__name__)
@@ -141,8 +143,10 @@ def _path_files(directory: Path) -> list[Path]:
 
 def load(directory: Path, max_age_s: float) -> ResumePoint | None:
     """The state of an agent that ran here less than `max_age_s` ago, else None (an
-    older one, or one this program cannot read, is deleted with its keyframes)."""
+    older one, or one this program cannot read, is deleted with its keyframes). The
+    folder is this process's from then on (`hold`)."""
     directory.mkdir(parents=True, exist_ok=True)
+    hold(directory)
     path = directory / STATE_FILE
     if not path.exists():
         return _start_afresh(directory, None)
@@ -191,6 +195,27 @@ def _keep_unsent(directory: Path, point: ResumePoint, why: str) -> None:
                   "%d) no base station acknowledged: kept in %s, not sent", directory, why,
                   unsent, point.acked_seq + 1, point.next_seq - 1, point.chain,
                   keep)  # fmt: skip
+
+
+_held: dict[Path, int] = {}  # state folders this process holds: a descriptor with a flock
+
+
+def hold(directory: Path) -> None:
+    """An exclusive flock on the state folder for the rest of this process, or
+    ConfigError: a second agent started on a running one's folder (a manual start beside
+    the systemd unit) had taken over its session and keyframe numbers, and the base
+    station dropped the robot's keyframes for the rest of the mission."""
+    key = directory.resolve()
+    if key in _held:  # (this process's already: an agent made again, as tests do)
+        return
+    fd = os.open(directory, os.O_RDONLY)  # (the folder itself: no file of its own in it)
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except OSError:
+        os.close(fd)
+        raise ConfigError(f"agent.state_dir {directory}: in use by another agent (one "
+                          "folder per running agent)") from None  # fmt: skip
+    _held[key] = fd
 
 
 def _move_aside(directory: Path, name: str) -> Path | None:

@@ -263,3 +263,20 @@ def test_an_unreadable_state_keeps_its_keyframes_aside(tmp_path: Path, caplog) -
     (kept,) = tmp_path.iterdir()
     assert kept.name.startswith("unreadable-") and "its keyframes kept in" in caplog.text
     assert (kept / "keyframes-0000000000.log").read_bytes() == b"kept"
+
+
+def test_a_second_agent_on_a_state_folder_in_use_is_refused(tmp_path: Path) -> None:
+    """A second agent on a running one's folder (a manual start beside the systemd unit)
+    had taken over its session and keyframe numbers: the base station then dropped the
+    robot's keyframes for the rest of the mission."""
+    import subprocess
+    import sys
+
+    load(tmp_path, 60.0)  # this process holds it now (and may load it again)
+    load(tmp_path, 60.0)
+    other = subprocess.run(
+        [sys.executable, "-c", "import sys; from pathlib import Path; from agent.resume import "
+         "load; load(Path(sys.argv[1]), 60.0)", str(tmp_path)],
+        capture_output=True, text=True, timeout=60,
+    )  # fmt: skip
+    assert other.returncode != 0 and "in use by another agent" in other.stderr

@@ -187,8 +187,7 @@ class Recovered:
 def _exclusive(path: Path) -> int:
     """A descriptor of `path` with an exclusive flock held (Linux: apart from SQLite's
     own locks), or PersistenceError: a second base station on one file had resumed the
-    running mission without a word, and one of the two died at its next commit; two
-    fleets given one file were mixed."""
+    running mission, and one of the two died at its next commit; two fleets mixed."""
     try:
         fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
     except OSError as exc:

@@ -15,7 +15,7 @@ Cartographer's `compute_relations_metrics`) of these absolute errors are reporte
 Cartographer's published Intel / ACES numbers come from its own tool, whose error is
 `delta_est * delta_ref^-1` (compute_relations_metrics_main.cc: its translation is
 `t_est - R(dyaw) t_ref`, which also counts a yaw error over the relation's length; its
-TODO says so). The same rotational error; its translational mean is reported too
+own comment says so). The same rotational error; its translational mean is reported too
 (`trans_err_cartographer_mean_m`): compare that one with Cartographer's numbers (on
 Intel it is ~6 % above ours, on ACES ~1 %).
 

@@ -24,7 +24,6 @@ acknowledged are kept aside (`_keep_unsent`), not sent.
 
 from __future__ import annotations
 
-import fcntl
 import json
 import logging
 import math
@@ -35,6 +34,7 @@ from dataclasses import dataclass, fields
 from pathlib import Path
 
 from common.errors import ConfigError
+from common.file_lock import exclusive
 from protocol.messages import MAX_SESSION
 
 log = logging.getLogger(__name__)
@@ -208,13 +208,10 @@ def hold(directory: Path) -> None:
     key = directory.resolve()
     if key in _held:  # (this process's already: an agent made again, as tests do)
         return
-    fd = os.open(directory, os.O_RDONLY)  # (the folder itself: no file of its own in it)
-    try:
-        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-    except OSError:
-        os.close(fd)
+    fd = exclusive(directory)  # (the folder itself: no file of its own in it)
+    if fd is None:
         raise ConfigError(f"agent.state_dir {directory}: in use by another agent (one "
-                          "folder per running agent)") from None  # fmt: skip
+                          "folder per running agent)")  # fmt: skip
     _held[key] = fd
 
 

@@ -29,7 +29,6 @@ on power loss, after the agent had already dropped them from its outbox).
 
 from __future__ import annotations
 
-import fcntl
 import logging
 import os
 import sqlite3
@@ -46,6 +45,7 @@ from basestation.pcm import LoopMeasurement
 from basestation.robot_segments import as_sent
 from basestation.scan_archive import ScanReader
 from common.errors import PersistenceError, ProtocolError
+from common.file_lock import exclusive
 from protocol import Keyframe, decode, encode
 
 log = logging.getLogger(__name__)
@@ -189,15 +189,12 @@ def _exclusive(path: Path) -> int:
     own locks), or PersistenceError: a second base station on one file had resumed the
     running mission, and one of the two died at its next commit; two fleets mixed."""
     try:
-        fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
+        fd = exclusive(path, os.O_RDWR | os.O_CREAT)
     except OSError as exc:
         raise PersistenceError(f"cannot open database {path}: {exc.strerror}") from None
-    try:
-        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-    except OSError:
-        os.close(fd)
+    if fd is None:
         raise PersistenceError(f"{path}: in use by another base station (a database is "
-                               "one mission's, of one process)") from None  # fmt: skip
+                               "one mission's, of one process)")  # fmt: skip
     return fd
 
 

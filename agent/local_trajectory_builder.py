@@ -75,6 +75,7 @@ class LocalTrajectoryBuilder:
             p_hit=cfg.p_hit,
             p_miss=cfg.p_miss,
             max_finished_submaps=cfg.max_finished_submaps,
+            grazing_keep_cells=cfg.grazing_keep_cells,
         )
         self.matcher = ScanMatcher(
             RealTimeCorrelativeMatcher(

@@ -36,6 +36,7 @@ class Submap:
         initial_size_m: float,
         p_hit: float,
         p_miss: float,
+        grazing_keep_cells: float = 0.0,
     ) -> None:
         self.index = index
         self.T_local_submap = np.asarray(T_local_submap, dtype=np.float64).reshape(3).copy()
@@ -45,6 +46,7 @@ class Submap:
         self.grid = ProbabilityGrid(resolution, (-half, -half), (n, n))
         self.p_hit = p_hit
         self.p_miss = p_miss
+        self.grazing_keep_cells = grazing_keep_cells
         self.finished = False
 
     @property
@@ -73,6 +75,7 @@ class Submap:
             p_hit=self.p_hit,
             p_miss=self.p_miss,
             miss_points_sensor=miss_points_sensor,
+            grazing_keep_cells=self.grazing_keep_cells,
         )
 
     def finish(self) -> None:
@@ -99,6 +102,7 @@ class ActiveSubmaps:
         p_miss: float = 0.49,
         initial_size_m: float = 10.0,
         max_finished_submaps: int | None = None,
+        grazing_keep_cells: float = 0.0,
     ) -> None:
         if scans_per_submap < 1:
             raise ConfigError(f"scans_per_submap must be >= 1, got {scans_per_submap}")
@@ -110,6 +114,7 @@ class ActiveSubmaps:
         self.p_miss = float(p_miss)
         self.initial_size_m = float(initial_size_m)
         self.max_finished_submaps = max_finished_submaps
+        self.grazing_keep_cells = float(grazing_keep_cells)
         self.active: list[Submap] = []  # oldest first, at most 2
         self.finished: list[Submap] = []  # oldest first
         self._next_index = 0
@@ -158,6 +163,7 @@ class ActiveSubmaps:
                 self.initial_size_m,
                 self.p_hit,
                 self.p_miss,
+                self.grazing_keep_cells,
             )
         )
         self._next_index += 1

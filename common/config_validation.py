@@ -313,7 +313,9 @@ def _validate_agent(cfg: Config) -> None:
             "min_num_points",
         ),
     )
-    _non_negative_fields("agent.local_slam", ls, ("max_match_yaw_jump_deg",))  # 0: off
+    _non_negative_fields(
+        "agent.local_slam", ls, ("max_match_yaw_jump_deg", "grazing_keep_cells")
+    )  # 0: off
     if not 0.5 < ls.p_hit < 1.0 or not 0.0 < ls.p_miss < 0.5:
         raise ConfigError("agent.local_slam.p_hit / p_miss: expected 0 < p_miss < 0.5 < p_hit < 1")
     if not 0 <= ls.min_range_m < ls.max_range_m:

@@ -440,7 +440,7 @@ class AgentNode:
             return "waiting"  # for its next path from the base station
         return "done"
 
-    def publish_state(self, stamp: float) -> None:
+    def publish_state(self, stamp: float, status: str | None = None) -> None:
         with self._corr_lock:
             T_map_odom, epoch = self.T_map_odom.copy(), self.epoch
         pose = self.frontend.pose
@@ -449,7 +449,7 @@ class AgentNode:
             RobotState(
                 robot_id=self.robot_id,
                 stamp=stamp,
-                status=self.status(),
+                status=status or self.status(),
                 correction_epoch=epoch,
                 keyframes_sent=self.uplink.next_seq,
                 keyframes_acked=self.outbox.acked_seq + 1,

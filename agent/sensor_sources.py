@@ -228,6 +228,9 @@ class ZenohSensors:
                 yield None  # dropped: no altitude for its keyframe yet
                 continue
             yield msg
+            # the agent's own time on it is no silence: in a lock-step simulation nothing
+            # comes until it answers (a first scan's 15 s of compiling had it warn)
+            self._heard = time.monotonic()
 
 
 class OdometryTrack:

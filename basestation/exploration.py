@@ -483,17 +483,18 @@ class ExplorationManager:
         p = np.asarray(path, dtype=np.float64).reshape(-1, 2)
         self.tasks[robot] = _Task(p[-1].copy(), p)
 
-    def release(self, robot: str, pose: ArrayLike | None = None) -> None:
-        """Forget a robot's goal. `pose`: it went silent there (its link lost) and may
-        fly on: the rest of its path and its end, where it will hover, are kept clear of
-        the others (`silent`, as discs in their plans) until it is heard of again; else
-        (gone for good: a new run of it) its goal is free for the others at once."""
+    def release(self, robot: str, pose: ArrayLike | None = None, stopped: bool = False) -> None:
+        """Forget a robot's goal. `pose`: it went silent there (its link lost) and may fly
+        on: the rest of its path and its end, where it will hover, are kept clear of the
+        others (`silent`, as discs in their plans) until it is heard again (its agent
+        `stopped`: where it hovers); else (a new run of it) its goal is free at once."""
         task = self.tasks.pop(robot, None)
         self.silent.pop(robot, None)
         if pose is not None:
             p = np.asarray(pose, dtype=np.float64)[None, :2]
-            rest = task.path[nearest_leg(task.path, p[0]) + 1 :] if task else p[:0]
+            rest = task.path[nearest_leg(task.path, p[0]) + 1 :] if task and not stopped else p[:0]
             self.silent[robot] = np.vstack([p, rest])
-            log.warning("robot %s silent at %s: its way (%.1f m) kept clear", robot,
-                        np.round(p[0], 2), path_length(self.silent[robot]))  # fmt: skip
+            (log.debug if stopped else log.warning)("robot %s %s at %s: its way (%.1f m) kept "
+                "clear", robot, "stopped" if stopped else "silent", np.round(p[0], 2),
+                path_length(self.silent[robot]))  # fmt: skip
         self.assigner.release(robot)

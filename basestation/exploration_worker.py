@@ -15,7 +15,9 @@ runs repeat exactly.
 from __future__ import annotations
 
 import logging
+import math
 import time
+from collections import Counter
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
 
@@ -28,6 +30,9 @@ from protocol import Path as PathMsg
 from protocol import decode
 
 log = logging.getLogger("basestation.node")
+
+# s of wall time between the INFO lines that sum up the paths sent (`PathLog`)
+PATH_SUMMARY_PERIOD_S = 30.0
 
 
 @dataclass
@@ -52,18 +57,50 @@ class StepResult:
 
 def path_messages(result: StepResult, last_id: int, z: float) -> list[tuple[str, int, PathMsg]]:
     """(robot, path id, Path at altitude `z`) of each robot a step planned for, numbered
-    on from `last_id`, and logged."""
+    on from `last_id`, each logged at DEBUG (`PathLog` sums them up)."""
     out = []
     for path_id, (rid, path) in enumerate(result.paths.items(), last_id + 1):
         over_now = path is None and result.over
         what = "exploration over (path 0)" if over_now else "hold" if path is None else (
             f"{len(path)} points to {path[-1].round(1)}")  # fmt: skip
-        log.info("t=%.1f s: path %d for %s from (%.1f, %.1f): %s",
+        log.debug("t=%.1f s: path %d for %s from (%.1f, %.1f): %s",
                  result.inputs.stamps.get(rid, -1.0), path_id, rid,
                  *result.inputs.poses[rid][:2], what)  # fmt: skip
         msg = path_message(rid, 0 if over_now else path_id, path, z, result.inputs.epoch)
         out.append((rid, path_id, msg))
     return out
+
+
+class PathLog:
+    """The paths sent, summed up at INFO: at the first step, then at most every
+    `period_s` of wall time, and when exploration is over for a robot (path 0). A line
+    per path had been 43 of the base station's 51 lines in `make run` (each step, for
+    each robot that needed one: up to 8 lines a second live)."""
+
+    def __init__(self, period_s: float = PATH_SUMMARY_PERIOD_S) -> None:
+        self.period_s = period_s
+        self.sent: Counter[str] = Counter()  # paths (holds too) by robot, since the last line
+        self.holds = 0
+        self._last = -math.inf  # wall time of the last line
+
+    def note(self, result: StepResult, frontiers: int) -> None:
+        """A step's paths (`frontiers`: how many the explorer has left)."""
+        over = [rid for rid, path in result.paths.items() if path is None and result.over]
+        for rid, path in result.paths.items():
+            if rid not in over:
+                self.sent[rid] += 1
+                self.holds += path is None
+        t = max(result.inputs.stamps.values(), default=-1.0)
+        if over:
+            log.info("t=%.1f s: exploration over for %s (path 0 sent)", t, ", ".join(over))
+        now = time.monotonic()
+        if self.sent and (over or now - self._last >= self.period_s):
+            since = "" if math.isinf(self._last) else f" in {now - self._last:.0f} s"
+            log.info("t=%.1f s: %d paths sent%s (%s; %d of them holds), %d frontiers left", t,
+                     self.sent.total(), since, ", ".join(f"{r} {n}" for r, n in
+                     sorted(self.sent.items())), self.holds, frontiers)  # fmt: skip
+            self.sent.clear()
+            self.holds, self._last = 0, now
 
 
 def run_step(explorer: ExplorationManager, inputs: StepInputs) -> StepResult:
@@ -81,6 +118,14 @@ class ExplorationWorker:
         self.explorer = explorer
         self._pool = ThreadPoolExecutor(1, "exploration")
         self._pending: Future[StepResult] | None = None
+        self.path_log = PathLog()
+
+    def path_messages(
+        self, result: StepResult, last_id: int, z: float
+    ) -> list[tuple[str, int, PathMsg]]:
+        """`path_messages` of a step's result (over: not in flight), summed up in the log."""
+        self.path_log.note(result, len(self.explorer.frontiers))
+        return path_messages(result, last_id, z)
 
     @property
     def busy(self) -> bool:

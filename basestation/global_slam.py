@@ -9,7 +9,8 @@ start, ``basestation.map_frame_robot`` (or else the first robot to send a keyfra
 defines the map frame (its odom frame at its first keyframe). Every other robot's chain
 (and a robot's later segments, basestation/robot_segments.py) floats in its own frame
 until verified inter-robot constraints join it to the map; until then it gets no
-correction and is left out of the map.
+correction and is left out of the map. basestation/map_frame.py warns if they cannot
+be joined (the map's drone never flew).
 
 GPS (``basestation.gps.enabled``): ``map`` is the ENU frame the fixes are converted to
 (in simulation also the world frame). A robot with a known start uses its fixes as GPS
@@ -41,6 +42,7 @@ from basestation.false_matches import FalseMatches
 from basestation.gps_fixes import gnss_start, node_stamp
 from basestation.keyframe_store import KeyframeScans, KeyframeStore
 from basestation.loop_closure_manager import LoopClosureManager
+from basestation.map_frame import MapFrame
 from basestation.node_keys import NodeKeys
 from basestation.persistence import Batch, Fix, Recovered, Start
 from basestation.pose_graph import PoseGraph
@@ -107,6 +109,7 @@ class GlobalSlam:
         self._unsaved_fixes: list[Fix] = []  # GNSS fixes given since then
         self._unsaved_starts: dict[str, Start] = {}  # chains started since then
         self._stored_starts: dict[str, Start] = {}  # restore: as they started then
+        self.map_frame = MapFrame(self)  # who defines map; warns if robots cannot join it
 
     # --- keyframes ----------------------------------------------------------------------
     def admit(self, kf: Keyframe, replay: bool = False) -> int:
@@ -185,7 +188,7 @@ class GlobalSlam:
             elif start is None and rid in self.start_headings:
                 self._floating_starts[rid] = odom  # georeferenced at its first fix
                 log.warning("robot %s: no GNSS fix before its first keyframe", rid)
-            elif start is None and self._defines_map(rid):
+            elif start is None and self.map_frame.defines_map(rid):
                 self.known_starts[rid] = np.zeros(3)
                 start = odom
                 log.info("robot %s defines the map frame", rid)
@@ -237,14 +240,6 @@ class GlobalSlam:
         log.info("robot %s is on the georeferenced map: its GNSS fixes count", rid)
         return True
 
-    def _defines_map(self, rid: str) -> bool:
-        """Whether a robot's first node, with no start pose known, defines `map`: without
-        any known start, `basestation.map_frame_robot` or else the first robot to send."""
-        if self.known_starts or self.start_headings:
-            return False
-        chosen = self.cfg.basestation.map_frame_robot
-        return rid == chosen if chosen else not self.graph.robots()
-
     def optimize(self) -> None:
         """One iSAM2 update. After new constraints one forced relinearization step
         follows at once (loop closures move nodes far; between them iSAM2 checks for
@@ -256,6 +251,7 @@ class GlobalSlam:
         self.updates += 1
         self.update_ms.append(ms)
         self.update_series.add(ms)
+        self.map_frame.check(time.monotonic())
 
     def converge(self, max_iterations: int = 20) -> None:
         """Relinearize until nothing moves (up to `max_iterations` forced iSAM2 steps):
@@ -264,6 +260,7 @@ class GlobalSlam:
         added or removed need not be the optimum yet. Run once the inputs have stopped."""
         if self.graph.num_nodes():
             self.graph.update(extra_iterations=max_iterations)
+            self.map_frame.check(time.monotonic(), final=True)
 
     # --- constraints --------------------------------------------------------------------
     def _chain_covariance(self, robot: str, i: np.ndarray, j: np.ndarray) -> np.ndarray:

@@ -35,7 +35,7 @@ from basestation.exploration_setup import (
     make_explorer,
     planar_pose,
 )
-from basestation.exploration_worker import ExplorationWorker, StepInputs, StepResult, path_messages
+from basestation.exploration_worker import ExplorationWorker, StepInputs, StepResult
 from basestation.global_slam import GlobalSlam
 from basestation.gnss_intake import GnssIntake, map_georeference
 from basestation.gps_fixes import local_pose
@@ -96,8 +96,7 @@ class BaseStationNode:
         self.map = MapBuilder(cfg.map, self.slam.store.scans)
         self.explorer = make_explorer(cfg, lockstep) if cfg.exploration.enabled else None
         self.steps = ExplorationWorker(self.explorer) if self.explorer else None  # live: a thread
-        self._last_explore = 0.0
-        self._path_id = 0
+        self._last_explore, self._path_id = 0.0, 0
         self._explore_ms: deque[float] = deque(maxlen=TIMINGS_KEPT)  # wall time of the steps
         self.inbox = KeyframeInbox()  # bounded (see basestation/inbox.py)
         self.gnss_inbox: queue.Queue[GnssFix] = queue.Queue()  # basestation.gps.enabled
@@ -106,15 +105,13 @@ class BaseStationNode:
         self.segments = RobotSegments()  # each run of a robot's agent: a robot of the graph
         self.neighbours = NeighbourRelay(strictly_earlier=lockstep)
         self.epochs = CorrectionEpochs(self.db)
-        self.intake_pauses = 0
-        self._last_map = 0.0
-        self._map_dirty = False
+        self.intake_pauses = self.syncs = 0
+        self._last_map, self._map_dirty = 0.0, False
         self._lock = threading.Lock()
-        self.syncs = 0
         self.map_history = MapHistory(max_snapshots=cfg.basestation.map_history_max_snapshots)
         self.links: dict[str, dict[str, int]] = {}  # agent -> {"joins": n, "losses": n}
         self._alive: set[str] = set()  # agents whose liveliness token is up
-        self._lost: list[tuple[str, Any]] = []  # (segment, pose) forgotten: run()'s thread
+        self._lost: list[tuple[str, Any, bool]] = []  # (segment, pose, stopped): run()'s thread
         self.recovered: dict[str, Any] = {}
         slam = self.slam  # per-keyframe arrays: keyframe store, pose graph, map builder
         arrays = [slam.store.arrays_nbytes, slam.graph.arrays_nbytes, self.map.arrays_nbytes]
@@ -190,9 +187,10 @@ class BaseStationNode:
         """(Zenoh thread) keep it; answer with where the others are (neighbour guard)."""
         if self.roster.unknown(msg.robot_id, "state") or not (msg := self._to_segment(msg)):
             return
-        with self._lock:  # (a run before the robot's newest: relayed, not explored for)
-            if msg.robot_id == self.segments.current(robot_of(msg.robot_id)):
-                self.states[msg.robot_id] = msg
+        with self._lock:  # (a run before the robot's newest: relayed, not explored for;
+            late = msg.status == "stopped" and robot_of(msg.robot_id) not in self._alive
+            if msg.robot_id == self.segments.current(robot_of(msg.robot_id)) and not late:
+                self.states[msg.robot_id] = msg  # nor a stop that came after its token went)
             answer = self.neighbours.on_state(msg)
         self._send("neighbours", answer)
         store, rid = self.slam.store, msg.robot_id
@@ -211,13 +209,15 @@ class BaseStationNode:
             self._forget(past)
         return msg if segment == msg.robot_id else dataclasses.replace(msg, robot_id=segment)
 
-    def _forget(self, segment: str, silent: bool = False) -> None:
-        """A segment's state forgotten, its goal released on run()'s thread; `silent`:
-        its link is lost, the drone may fly on (`ExplorationManager.release`)."""
+    def _forget(self, segment: str, silent: bool = False) -> bool:
+        """A segment's state forgotten, its goal released on run()'s thread; `silent`: its token
+        went away, the drone may fly on, or hovers if its last state said it stopped (returned)."""
         with self._lock:
             state = self.states.pop(segment, None)
             self.neighbours.forget(segment)
-            self._lost.append((segment, planar_pose(state) if silent and state else None))
+            stopped = state is not None and state.status == "stopped"
+            self._lost.append((segment, planar_pose(state) if silent and state else None, stopped))
+        return stopped
 
     def _send(self, topic: str, msg: Any) -> None:
         """Publish `msg` of a segment (its robot_id) to that run of its robot's agent."""
@@ -233,8 +233,9 @@ class BaseStationNode:
             (self._alive.add if alive else self._alive.discard)(name)
         if alive:
             log.info("agent %s joined", name)
+        elif self._forget(self.segments.current(name), silent=True):  # (a clean stop)
+            log.info("agent %s stopped: its goal is released, where it hovers kept clear", name)
         else:
-            self._forget(self.segments.current(name), silent=True)
             log.warning("agent %s lost (liveliness token gone): its goal is released, its "
                         "way kept clear", name)  # fmt: skip
 
@@ -329,9 +330,9 @@ class BaseStationNode:
                 return  # the explorer is the worker's: released before the next step
             with self._lock:
                 lost, self._lost = self._lost, []
-        for name, pose in lost:
+        for name, pose, stopped in lost:
             if self.steps:
-                self.steps.explorer.release(name, pose)
+                self.steps.explorer.release(name, pose, stopped)
 
     def explore(self) -> None:
         """One exploration step, at once: new paths (map frame) for the robots that need
@@ -369,7 +370,7 @@ class BaseStationNode:
     def _send_paths(self, result: StepResult) -> None:
         """A step's paths: logged, stored, then sent."""
         self._explore_ms.append(result.wall_ms)
-        msgs = path_messages(result, self._path_id, self.cfg.agent.cruise_altitude_m)
+        msgs = self.steps.path_messages(result, self._path_id, self.cfg.agent.cruise_altitude_m)
         out = [(rid, pid, encode(self.segments.address(msg))) for rid, pid, msg in msgs]
         self._path_id += len(out)
         self._persist(Batch(paths=out))
@@ -440,8 +441,7 @@ class BaseStationNode:
     def drain(self, timeout_s: float | None = None) -> None:
         """Process everything already received, and pending verifications."""
         self.clock.sim_gone = True  # the mission is over: what is left is taken as it comes
-        if timeout_s is None:
-            timeout_s = self.cfg.basestation.drain_timeout_s
+        timeout_s = self.cfg.basestation.drain_timeout_s if timeout_s is None else timeout_s
         deadline = time.monotonic() + timeout_s
         while time.monotonic() < deadline:
             busy = self.step(timeout=0.0) or not self.inbox.empty() or not self.slam.idle()

@@ -46,6 +46,7 @@ def slam_stats(slam: GlobalSlam) -> dict[str, Any]:
         **slam.loops.counts(),
         "pcm": slam.loops.pcm_stats(),
         "scans": slam.store.scan_archive.stats(),
+        "map_frame": slam.map_frame.stats(),  # robots that cannot be joined to it, and why
     }
     failed = 0
     if slam.builder is not None:

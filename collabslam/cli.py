@@ -8,6 +8,7 @@ import logging
 import math
 import sys
 import threading
+import time
 from pathlib import Path
 from typing import Any
 
@@ -70,6 +71,12 @@ def cmd_sim(args: argparse.Namespace) -> int:
     return 0
 
 
+# s a stopping agent waits after its last state before its liveliness token goes: Zenoh
+# sends the token's end ahead of data still queued (put and close at once: the state
+# came after the token's end 7 times in 10 on loopback; 0 of 10 with 10 ms between)
+SIGN_OFF_WAIT_S = 0.2
+
+
 def cmd_agent(args: argparse.Namespace) -> int:
     import numpy as np
 
@@ -111,6 +118,9 @@ def cmd_agent(args: argparse.Namespace) -> int:
         node.run(source, stop, cfg.agent.replay_max_unacked if args.replay else None)
         if node.drain(cfg.agent.drain_timeout_s):
             node.forget_state()  # stopped, all acknowledged: the next start is afresh
+        if node.last_scan_stamp is not None:  # a last state, before its token goes: the base
+            node.publish_state(node.last_scan_stamp, "stopped")  # station logs a stop, not a loss
+            time.sleep(SIGN_OFF_WAIT_S)
         if args.out:
             node.write_outputs(Path(args.out))
     return 0

@@ -92,6 +92,9 @@ def build_summary(
         "min_robot_separation_m": sep,
         "robot_contact": sep is not None and sep < contact_m,
         **_coverage_over_time(out, world_yaml, sim.get("sim_time_s")),
+        # robots not on the map, and why none of them can be (None: they can)
+        "unjoined_robots": base.get("map_frame", {}).get("unjoined", []),
+        "unjoinable_reason": base.get("map_frame", {}).get("unjoinable_reason"),
         "rejected_messages": base.get("rejected_messages", {}),
         "robot_runs_refused": base.get("robot_runs_refused", {}),  # not mapped: past the limit
         # waits of the lock-step clock given up (a base station's step over

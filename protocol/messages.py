@@ -39,7 +39,10 @@ MAX_SESSION = 2**32 - 1
 IN_FLIGHT_M = 1.0
 GNSS_ALTITUDE_RANGE_M = (-1000.0, 100_000.0)  # m above the ellipsoid
 MAX_TWIST = 1000.0  # m/s or rad/s in an odometry's twist
-ROBOT_STATUSES = ("starting", "waiting", "flying", "blocked", "hovering", "done", "landed")
+# "stopped": an agent's last state as it stops (the base station logs a stop, not a loss)
+ROBOT_STATUSES = (
+    "starting", "waiting", "flying", "blocked", "hovering", "done", "landed", "stopped",
+)  # fmt: skip
 
 
 class Message:

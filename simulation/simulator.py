@@ -197,8 +197,8 @@ class Simulator:
     def _on_state(self, msg: RobotState, key: str) -> None:
         with self._cond:
             r = self.robots[msg.robot_id]
-            if msg.stamp >= r.state_stamp:
-                r.status, r.state_stamp = msg.status, msg.stamp
+            if msg.stamp >= r.state_stamp and msg.status != "stopped":  # (its agent's last
+                r.status, r.state_stamp = msg.status, msg.stamp  # word: `done` stays done)
             self._cond.notify_all()
 
     def wait_for_agents(self, stop: threading.Event) -> None:
@@ -283,6 +283,10 @@ class Simulator:
     def _late(self, late: list[SimRobot]) -> None:
         """Re-publish the tick to agents that have not answered it; a state that has not
         come in time is taken as lost (an agent sends it once)."""
+        silent = [r.robot_id for r in late if r.answered < self.t]
+        if silent:  # one line for all (a cold start's compiling had made 3 a wait)
+            log.warning("t=%.3f: no command yet from %s; re-publishing the tick", self.t,
+                        ", ".join(silent))  # fmt: skip
         for r in late:
             if r.answered >= self.t:
                 log.warning(
@@ -292,9 +296,6 @@ class Simulator:
                 self.late_states += 1
                 continue
             self.republished += 1
-            log.warning(
-                "t=%.3f: no command yet from %s; re-publishing the tick", self.t, r.robot_id
-            )
             gnss = self.keys.sensor(r.robot_id, "gnss")  # (the base station has it: sent
             for key, payload in r.tick:  # again, it had counted 4 times in the graph)
                 if key != gnss:  # the same messages: measuring again would draw noise

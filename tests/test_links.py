@@ -3,6 +3,7 @@ leave, forgets a lost agent's state and releases its exploration goal."""
 
 from __future__ import annotations
 
+import logging
 import time
 
 import numpy as np
@@ -10,6 +11,7 @@ import pytest
 from process_helpers import poll_until
 
 from basestation.node import BaseStationNode
+from collabslam.cli import SIGN_OFF_WAIT_S
 from collabslam.supervisor import free_port
 from common.bus import Bus
 from common.config import Config, ZenohConfig
@@ -18,11 +20,12 @@ from protocol import RobotState
 
 @pytest.mark.parametrize("said_where", [False, True])
 def test_a_lost_agents_goal_is_released_and_its_way_kept_clear(
-    cfg: Config, endpoint: str, said_where: bool
+    cfg: Config, endpoint: str, said_where: bool, caplog: pytest.LogCaptureFixture
 ) -> None:
     """A lost agent's goal goes back to the queue. One that said where it was flies on
     along its path: the rest of that path, from where its last state put it, stays out
-    of the others' plans (`ExplorationManager.silent`)."""
+    of the others' plans (`ExplorationManager.silent`). The loss is a warning."""
+    caplog.set_level(logging.INFO)
     cfg.exploration.enabled = True
     cfg.zenoh.listen = [endpoint]
     with Bus(cfg.zenoh, cfg.fleet) as bus:
@@ -51,6 +54,43 @@ def test_a_lost_agents_goal_is_released_and_its_way_kept_clear(
             assert "r0" not in node.explorer.silent
         assert node.stats()["links"]["r0"] == {"joins": 1, "losses": 1}
         node.drain(1.0)
+    warned = [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING]
+    assert any(m.startswith("agent r0 lost (liveliness token gone)") for m in warned), warned
+
+
+def test_an_agent_that_says_it_stops_is_not_logged_as_lost(
+    cfg: Config, endpoint: str, caplog: pytest.LogCaptureFixture
+) -> None:
+    """An agent stopped cleanly (a mission's end) sends a last state, `stopped`, before
+    its token goes: the base station logs a stop at INFO, not a loss (it had warned of
+    every drone at the end of every mission), releases its goal and keeps only where it
+    hovers clear (it flies no further)."""
+    caplog.set_level(logging.INFO)
+    cfg.exploration.enabled = True
+    cfg.zenoh.listen = [endpoint]
+    with Bus(cfg.zenoh, cfg.fleet) as bus:
+        node = BaseStationNode(cfg, bus, None)
+        node.start()
+        assert node.explorer is not None
+        node.explorer.restore_task("r0", np.array([[0.0, 0.0], [1.0, 0.0], [3.0, 1.0]]))
+        agent = Bus(ZenohConfig(connect=[endpoint]), cfg.fleet)
+        agent.declare_alive("agent", "r0")
+        assert poll_until(lambda: node.links.get("r0", {}).get("joins") == 1)
+        pose = np.array([0.5, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0])
+        agent.publish(agent.keys.robot("r0", "state"),
+                      RobotState("r0", 1.0, "stopped", -1, 0, 0, 0, pose, pose))  # fmt: skip
+        time.sleep(SIGN_OFF_WAIT_S)  # then its token goes, as `collabslam agent` does
+        agent.close()
+        assert poll_until(lambda: node.links["r0"]["losses"] == 1)
+        node.step()
+        assert "r0" not in node.explorer.tasks and "r0" not in node.states
+        node._on_state(RobotState("r0", 1.0, "stopped", -1, 0, 0, 0, pose, pose), "")
+        assert "r0" not in node.states  # a stop come after the token went: not taken back
+        assert np.allclose(node.explorer.silent["r0"], [[0.5, 0.0]])  # where it hovers
+        node.drain(1.0)
+    messages = [r.getMessage() for r in caplog.records]
+    assert "agent r0 stopped: its goal is released, where it hovers kept clear" in messages
+    assert not [r for r in caplog.records if r.levelno >= logging.WARNING], messages
 
 
 @pytest.mark.e2e

@@ -326,3 +326,41 @@ def test_a_tick_sent_again_leaves_out_its_gnss_fix(endpoint: str) -> None:
             time.sleep(0.05)
         time.sleep(0.3)
     assert [type(m).__name__ for m in got] == ["Altimeter"]
+
+
+def test_a_tick_sent_again_to_several_agents_is_one_line(endpoint: str, caplog) -> None:  # noqa: ANN001
+    """Agents slow to answer a tick (a cold numba cache: 20 s at the first scans) are
+    named on one line a wait, not one line each (12 lines for 3 drones, 4 waits)."""
+    from common.config import load_config
+    from common.scenario import RobotScenario, Scenario
+    from simulation.simulator import Simulator
+    from simulation.world import World
+
+    cfg = load_config(overrides={"exploration.enabled": False})
+    starts = [np.array([1.5 + i, 2.5, 0.0]) for i in range(3)]
+    sc = Scenario("rooms15", [RobotScenario(f"r{i}", s) for i, s in enumerate(starts)])
+    with Bus(ZenohConfig(listen=[endpoint]), cfg.fleet) as bus:
+        sim = Simulator(cfg, bus, sc, World.load("rooms15"), 10.0)
+        sim._late(list(sim.robots.values()))
+    warned = [r.getMessage() for r in caplog.records if r.levelname == "WARNING"]
+    assert warned == ["t=0.000: no command yet from r0, r1, r2; re-publishing the tick"]
+    assert sim.republished == 3
+
+
+def test_an_agents_stop_leaves_the_simulators_status_of_it(endpoint: str) -> None:
+    """An agent's last state as it stops (`stopped`, for the base station's log) does not
+    undo its `done`: the simulator still ends the mission when the others are done."""
+    from common.config import load_config
+    from common.scenario import RobotScenario, Scenario
+    from protocol import RobotState
+    from simulation.simulator import Simulator
+    from simulation.world import World
+
+    cfg = load_config(overrides={"exploration.enabled": False})
+    sc = Scenario("rooms15", [RobotScenario("r0", np.array([1.5, 2.5, 0.0]))])
+    pose = np.array([1.5, 2.5, 0.0, 0.0, 0.0, 0.0, 1.0])
+    with Bus(ZenohConfig(listen=[endpoint]), cfg.fleet) as bus:
+        sim = Simulator(cfg, bus, sc, World.load("rooms15"), 10.0)
+        for status in ("done", "stopped"):
+            sim._on_state(RobotState("r0", 1.0, status, 0, 5, 5, 0, pose, pose), "")
+    assert sim.robots["r0"].status == "done"

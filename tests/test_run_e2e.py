@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -62,6 +63,11 @@ def test_two_robots_short_tour(tmp_path: Path) -> None:
     assert summary["map_coverage"] > 0.2
     m = read_map(out / "map.yaml")
     assert (m.data == 100).sum() > 100 and (m.data == 0).sum() > 1000
+    # the agents stopped at the mission's end say so: a stop each at INFO, no loss warned of
+    base_log = (out / "logs" / "basestation.log").read_text()
+    assert "lost (liveliness" not in base_log and "silent at" not in base_log, base_log[-2000:]
+    assert all(f"INFO [basestation] basestation.node: agent {r} stopped" in base_log
+               for r in ("r0", "r1"))  # fmt: skip
 
 
 def test_unseen_world_three_robots(tmp_path: Path) -> None:
@@ -145,6 +151,10 @@ def test_autonomous_exploration_finishes(tmp_path: Path) -> None:
     assert summary["time_to_95_s"] is not None and summary["time_to_95_s"] <= summary["sim_time_s"]
     assert all(r["collisions"] == 0 for r in summary["robots"]), summary["robots"]
     assert summary["min_robot_separation_m"] > 0.5  # the drones' discs never touched
+    # each path a DEBUG line (43 of the 51 INFO lines of `make run` before), no loss at the end
+    base_log = (out / "logs" / "basestation.log").read_text()
+    assert " INFO " in base_log and not re.search(r" INFO .*: path \d+ for ", base_log)
+    assert "exploration over for" in base_log and "lost (liveliness" not in base_log
 
 
 def test_dead_child_is_named(tmp_path: Path) -> None:

@@ -4,8 +4,12 @@
   1081-beam UTM-30LX scans (40 Hz) go through the whole local SLAM
   (`LocalTrajectoryBuilder`, exactly what the agent runs) on one core.
   `sim.drift_pct` = final position error / distance flown (no loop closing).
-- intel: the whole Intel Research Lab log through the same local SLAM, scored
-  with the Kuemmerle et al. relations (`intel.*`).
+- corridor: 40 m straight along a plain 3 m corridor (88 m long, walls only), where the
+  scans say nothing about the way flown: `corridor.distance_err_pct` is local SLAM's
+  distance flown against the truth's (the odometry's beside it). Misses along grazing
+  rays had eroded the walls ahead, and local SLAM came up 20 % short.
+- intel / aces: the whole Intel Research Lab and ACES logs through the same local SLAM,
+  scored with the Kuemmerle et al. relations (`intel.*`, `aces.*`).
 """
 
 from __future__ import annotations
@@ -23,9 +27,11 @@ from benchmarks.sensor_recording import record_tour
 from common.config import Config
 from common.drift_metrics import drift_percent
 from common.geometry import pose7_to_pose4
+from common.map_io import write_map
 from common.relations import read_relations, score_relations
 from common.trajectory_io import Trajectory, write_tum
 from protocol import Altimeter, Imu, LaserScan, Odometry
+from simulation.world_generator import generate_world
 
 log = logging.getLogger(__name__)
 
@@ -75,6 +81,44 @@ def bench_sim(cfg: Config, out_dir: Path, world: str, length_m: float) -> dict[s
     }
 
 
+CORRIDOR_START = (4.0, 1.5, 0.0)  # m, rad: 4 m into the corridor, on its axis, facing along
+
+
+def corridor_flight(cfg: Config, out_dir: Path, length_m: float = 40.0) -> dict[str, Any]:
+    """Local SLAM and odometry along a plain corridor (module doc): the distance each
+    says was flown against the truth's (%), and its cross-track RMS (m), each track's
+    first pose put on the truth's."""
+    yaml = out_dir / "corridor.yaml"
+    write_map(generate_world("corridor"), yaml)
+    x0, y0, _ = CORRIDOR_START
+    tour = np.array([[x0, y0], [x0 + length_m, y0]])
+    rec = record_tour(cfg, str(yaml), length_m, start=CORRIDOR_START, tour=tour)
+    traj, scans, wall = run_local_slam(cfg, rec.messages)
+    odo = [(m.stamp, pose7_to_pose4(m.pose)) for m in rec.messages if isinstance(m, Odometry)]
+    odometry = Trajectory.from_pose4(np.array([t for t, _ in odo]), np.array([p for _, p in odo]))
+    out: dict[str, Any] = {"length_m": length_m, "scans": scans, "wall_s": wall}
+    for name, track in (("", traj), ("odometry_", odometry)):
+        err, across = _along_corridor(track, rec.ground_truth)
+        out[f"{name}distance_err_pct"] = err
+        out[f"{name}cross_track_rms_m"] = across
+    return out
+
+
+def _along_corridor(track: Trajectory, truth: Trajectory) -> tuple[float, float]:
+    """(distance along x against the truth's, %; RMS of y off the truth's, m) of `track`
+    with its first pose put on the truth's at that stamp."""
+    t = track.stamps
+    true = np.column_stack([np.interp(t, truth.stamps, truth.positions[:, k]) for k in (0, 1)])
+    first, true_yaw = track.poses_se2()[0], np.interp(t[0], truth.stamps, truth.poses_se2()[:, 2])
+    d = true_yaw - first[2]
+    rot = np.array([[np.cos(d), np.sin(d)], [-np.sin(d), np.cos(d)]])
+    xy = (track.positions[:, :2] - first[:2]) @ rot + true[0]
+    flown, true_flown = xy[-1, 0] - xy[0, 0], true[-1, 0] - true[0, 0]
+    return 100.0 * (flown - true_flown) / true_flown, float(
+        np.sqrt(np.mean((xy[:, 1] - true[:, 1]) ** 2))
+    )
+
+
 def bench_carmen(
     cfg: Config, out_dir: Path, log_path: Path, rel_path: Path, name: str
 ) -> dict[str, Any]:
@@ -99,6 +143,8 @@ def run(
     _warm_up(cfg)
     result: dict[str, Any] = {"sim": bench_sim(cfg, out_dir, world, length_m)}
     log.info("sim: %s", result["sim"])
+    result["corridor"] = corridor_flight(cfg, out_dir)
+    log.info("corridor: %s", result["corridor"])
     for name in ("intel", "aces"):
         log_path = data_dir / "carmen" / f"{name}.clf.bz2"
         rel_path = data_dir / "carmen" / f"{name}.relations"

@@ -12,6 +12,7 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
+from numpy.typing import ArrayLike
 
 from agent.path_follower import PathFollower
 from common.config import Config
@@ -33,12 +34,25 @@ class Recording:
 
 
 def record_tour(
-    cfg: Config, world_name: str, length_m: float, seed: int = 0, max_time_s: float = 3600.0
+    cfg: Config,
+    world_name: str,
+    length_m: float,
+    seed: int = 0,
+    max_time_s: float = 3600.0,
+    *,
+    start: ArrayLike | None = None,
+    tour: ArrayLike | None = None,
 ) -> Recording:
+    """`start` [x, y, yaw] and `tour` (N, 2) waypoints: flown as given (else drawn for the
+    world by `seed`, `length_m` long)."""
     world = World.load(world_name)
     s, q = cfg.sim, cfg.sim.quadrotor
-    start = start_poses(world, 1, seed=seed)[0]
-    tour = plan_tours(world, start[None, :], seed=seed, length_m=length_m)[0]
+    if start is None:
+        start = start_poses(world, 1, seed=seed)[0]
+    start = np.asarray(start, dtype=np.float64).reshape(3)
+    if tour is None:
+        tour = plan_tours(world, start[None, :], seed=seed, length_m=length_m)[0]
+    tour = np.asarray(tour, dtype=np.float64)
     rng = np.random.default_rng(seed)
     laser = LaserModel(
         s.laser.beams,

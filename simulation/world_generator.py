@@ -143,6 +143,14 @@ def _floor30x25_plan() -> Plan:
     return p
 
 
+def _corridor_plan() -> Plan:
+    """A plain corridor, 88 x 3 m, walls only: where local SLAM has nothing to go by along
+    the way (`collabslam bench local-slam`'s corridor run; not a shipped world)."""
+    p = Plan(88.0, 3.0)
+    p.free_rects.append((0.0, 0.0, 88.0, 3.0))
+    return p
+
+
 def generate_world(
     kind: str,
     seed: int = 0,
@@ -152,9 +160,10 @@ def generate_world(
     height_m: float = 18.0,
     furniture_per_room: float = 0.7,
 ) -> GridMap:
-    """A world of `kind` ('bshape', 'rooms15', 'floor30x25' or 'random'), deterministic per
-    seed. For the shipped kinds the layout is fixed and the seed only places furniture
-    (bshape has none); width_m and height_m are used by 'random' only."""
+    """A world of `kind` ('bshape', 'rooms15', 'floor30x25', 'corridor' or 'random'),
+    deterministic per seed. For the shipped kinds the layout is fixed and the seed only
+    places furniture (bshape and corridor have none); width_m and height_m are used by
+    'random' only."""
     if not (resolution > 0.0 and math.isfinite(resolution)):
         raise ConfigError(f"resolution must be > 0, got {resolution}")
     if kind == "random":
@@ -163,7 +172,12 @@ def generate_world(
         )
         grid.wgs84_origin = WGS84_ORIGINS["bshape"]
         return grid
-    plans = {"bshape": _bshape_plan, "rooms15": _rooms15_plan, "floor30x25": _floor30x25_plan}
+    plans = {
+        "bshape": _bshape_plan,
+        "rooms15": _rooms15_plan,
+        "floor30x25": _floor30x25_plan,
+        "corridor": _corridor_plan,
+    }
     if kind not in plans:
         raise ConfigError(f"unknown world kind {kind!r}; expected one of {[*plans, 'random']}")
     plan = plans[kind]()
@@ -171,7 +185,7 @@ def generate_world(
         furnish(plan, np.random.default_rng(seed), furniture_per_room, resolution)
     grid = rasterize(plan, resolution)
     validate_world(grid)
-    grid.wgs84_origin = WGS84_ORIGINS[kind]
+    grid.wgs84_origin = WGS84_ORIGINS.get(kind, WGS84_ORIGINS["bshape"])
     return grid
 
 

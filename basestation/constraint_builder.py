@@ -75,6 +75,8 @@ class Job:
     in_node_frames: bool = False
     query_origins: list[np.ndarray] | None = None
     target_nodes: list[NodeKey] | None = None  # "global": the node of each target scan
+    # "global", a join's check (basestation/join_check.py): where the map has node b now
+    check_at: np.ndarray | None = None
 
     def queue_name(self) -> str:
         """A global search's queue: its query robot's, and the target map's first robot."""
@@ -118,6 +120,7 @@ class Job:
 class Verified:
     job: Job
     match: VerifiedMatch  # T_a_b (for "global": node b in the frame of the target's origins)
+    here: VerifiedMatch | None = None  # a join's check: b matched about `check_at`, if it is
 
 
 def find_candidates(
@@ -224,12 +227,33 @@ class ConstraintBuilder:
 
     def cancel_global(self, frames: list[list[str]]) -> None:
         """Drop the waiting global searches whose query robot is now in one of ``frames``
-        (robots mapped in one frame) with the target map's robots: joined since."""
+        (robots mapped in one frame) with the target map's robots: joined since (but not
+        the checks of a join, `Job.check_at`)."""
         with self._lock:
             for name in list(self._global):
                 query, target = name.split(">")
                 if any(query in f and target in f for f in frames):
-                    self.stats["cancelled_global"] += len(self._global.pop(name))
+                    q = self._global.pop(name)
+                    checks = [j for j in q if j.check_at is not None]
+                    self.stats["cancelled_global"] += len(q) - len(checks)
+                    if checks:
+                        self._global[name] = collections.deque(checks, maxlen=q.maxlen)
+
+    def cancel_inter(self, robot: str) -> None:
+        """Drop the waiting inter-robot candidates of `robot`, and their results not taken
+        yet: its join to the map was undone (basestation/join_check.py), and they were
+        searched where the join had put it."""
+        with self._lock:
+            q = self._queues["inter"]
+            keep = [j for j in q if robot not in (j.a[0], j.b[0])]
+            self.stats["cancelled_inter"] += len(q) - len(keep)
+            q.clear()
+            q.extend(keep)
+            self._results = [
+                v
+                for v in self._results
+                if v.job.kind != "inter" or robot not in (v.job.a[0], v.job.b[0])
+            ]
 
     def has_room(self, kind: str) -> bool:
         """False while the queue of ``kind`` is full: a job submitted now would only push
@@ -304,7 +328,7 @@ class ConstraintBuilder:
             ran += 1
         return ran
 
-    def _try_verify(self, job: Job) -> VerifiedMatch | None:
+    def _try_verify(self, job: Job) -> Verified | None:
         try:
             return self._verify(job)
         except TooFewPoints as e:  # (a 3-D robot's scans: a traceback per candidate)
@@ -314,11 +338,11 @@ class ConstraintBuilder:
             log.exception("verification of %s failed", job.kind)
             return None
 
-    def _finish(self, job: Job, match: VerifiedMatch | None) -> None:
+    def _finish(self, job: Job, verified: Verified | None) -> None:
         with self._lock:
-            self.stats[f"verified_{job.kind}" if match else f"failed_{job.kind}"] += 1
-            if match is not None:
-                self._results.append(Verified(job, match))
+            self.stats[f"verified_{job.kind}" if verified else f"failed_{job.kind}"] += 1
+            if verified is not None:
+                self._results.append(verified)
             self._busy = False
             self._busy_kind = None
 
@@ -339,7 +363,7 @@ class ConstraintBuilder:
             if rest > 0:
                 self._stop.wait(rest)
 
-    def _verify(self, job: Job) -> VerifiedMatch | None:
+    def _verify(self, job: Job) -> Verified | None:
         v = self.verifier
         if job.kind == "global":
             target = self._global_targets.pop(job.target_key, None)
@@ -361,16 +385,21 @@ class ConstraintBuilder:
                 "whole-map search of %s:%d against %s: %s", *job.b, job.target_key,
                 "none" if match is None else f"{np.round(match.T_a_b, 2)} score {match.score:.2f}",
             )  # fmt: skip
-            return match
+            if match is None or job.check_at is None:
+                return None if match is None else Verified(job, match)
+            here = v.verify(target, query, job.check_at, sensor_points=query[: job.n_sensor],
+                            query_sensors_b=job.placed_query_sensors())  # fmt: skip
+            return Verified(job, match, here)
         query = job.placed_query()
         target = v.build_target(job.placed_targets(), job.target_origins)
-        return v.verify(
+        match = v.verify(
             target,
             query,
             job.T_a_b_guess,
             sensor_points=query[: job.n_sensor],
             query_sensors_b=job.placed_query_sensors(),
         )
+        return None if match is None else Verified(job, match)
 
 
 def relative_guess(poses: dict[str, np.ndarray], a: NodeKey, b: NodeKey) -> np.ndarray:

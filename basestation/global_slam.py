@@ -40,6 +40,7 @@ from basestation.constraint_builder import (
 )
 from basestation.false_matches import FalseMatches
 from basestation.gps_fixes import gnss_start, node_stamp
+from basestation.join_check import JoinCheck, apart, newly_joined
 from basestation.keyframe_store import KeyframeScans, KeyframeStore
 from basestation.loop_closure_manager import LoopClosureManager
 from basestation.map_frame import MapFrame
@@ -101,6 +102,9 @@ class GlobalSlam:
         self._constraints_added = False  # verified matches handed over since the last update
         self.false_matches = FalseMatches(self.cc, self.graph, self.loops)  # evaluation only
         self.whole_map = WholeMapSearch(self.cc, self.store.points)
+        self.join_check = JoinCheck(
+            self.cc, self.graph, self.loops, self._georeferenced, self.builder
+        )
         self._last_candidate: dict[tuple[str, str], int] = {}  # (robot, target robot) -> index
         self._together: dict[str, frozenset[str]] = {}  # robot -> its map's robots, last search
         self.backfill_open: set[tuple[str, str]] = set()  # joins whose backfill runs (sorted)
@@ -299,7 +303,9 @@ class GlobalSlam:
         components = self.graph.components()
         frames = self._frames(components)
         self.builder.cancel_global(frames)  # searches queued before two maps were joined
-        joined = self._newly_joined(frames)
+        self.join_check.watch()  # robots joined since: checked (basestation/join_check.py)
+        joined = newly_joined(self.graph.num_nodes, self._together, frames)
+        self._together = {r: frozenset(f) for f in frames for r in f}
         if not new and not joined:
             return
         comp_of = {r: c for c in components for r in c}
@@ -324,6 +330,8 @@ class GlobalSlam:
             elif len(frames) > 1 and self.whole_map.floating_due():
                 for floating in frames[1:]:  # where a robot not on the map flew before
                     self._submit_global(key, poses, floating)
+            if self.join_check.due(key):  # a robot joined lately: is it where the join says?
+                self._submit_global(key, poses, frames[0], check=True)
         for a, b in joined:
             self._backfill(a, b, poses)
 
@@ -332,19 +340,6 @@ class GlobalSlam:
         anchored = [r for c in components if self.graph.is_anchored(c[0]) for r in c]
         floating = [c for c in components if not self.graph.is_anchored(c[0])]
         return [anchored, *floating] if anchored else floating
-
-    def _newly_joined(self, frames: list[list[str]]) -> list[tuple[str, str]]:
-        """Pairs of robots that had nodes at the last search, each in a different frame
-        then and in one now (the pair's robot with fewer nodes first)."""
-        before, self._together = self._together, {r: frozenset(f) for f in frames for r in f}
-        pairs = []
-        for comp in frames:
-            for i, a in enumerate(comp):
-                for b in comp[i + 1 :]:
-                    if a in before and b in before and b not in before[a]:
-                        n_a, n_b = self.graph.num_nodes(a), self.graph.num_nodes(b)
-                        pairs.append((a, b) if n_a <= n_b else (b, a))
-        return pairs
 
     def _backfill(self, robot: str, other: str, poses: dict[str, np.ndarray]) -> None:
         """Inter-robot candidates for the nodes ``robot`` added before its map and
@@ -408,10 +403,12 @@ class GlobalSlam:
                 in_node_frames=True, query_origins=q_origins)
         )  # fmt: skip
 
-    def _submit_global(self, key: NodeKey, poses: dict[str, np.ndarray], frame: list[str]) -> None:
+    def _submit_global(
+        self, key: NodeKey, poses: dict[str, np.ndarray], frame: list[str], check: bool = False
+    ) -> None:
         """Queue a search of robot key[0]'s recent scans against the whole map of the robots
-        in ``frame`` (basestation/whole_map_search.py)."""
-        job = self.whole_map.job(key, poses, frame, self._query)
+        in ``frame`` (basestation/whole_map_search.py; `check`: of its join)."""
+        job = self.whole_map.job(key, poses, frame, self._query, check)
         if job is not None:
             self.builder.submit(job)
 
@@ -439,7 +436,10 @@ class GlobalSlam:
 
     def _integrate(self, v: Verified) -> None:
         job, m = v.job, v.match
-        if job.kind == "global":  # tie b to the target map's nearest node, as it was then
+        if self.join_check.takes(job):  # a joined robot's check (basestation/join_check.py)
+            if (r := self.join_check.result(v)) is not None:  # undone: placed anew
+                self._together = apart(self._together, r)  # (its backfill runs again)
+        elif job.kind == "global":  # tie b to the target map's nearest node, as it was then
             a, T_a_b = tie(job, m)
             self.loops.add(a, job.b, T_a_b, m.covariance, "inter")
         elif job.kind == "inter" and self.loops.covered(job.a, job.b):

@@ -203,13 +203,7 @@ class LoopClosureManager:
                         self.links[(m.robot_a, m.robot_b)] = pair
                     pair.append((mid, m.index_a, m.index_b))
             elif mid not in consistent and mid in group.in_graph:
-                self.graph.remove_constraint(group.in_graph.pop(mid))
-                self.accepted.discard(mid)
-                self.accepted_kinds[group.kinds[mid]] -= 1
-                self.changes[mid] = False
-                pair = self.links.get((m.robot_a, m.robot_b))
-                if pair is not None and len(hit := np.flatnonzero(pair.view()[:, 0] == mid)):
-                    pair.drop(int(hit[0]))
+                self._take_out(group, mid)
                 log.info("constraint %d (%s) no longer consistent: removed", mid, group.kinds[mid])
         if separate:  # other pairs the join put on one map use their agreeing matches now
             comps = self.graph.components()
@@ -228,6 +222,33 @@ class LoopClosureManager:
                     self._reconcile(
                         other, accepted if len(accepted) > 1 else self._lone(other, accepted)
                     )
+
+    def _take_out(self, group: _Group, mid: int) -> None:
+        """Match `mid` of `group` leaves the graph."""
+        m = group.measurements[mid]
+        self.graph.remove_constraint(group.in_graph.pop(mid))
+        self.accepted.discard(mid)
+        self.accepted_kinds[group.kinds[mid]] -= 1
+        self.changes[mid] = False
+        pair = self.links.get((m.robot_a, m.robot_b))
+        if pair is not None and len(hit := np.flatnonzero(pair.view()[:, 0] == mid)):
+            pair.drop(int(hit[0]))
+
+    def unlink(self, robot: str) -> int | None:
+        """Take `robot`'s inter-robot constraints out of the graph and forget its matches
+        with other robots (its join was wrong: basestation/join_check.py); the number
+        taken out, or None (nothing changed) if one of them is final (left PCM's window)."""
+        pairs = [p for p in self.groups if robot in p and p[0] != p[1]]
+        if any(len(self.links.get(p, ())) > len(self.groups[p].in_graph) for p in pairs):
+            return None
+        n = 0
+        for p in pairs:
+            group = self.groups.pop(p)
+            for mid in sorted(group.in_graph):
+                self._take_out(group, mid)
+                n += 1
+            self.links.pop(p, None)
+        return n
 
     def _far_from_the_estimate(self, ms: list[LoopMeasurement]) -> set[int]:
         """Ids of the matches that put robot b's node more than `merge_outlier_m` from its

@@ -31,6 +31,7 @@ def slam_stats(slam: GlobalSlam) -> dict[str, Any]:
                     "conflicts": r.chain_conflicts,
                 },  # fmt: skip
                 "anchored": rid in slam.graph.robots() and slam.graph.is_anchored(rid),
+                **slam.join_check.stats(rid),  # joins to the map found wrong (join_check.py)
             }
             for rid, r in slam.store.robots.items()
         },

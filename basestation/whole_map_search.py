@@ -65,10 +65,12 @@ class WholeMapSearch:
         return True
 
     def job(
-        self, key: NodeKey, poses: dict[str, np.ndarray], frame: list[str], query: QueryFn
-    ) -> Job | None:
+        self, key: NodeKey, poses: dict[str, np.ndarray], frame: list[str], query: QueryFn,
+        check: bool = False,
+    ) -> Job | None:  # fmt: skip
         """A search of robot key[0]'s recent scans against the whole map of the robots in
-        ``frame`` (None if it has none)."""
+        ``frame`` (None if it has none); `check`: of a robot on that map, whose join is
+        checked (basestation/join_check.py: it is matched where the map has it, too)."""
         robots = tuple(sorted(r for r in frame if r != key[0] and len(poses.get(r, ()))))
         if not robots:
             return None
@@ -88,9 +90,10 @@ class WholeMapSearch:
         first = max(0, key[1] - self.cc.global_query_keyframes + 1)
         recent = [(key[0], j) for j in range(first, key[1] + 1)]
         q_points, q_origins, n_own = query(key, recent, poses)
+        at = np.array(poses[key[0]][key[1]]) if check else None
         return Job("global", key, key, np.zeros(3), target.scans, q_points, target.origins,
                    n_own, target_key=target.key, in_node_frames=True, query_origins=q_origins,
-                   target_nodes=target.nodes)  # fmt: skip
+                   target_nodes=target.nodes, check_at=at)  # fmt: skip
 
 
 def tie(job: Job, m: VerifiedMatch) -> tuple[NodeKey, np.ndarray]:

@@ -70,6 +70,10 @@ def build_summary(
                 "ate_rmse_m": ate,
                 "on_map": bool(segments)
                 and all(r.get("anchored", True) for r in segments.values()),
+                # joins to the map whole-map searches contradicted: undone (and made
+                # again), or kept (final: its map and trajectory may be wrong)
+                "joins_undone": sum(r.get("joins_undone", 0) for r in segments.values()),
+                "join_contradicted": any(r.get("join_contradicted") for r in segments.values()),
             }
         )
     coverage = accuracy = walls = None

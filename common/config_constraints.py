@@ -57,6 +57,9 @@ class ConstraintConfig:
     # join's matches put it is left out of the graph for good (LoopClosureManager).
     merge_outlier_m: float = 5.0
     global_search_every: int = 5  # keyframes of an unanchored robot between global searches
+    # ... and of a robot joined to the map by matches, for this many keyframes after the
+    # join (0: off): a join the searches contradict is undone (basestation/join_check.py)
+    join_check_keyframes: int = 300
     # Global searches a robot may have waiting; older ones are dropped (live: only the
     # newest scan is worth it). A replay sets it high: every search runs, as at sensor rate.
     global_pending_per_robot: int = 1

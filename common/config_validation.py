@@ -388,7 +388,9 @@ def _validate_backend(b: BaseStationConfig) -> None:
             "max_queue",
         ),
     )
-    _non_negative_fields("basestation.constraints", cc, ("inter_redundant_keyframes",))
+    _non_negative_fields(
+        "basestation.constraints", cc, ("inter_redundant_keyframes", "join_check_keyframes")
+    )
     for key in ("min_score", "min_overlap", "global_min_score"):  # (> 1 had been taken:
         if not 0.0 <= getattr(cc, key) <= 1.0:  # no match ever; 1: whole-map search off)
             raise ConfigError(f"basestation.constraints.{key}: expected 0 <= value <= 1")

@@ -82,6 +82,7 @@ class PathLog:
         self.sent: Counter[str] = Counter()  # paths (holds too) by robot, since the last line
         self.holds = 0
         self._last = -math.inf  # wall time of the last line
+        self._at = (-1.0, 0)  # (t, frontiers left) of the last step noted
 
     def note(self, result: StepResult, frontiers: int) -> None:
         """A step's paths (`frontiers`: how many the explorer has left)."""
@@ -91,16 +92,24 @@ class PathLog:
                 self.sent[rid] += 1
                 self.holds += path is None
         t = max(result.inputs.stamps.values(), default=-1.0)
+        self._at = (t, frontiers)
         if over:
             log.info("t=%.1f s: exploration over for %s (path 0 sent)", t, ", ".join(over))
-        now = time.monotonic()
-        if self.sent and (over or now - self._last >= self.period_s):
-            since = "" if math.isinf(self._last) else f" in {now - self._last:.0f} s"
-            log.info("t=%.1f s: %d paths sent%s (%s; %d of them holds), %d frontiers left", t,
-                     self.sent.total(), since, ", ".join(f"{r} {n}" for r, n in
-                     sorted(self.sent.items())), self.holds, frontiers)  # fmt: skip
-            self.sent.clear()
-            self.holds, self._last = 0, now
+        if over or time.monotonic() - self._last >= self.period_s:
+            self.flush()
+
+    def flush(self) -> None:
+        """Sum up the paths sent since the last line, if any (also at the mission's end:
+        else up to `period_s` of paths were never summed up)."""
+        if not self.sent:
+            return
+        (t, frontiers), now = self._at, time.monotonic()
+        since = "" if math.isinf(self._last) else f" in {now - self._last:.0f} s"
+        log.info("t=%.1f s: %d paths sent%s (%s; %d of them holds), %d frontiers left", t,
+                 self.sent.total(), since, ", ".join(f"{r} {n}" for r, n in
+                 sorted(self.sent.items())), self.holds, frontiers)  # fmt: skip
+        self.sent.clear()
+        self.holds, self._last = 0, now
 
 
 def run_step(explorer: ExplorationManager, inputs: StepInputs) -> StepResult:
@@ -119,12 +128,15 @@ class ExplorationWorker:
         self._pool = ThreadPoolExecutor(1, "exploration")
         self._pending: Future[StepResult] | None = None
         self.path_log = PathLog()
+        self._closed = False
 
     def path_messages(
         self, result: StepResult, last_id: int, z: float
     ) -> list[tuple[str, int, PathMsg]]:
         """`path_messages` of a step's result (over: not in flight), summed up in the log."""
         self.path_log.note(result, len(self.explorer.frontiers))
+        if self._closed:  # the step in flight at the end: the last paths summed up
+            self.path_log.flush()
         return path_messages(result, last_id, z)
 
     @property
@@ -161,7 +173,11 @@ class ExplorationWorker:
         return pending.result()
 
     def close(self) -> StepResult | None:
-        """Wait for the step in flight (returned) and stop the thread."""
+        """Wait for the step in flight (returned) and stop the thread; the paths sent
+        since the path log's last line are summed up (those of the step returned too)."""
         result = self.done(wait=True)
         self._pool.shutdown(wait=True)
+        self._closed = True
+        if result is None:  # (else once its paths are noted)
+            self.path_log.flush()
         return result

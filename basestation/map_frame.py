@@ -94,10 +94,14 @@ class MapFrame:
                 parts += [f"{', '.join(fix)} had no GNSS fix yet"] if fix else []
                 reason = "no robot is on the map" + (f": {'; '.join(parts)}" if parts else "")
             else:
+                # (GPS: one still without a fix joins at its first; said so, not blamed on
+                # the map's drone alone)
+                fix = sorted(r for r in flown if r in self.slam._floating_starts)
                 reason = (f"the map ({', '.join(on_map)}) has {n} keyframe{'s' * (n != 1)} "
                           f"spread over {best:.1f} m; a join needs matches seen from places "
                           f"of it at least {need:g} m apart (merge_min_spread_m): its "
                           f"drone has not flown")  # fmt: skip
+                reason += f"; {', '.join(fix)} had no GNSS fix yet" if fix else ""
         return {
             "map_robots": on_map,
             "map_keyframes": n,

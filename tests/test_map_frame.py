@@ -144,3 +144,28 @@ def test_robots_waiting_for_gnss_are_named(caplog: pytest.LogCaptureFixture) -> 
         assert reason == "no robot is on the map: r1, r2 had no GNSS fix yet"
     finally:
         slam.close()
+
+
+def test_a_robot_waiting_for_gnss_is_named_beside_a_map_that_never_flew(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    """GPS on: r0 had a fix and is the map (it hovers), r1 flew indoors with none yet. r1
+    joins at its first fix (`GlobalSlam._late_start`): the reason says it has none, not
+    only that the map's drone never flew."""
+    cfg = Config()
+    cfg.basestation.gps.enabled = True
+    slam = GlobalSlam(cfg, start_headings={"r0": 0.0, "r1": 0.0}, threaded=False)
+    try:
+        slam.add_gps_fix("r0", 0.0, np.zeros(2), np.array([0.5, 0.5, 1.0]))
+        _fly(slam, "r0", 1)
+        _fly(slam, "r1", 10)
+        caplog.set_level(logging.WARNING)
+        slam.converge()
+        reason = slam.stats()["map_frame"]["unjoinable_reason"]
+        assert reason.startswith("the map (r0) has 1 keyframe spread over 0.0 m")
+        assert reason.endswith("its drone has not flown; r1 had no GNSS fix yet")
+        slam.add_gps_fix("r1", 9.0, np.array([4.5, 0.0]), np.array([0.5, 0.5, 1.0]))
+        slam.optimize()
+        assert slam.stats()["map_frame"]["unjoined"] == []  # its fix joined it
+    finally:
+        slam.close()

@@ -6,11 +6,18 @@ station's 51 lines in `make run`)."""
 from __future__ import annotations
 
 import logging
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
 
-from basestation.exploration_worker import PathLog, StepInputs, StepResult, path_messages
+from basestation.exploration_worker import (
+    ExplorationWorker,
+    PathLog,
+    StepInputs,
+    StepResult,
+    path_messages,
+)
 
 
 def _result(paths: dict[str, np.ndarray | None], over: bool = False, t: float = 1.0) -> StepResult:
@@ -58,3 +65,33 @@ def test_the_paths_are_summed_up_at_the_first_step_then_each_period_and_at_the_e
     paths.period_s = 0.0  # a period gone by: the next step is summed up
     paths.note(_result({"r2": way}, t=31.0), frontiers=1)
     assert len(_infos(caplog)) == 1 and "1 paths sent in" in _infos(caplog)[0]
+
+
+def test_the_paths_since_the_last_line_are_summed_up_at_the_end(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    """A mission that ends without exploration over (its time up): the paths sent since
+    the last line are summed up once more (else up to a period's were never told)."""
+    caplog.set_level(logging.INFO, logger="basestation.node")
+    paths = PathLog(period_s=3600.0)
+    way = np.array([[1.0, 2.0], [3.0, 2.0]])
+    paths.note(_result({"r0": way}, t=0.0), frontiers=5)
+    for k in range(1, 4):
+        paths.note(_result({"r0": way, "r1": None}, t=float(k)), frontiers=4)
+    assert len(_infos(caplog)) == 1
+    paths.flush()
+    last = _infos(caplog)[-1]
+    assert last.startswith("t=3.0 s: 6 paths sent in ")
+    assert last.endswith(" s (r0 3, r1 3; 3 of them holds), 4 frontiers left")
+    paths.flush()  # nothing new: no line
+    assert len(_infos(caplog)) == 2
+    caplog.clear()
+    worker = ExplorationWorker(SimpleNamespace(frontiers=[1, 2]))  # type: ignore[arg-type]
+    worker.path_log.period_s = 3600.0
+    for k in range(3):
+        worker.path_messages(_result({"r0": way}, t=float(k)), k, 1.0)
+    assert worker.close() is None  # the mission's end (basestation/node.py `drain`)
+    assert [m[:25] for m in _infos(caplog)] == [
+        "t=0.0 s: 1 paths sent (r0",
+        "t=2.0 s: 2 paths sent in ",
+    ]

@@ -177,7 +177,8 @@ class GlobalSlam:
                             rid, np.hypot(o.x, o.y))  # fmt: skip
                 start, start_sigmas = se2_compose(start, [o.x, o.y, o.yaw]), SEGMENT_START_SIGMAS
             start = None if start is None else se2_compose(start, odom)
-            T = segment_start(rid, self.graph.robots(), self.T_map_odom, self.store.robot)
+            T_map_odom = self.join_check.settled(self.T_map_odom)  # (not a join checked)
+            T = segment_start(rid, self.graph.robots(), T_map_odom, self.store.robot)
             if start is None and T is not None:  # a later run (GNSS fixes as its first's)
                 start, start_sigmas = se2_compose(T, odom), SEGMENT_START_SIGMAS
                 if robot_of(rid) in self._georeferenced:

@@ -234,14 +234,18 @@ class LoopClosureManager:
         if pair is not None and len(hit := np.flatnonzero(pair.view()[:, 0] == mid)):
             pair.drop(int(hit[0]))
 
-    def unlink(self, robot: str) -> int | None:
+    def unlink(self, robot: str, measurement_id: int | None = None) -> int | None:
         """Take `robot`'s inter-robot constraints out of the graph and forget its matches
         with other robots (its join was wrong: basestation/join_check.py); the number
-        taken out, or None (nothing changed) if one of them is final (left PCM's window)."""
+        taken out, or None (nothing changed) if one of them is final (left PCM's window).
+        Journaled as a match of kind "unlink" (`measurement_id`: its id, on replay)."""
         pairs = [p for p in self.groups if robot in p and p[0] != p[1]]
         if any(len(self.links.get(p, ())) > len(self.groups[p].in_graph) for p in pairs):
             return None
-        n = 0
+        self._next_id = self._next_id if measurement_id is None else measurement_id
+        mark = LoopMeasurement(self._next_id, robot, 0, robot, 0, np.zeros(3), np.eye(3))
+        self.journal.append((mark, "unlink"))  # (a restart undoes the join too)
+        self._next_id, n = self._next_id + 1, 0
         for p in pairs:
             group = self.groups.pop(p)
             for mid in sorted(group.in_graph):

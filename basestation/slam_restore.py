@@ -53,10 +53,14 @@ def replay_order(rec: Recovered) -> Iterator[tuple[str, list[Any]]]:
 
 def replay_matches(slam: GlobalSlam, stored: list[StoredConstraint]) -> None:
     """One batch's stored matches through the loop-closure manager (not verified again),
-    the graph optimized before and after, as when they were first added."""
+    the graph optimized before and after, as when they were first added; and the joins
+    to the map undone between them (kind "unlink")."""
     slam.optimize()
     for c in stored:
         m = c.measurement
+        if c.kind == "unlink":  # a join undone there (basestation/join_check.py)
+            slam.join_check.replay_undo(m.robot_a, m.id)
+            continue
         try:
             slam.loops.add(
                 (m.robot_a, m.index_a), (m.robot_b, m.index_b), m.T_a_b,
@@ -86,13 +90,16 @@ def restore(slam: GlobalSlam, rec: Recovered) -> None:
                     log.error("stored keyframe %s/%d not admitted", kf.robot_id, kf.seq)
             slam.saved(Batch(items))  # on disk already: the scans may leave memory, and
             slam._unsaved.clear()  # the journal need not keep the keyframes till the end
+        slam.join_check.watch()  # joins to the map made as live: checked from there on
     slam.optimize()
     slam._new_nodes.clear()  # their candidates were searched before the crash
     slam.backfilled = set(rec.backfilled)
     slam._together = together_after_restore(slam, rec.backfilled)
     slam.take_journal()  # all of it is on disk already
     accepted = slam.loops.accepted
-    differ = sum(c.in_graph != (c.measurement.id in accepted) for c in rec.constraints)
+    differ = sum(
+        c.in_graph != (c.measurement.id in accepted) for c in rec.constraints if c.kind != "unlink"
+    )
     if differ:
         log.warning("%d restored matches changed in/out of the graph on replay", differ)
 

@@ -18,6 +18,23 @@ from common.config import Config, ZenohConfig
 from protocol import RobotState
 
 
+def _exploring_with_r0(
+    cfg: Config, bus: Bus, endpoint: str, **other_tasks: list[list[float]]
+) -> tuple[BaseStationNode, Bus]:
+    """An exploring base station on `bus` whose r0 (alive, on its own bus: returned) has
+    a path, as have `other_tasks`' robots."""
+    node = BaseStationNode(cfg, bus, None)
+    node.start()
+    assert node.explorer is not None
+    node.explorer.restore_task("r0", np.array([[0.0, 0.0], [1.0, 0.0], [3.0, 1.0]]))
+    for rid, path in other_tasks.items():
+        node.explorer.restore_task(rid, np.array(path))
+    agent = Bus(ZenohConfig(connect=[endpoint]), cfg.fleet)
+    agent.declare_alive("agent", "r0")
+    assert poll_until(lambda: node.links.get("r0", {}).get("joins") == 1)
+    return node, agent
+
+
 @pytest.mark.parametrize("said_where", [False, True])
 def test_a_lost_agents_goal_is_released_and_its_way_kept_clear(
     cfg: Config, endpoint: str, said_where: bool, caplog: pytest.LogCaptureFixture
@@ -29,14 +46,7 @@ def test_a_lost_agents_goal_is_released_and_its_way_kept_clear(
     cfg.exploration.enabled = True
     cfg.zenoh.listen = [endpoint]
     with Bus(cfg.zenoh, cfg.fleet) as bus:
-        node = BaseStationNode(cfg, bus, None)
-        node.start()
-        assert node.explorer is not None
-        node.explorer.restore_task("r0", np.array([[0.0, 0.0], [1.0, 0.0], [3.0, 1.0]]))
-        node.explorer.restore_task("r1", np.array([[0.0, 0.0], [-3.0, 1.0]]))
-        agent = Bus(ZenohConfig(connect=[endpoint]), cfg.fleet)
-        agent.declare_alive("agent", "r0")
-        assert poll_until(lambda: node.links.get("r0", {}).get("joins") == 1)
+        node, agent = _exploring_with_r0(cfg, bus, endpoint, r1=[[0.0, 0.0], [-3.0, 1.0]])
         node.step()
         assert "r0" in node.explorer.tasks  # alive: keeps its goal
         if said_where:
@@ -69,13 +79,7 @@ def test_an_agent_that_says_it_stops_is_not_logged_as_lost(
     cfg.exploration.enabled = True
     cfg.zenoh.listen = [endpoint]
     with Bus(cfg.zenoh, cfg.fleet) as bus:
-        node = BaseStationNode(cfg, bus, None)
-        node.start()
-        assert node.explorer is not None
-        node.explorer.restore_task("r0", np.array([[0.0, 0.0], [1.0, 0.0], [3.0, 1.0]]))
-        agent = Bus(ZenohConfig(connect=[endpoint]), cfg.fleet)
-        agent.declare_alive("agent", "r0")
-        assert poll_until(lambda: node.links.get("r0", {}).get("joins") == 1)
+        node, agent = _exploring_with_r0(cfg, bus, endpoint)
         pose = np.array([0.5, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0])
         agent.publish(agent.keys.robot("r0", "state"),
                       RobotState("r0", 1.0, "stopped", -1, 0, 0, 0, pose, pose))  # fmt: skip
